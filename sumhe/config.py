@@ -1,0 +1,331 @@
+"""Configuration: one TOML file loaded once into frozen, validated settings.
+
+This is the only module that reads configuration files or the environment. Precedence:
+overrides (CLI) > environment (``SUMHE_<SECTION>__<KEY>``, e.g. ``SUMHE_CAN__CHANNEL=vcan1``) > file >
+defaults. Every error is a :class:`~sumhe.errors.ConfigError` naming the file and the key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import sys
+import types
+import typing
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Union
+
+from sumhe.errors import ConfigError
+from sumhe.estimator.settings import EstimatorSettings
+from sumhe.messages import CAN_QUANTITIES
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised on Python 3.10 only
+    import tomli as tomllib
+
+PACKAGE_DATA = Path(__file__).parent / "data"
+DEFAULT_DBC = "dbc/sumhe_ref.dbc"
+
+
+def default_can_interface() -> str:
+    """``socketcan`` on Linux (the field default), python-can's in-process ``virtual`` bus elsewhere."""
+    return "socketcan" if sys.platform.startswith("linux") else "virtual"
+
+
+@dataclass(frozen=True, slots=True)
+class SignalSpec:
+    """Where one quantity lives in the DBC: ``MESSAGE.SIGNAL``; unit from the DBC unless overridden.
+
+    ``scale`` multiplies the SI value (use -1 to flip a sign convention).
+    """
+
+    message: str
+    signal: str
+    scale: float = 1.0
+    unit: str | None = None
+
+    @property
+    def name(self) -> str:
+        return f"{self.message}.{self.signal}"
+
+
+@dataclass(frozen=True, slots=True)
+class CanSettings:
+    interface: str = field(default_factory=default_can_interface)
+    channel: str = "vcan0"
+    bitrate: int | None = None
+    dbc: str = DEFAULT_DBC
+    dbc_strict: bool = True
+    receive_timeout_s: float = 1.0
+    queue_size: int = 2000
+    reconnect_max_s: float = 5.0
+    signals: Mapping[str, SignalSpec] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        _positive(self, "receive_timeout_s", "queue_size", "reconnect_max_s")
+        if self.bitrate is not None and self.bitrate <= 0:
+            raise ValueError("bitrate: must be positive")
+
+
+@dataclass(frozen=True, slots=True)
+class GpsSettings:
+    """The GNSS receiver: a serial ``port`` (live) or a ``file`` of NMEA lines (replay)."""
+
+    port: str | None = "/dev/ttyUSB0"
+    baudrate: int = 115200
+    file: str | None = None
+    latency_s: float = 0.0
+    receive_timeout_s: float = 2.0
+    queue_size: int = 200
+    reconnect_max_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        _positive(self, "baudrate", "receive_timeout_s", "queue_size", "reconnect_max_s")
+        if self.latency_s < 0:
+            raise ValueError("latency_s: must be >= 0")
+
+
+@dataclass(frozen=True, slots=True)
+class DatumSettings:
+    """Origin of the local east/north/up frame: the first valid fix, or a fixed point."""
+
+    mode: str = "first_fix"
+    lat: float | None = None
+    lon: float | None = None
+    alt: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("first_fix", "fixed"):
+            raise ValueError("mode: must be 'first_fix' or 'fixed'")
+        if self.mode == "fixed":
+            if self.lat is None or self.lon is None:
+                raise ValueError("lat: 'fixed' datum needs lat and lon")
+            if not -90.0 <= self.lat <= 90.0:
+                raise ValueError("lat: must be within [-90, 90]")
+            if not -180.0 <= self.lon <= 180.0:
+                raise ValueError("lon: must be within [-180, 180]")
+
+
+@dataclass(frozen=True, slots=True)
+class OutputSettings:
+    """Sinks: UDP destinations ``host:port`` and formats ``json`` and/or ``nmea``."""
+
+    udp: tuple[str, ...] = ("127.0.0.1:5005",)
+    formats: tuple[str, ...] = ("json",)
+    status_udp: str | None = None
+    status_interval_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        for f in self.formats:
+            if f not in ("json", "nmea"):
+                raise ValueError(f"formats: unknown format {f!r} (json, nmea)")
+        for dest in (*self.udp, *((self.status_udp,) if self.status_udp else ())):
+            parse_host_port(dest)
+        _positive(self, "status_interval_s")
+
+
+@dataclass(frozen=True, slots=True)
+class Config:
+    """All settings of one sumhe process."""
+
+    can: CanSettings = field(default_factory=CanSettings)
+    gps: GpsSettings = field(default_factory=GpsSettings)
+    datum: DatumSettings = field(default_factory=DatumSettings)
+    output: OutputSettings = field(default_factory=OutputSettings)
+    estimator: EstimatorSettings = field(default_factory=EstimatorSettings)
+    source: str = "<defaults>"
+    base_dir: Path = field(default_factory=Path.cwd)
+
+    def resolve_path(self, value: str, key: str) -> Path:
+        """Find a file named in the config: absolute, next to the config file, in the working directory,
+        or bundled with the package (``dbc/...`` and ``data/...``)."""
+        p = Path(value).expanduser()
+        candidates = [p] if p.is_absolute() else [self.base_dir / p, Path.cwd() / p, PACKAGE_DATA / p.name]
+        for c in candidates:
+            if c.is_file():
+                return c
+        raise ConfigError(f"{self.source}: {key}: file not found: {value}")
+
+    @property
+    def dbc_path(self) -> Path:
+        return self.resolve_path(self.can.dbc, "can.dbc")
+
+
+_SECTIONS: dict[str, type] = {
+    "can": CanSettings,
+    "gps": GpsSettings,
+    "datum": DatumSettings,
+    "output": OutputSettings,
+    "estimator": EstimatorSettings,
+}
+
+
+def parse_host_port(text: str) -> tuple[str, int]:
+    """``"127.0.0.1:5005"`` or ``"[::1]:5005"`` -> (host, port); ValueError naming the text."""
+    host, sep, port = text.rpartition(":")
+    host = host.strip("[]")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"not a host:port destination: {text!r}")
+    return host, int(port)
+
+
+def _positive(obj: object, *names: str) -> None:
+    for n in names:
+        if getattr(obj, n) <= 0:
+            raise ValueError(f"{n}: must be positive")
+
+
+def _parse_signal(value: Any, key: str) -> SignalSpec:
+    if isinstance(value, str):
+        value = {"signal": value}
+    if not isinstance(value, Mapping):
+        raise ValueError(f"{key}: expected 'MESSAGE.SIGNAL' or a table with 'signal'")
+    unknown = set(value) - {"signal", "scale", "unit"}
+    if unknown:
+        raise ValueError(f"{key}.{sorted(unknown)[0]}: unknown key (signal, scale, unit)")
+    name = value.get("signal")
+    if not isinstance(name, str) or name.count(".") != 1 or "" in name.split("."):
+        raise ValueError(f"{key}: expected 'MESSAGE.SIGNAL', got {name!r}")
+    message, signal = name.split(".")
+    scale = value.get("scale", 1.0)
+    if isinstance(scale, bool) or not isinstance(scale, int | float) or scale == 0:
+        raise ValueError(f"{key}.scale: must be a non-zero number")
+    unit = value.get("unit")
+    if unit is not None and not isinstance(unit, str):
+        raise ValueError(f"{key}.unit: must be a string")
+    return SignalSpec(message, signal, float(scale), unit)
+
+
+def _coerce(value: Any, hint: Any, key: str) -> Any:
+    """Check a TOML value against a field's type hint, converting lists to tuples and ints to floats."""
+    origin = typing.get_origin(hint)
+    if origin in (Union, types.UnionType):
+        args = typing.get_args(hint)
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _coerce(value, a, key)
+            except ValueError as e:
+                errors.append(str(e))
+        raise ValueError(errors[0] if errors else f"{key}: bad value {value!r}")
+    if origin is tuple:
+        (item, _ellipsis) = typing.get_args(hint)
+        if isinstance(value, str) or not isinstance(value, list | tuple):
+            raise ValueError(f"{key}: expected a list, got {value!r}")
+        return tuple(_coerce(v, item, key) for v in value)
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ValueError(f"{key}: expected true or false, got {value!r}")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ValueError(f"{key}: expected an integer, got {value!r}")
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ValueError(f"{key}: expected a number, got {value!r}")
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise ValueError(f"{key}: expected a string, got {value!r}")
+        return value
+    raise ValueError(f"{key}: unsupported setting type {hint!r}")
+
+
+def build_section(cls: type, table: Mapping[str, Any], section: str) -> Any:
+    """Build one frozen settings dataclass from a TOML table; ValueError messages name ``section.key``."""
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls) if f.init}
+    kwargs: dict[str, Any] = {}
+    for key, value in table.items():
+        full = f"{section}.{key}"
+        if key not in names:
+            raise ValueError(f"{full}: unknown key (known: {', '.join(sorted(names))})")
+        if cls is CanSettings and key == "signals":
+            if not isinstance(value, Mapping):
+                raise ValueError(f"{full}: expected a table of quantity = 'MESSAGE.SIGNAL'")
+            for q in value:
+                if q not in CAN_QUANTITIES:
+                    raise ValueError(f"{full}.{q}: unknown quantity (known: {', '.join(CAN_QUANTITIES)})")
+            kwargs[key] = {q: _parse_signal(v, f"{full}.{q}") for q, v in value.items()}
+        else:
+            kwargs[key] = _coerce(value, hints[key], full)
+    try:
+        return cls(**kwargs)
+    except ValueError as e:
+        msg = str(e)
+        raise ValueError(msg if msg.startswith(section + ".") else f"{section}.{msg}") from e
+
+
+def _env_overrides(env: Mapping[str, str]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for name, raw in env.items():
+        if not name.startswith("SUMHE_") or "__" not in name:
+            continue
+        section, _, key = name[len("SUMHE_") :].lower().partition("__")
+        try:
+            value: Any = tomllib.loads(f"v = {raw}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = raw
+        out[f"{section}.{key}"] = value
+    return out
+
+
+def _apply(data: dict[str, Any], dotted: Mapping[str, Any], origin: str) -> None:
+    for key, value in dotted.items():
+        section, _, rest = key.partition(".")
+        if section not in _SECTIONS or not rest:
+            raise ConfigError(f"{origin}: {key}: unknown setting")
+        node = data.setdefault(section, {})
+        *parents, leaf = rest.split(".")
+        for p in parents:
+            node = node.setdefault(p, {})
+        node[leaf] = value
+
+
+def load_config(
+    path: str | os.PathLike[str] | None = None,
+    env: Mapping[str, str] | None = None,
+    overrides: Mapping[str, Any] | None = None,
+) -> Config:
+    """Load, merge and validate the configuration; raise ConfigError naming the file and key."""
+    source = str(path) if path is not None else "<defaults>"
+    data: dict[str, Any] = {}
+    if path is not None:
+        p = Path(path)
+        try:
+            data = tomllib.loads(p.read_text(encoding="utf-8"))
+        except FileNotFoundError as e:
+            raise ConfigError(f"{source}: file not found") from e
+        except (OSError, UnicodeDecodeError) as e:
+            raise ConfigError(f"{source}: cannot read: {e}") from e
+        except tomllib.TOMLDecodeError as e:
+            raise ConfigError(f"{source}: not valid TOML: {e}") from e
+    _apply(data, _env_overrides(os.environ if env is None else env), "environment")
+    _apply(data, overrides or {}, "command line")
+    kwargs: dict[str, Any] = {}
+    for section, table in data.items():
+        if section not in _SECTIONS:
+            raise ConfigError(f"{source}: {section}: unknown section (known: {', '.join(_SECTIONS)})")
+        if not isinstance(table, Mapping):
+            raise ConfigError(f"{source}: {section}: expected a table")
+        try:
+            kwargs[section] = build_section(_SECTIONS[section], table, section)
+        except ValueError as e:
+            raise ConfigError(f"{source}: {e}") from e
+    base = Path(path).resolve().parent if path is not None else Path.cwd()
+    return Config(**kwargs, source=source, base_dir=base)
+
+
+def describe(config: Config) -> dict[str, Any]:
+    """The resolved config as plain data, for the start-up log line."""
+    out = {s: dataclasses.asdict(getattr(config, s)) for s in _SECTIONS}
+    out["source"] = config.source
+    return out

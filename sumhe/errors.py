@@ -1,0 +1,25 @@
+"""The error tree of sumhe: one root, multiply inheriting the builtins callers expect."""
+
+
+class SumheError(Exception):
+    """Root of every error sumhe raises on purpose."""
+
+
+class ConfigError(SumheError, ValueError):
+    """A configuration file or value is wrong; the message names the file and the key."""
+
+
+class SourceError(SumheError, ConnectionError):
+    """A sensor source (serial port, CAN bus, log file) cannot be opened or read."""
+
+
+class DecodeError(SumheError, ValueError):
+    """Bytes that cannot be decoded (NMEA sentence, CAN frame, log line)."""
+
+
+class SolverError(SumheError, RuntimeError):
+    """An estimation problem that cannot be built or solved."""
+
+
+class EstimatorInputError(SumheError, ValueError):
+    """Data handed to an estimator that it cannot use (empty, NaN, time going backwards)."""

@@ -1,0 +1,1 @@
+"""Estimators: the state-uniform (SU) batch and moving-horizon estimators."""

@@ -1,0 +1,84 @@
+"""WGS84 geodetic <-> local east/north/up, exact (through ECEF), with no zones or boundaries.
+
+The local frame is tangent to the ellipsoid at a datum; east = x, north = y, up = z, metres.
+Round trips are exact to well below a millimetre anywhere within hundreds of kilometres of the datum.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+WGS84_A = 6378137.0
+WGS84_F = 1.0 / 298.257223563
+WGS84_E2 = WGS84_F * (2.0 - WGS84_F)
+WGS84_B = WGS84_A * (1.0 - WGS84_F)
+WGS84_EP2 = (WGS84_A**2 - WGS84_B**2) / WGS84_B**2
+
+
+def geodetic_to_ecef(lat_deg: ArrayLike, lon_deg: ArrayLike, alt_m: ArrayLike) -> NDArray[np.float64]:
+    """WGS84 latitude, longitude (deg) and ellipsoidal height (m) -> ECEF x, y, z (m), stacked last."""
+    lat = np.radians(np.asarray(lat_deg, dtype=float))
+    lon = np.radians(np.asarray(lon_deg, dtype=float))
+    h = np.asarray(alt_m, dtype=float)
+    sl, cl = np.sin(lat), np.cos(lat)
+    n = WGS84_A / np.sqrt(1.0 - WGS84_E2 * sl * sl)
+    x = (n + h) * cl * np.cos(lon)
+    y = (n + h) * cl * np.sin(lon)
+    z = (n * (1.0 - WGS84_E2) + h) * sl
+    return np.stack(np.broadcast_arrays(x, y, z), axis=-1)
+
+
+def ecef_to_geodetic(xyz: ArrayLike) -> NDArray[np.float64]:
+    """ECEF (m, stacked last) -> latitude, longitude (deg), height (m), stacked last.
+
+    Bowring's closed-form start refined by two Newton-like iterations: sub-micrometre at road heights.
+    """
+    p_xyz = np.asarray(xyz, dtype=float)
+    x, y, z = p_xyz[..., 0], p_xyz[..., 1], p_xyz[..., 2]
+    lon = np.arctan2(y, x)
+    p = np.hypot(x, y)
+    theta = np.arctan2(z * WGS84_A, p * WGS84_B)
+    lat = np.arctan2(z + WGS84_EP2 * WGS84_B * np.sin(theta) ** 3, p - WGS84_E2 * WGS84_A * np.cos(theta) ** 3)
+    for _ in range(2):
+        n = WGS84_A / np.sqrt(1.0 - WGS84_E2 * np.sin(lat) ** 2)
+        h = p / np.cos(lat) - n
+        lat = np.arctan2(z, p * (1.0 - WGS84_E2 * n / (n + h)))
+    n = WGS84_A / np.sqrt(1.0 - WGS84_E2 * np.sin(lat) ** 2)
+    h = p / np.cos(lat) - n
+    return np.stack([np.degrees(lat), np.degrees(lon), h], axis=-1)
+
+
+@dataclass(frozen=True)
+class LocalFrame:
+    """A local east/north/up frame tangent to WGS84 at (lat0_deg, lon0_deg, alt0_m)."""
+
+    lat0_deg: float
+    lon0_deg: float
+    alt0_m: float = 0.0
+    _origin: NDArray[np.float64] = field(init=False, repr=False, compare=False)
+    _rot: NDArray[np.float64] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.lat0_deg) and -90.0 <= self.lat0_deg <= 90.0):
+            raise ValueError(f"lat0_deg: not a latitude: {self.lat0_deg!r}")
+        if not (math.isfinite(self.lon0_deg) and -180.0 <= self.lon0_deg <= 180.0):
+            raise ValueError(f"lon0_deg: not a longitude: {self.lon0_deg!r}")
+        lat, lon = math.radians(self.lat0_deg), math.radians(self.lon0_deg)
+        sl, cl, so, co = math.sin(lat), math.cos(lat), math.sin(lon), math.cos(lon)
+        rot = np.array([[-so, co, 0.0], [-sl * co, -sl * so, cl], [cl * co, cl * so, sl]])
+        object.__setattr__(self, "_origin", geodetic_to_ecef(self.lat0_deg, self.lon0_deg, self.alt0_m))
+        object.__setattr__(self, "_rot", rot)
+
+    def to_enu(self, lat_deg: ArrayLike, lon_deg: ArrayLike, alt_m: ArrayLike = 0.0) -> NDArray[np.float64]:
+        """Geodetic (deg, deg, m) -> east, north, up (m), stacked last."""
+        d = geodetic_to_ecef(lat_deg, lon_deg, alt_m) - self._origin
+        return d @ self._rot.T
+
+    def to_geodetic(self, east_m: ArrayLike, north_m: ArrayLike, up_m: ArrayLike = 0.0) -> NDArray[np.float64]:
+        """East, north, up (m) -> latitude, longitude (deg), height (m), stacked last."""
+        enu = np.stack(np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (east_m, north_m, up_m))), -1)
+        return ecef_to_geodetic(enu @ self._rot + self._origin)

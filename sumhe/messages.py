@@ -1,0 +1,99 @@
+"""Messages that flow through sumhe: GNSS fixes, CAN samples and estimates.
+
+All quantities are SI inside the package (m, s, m/s, rad, rad/s). Angles: azimuth/course/heading
+clockwise from north; yaw rate positive anticlockwise. Latitude and longitude are degrees (WGS84),
+named with ``_deg``. Every message carries ``t``: seconds on the service clock (Unix time for live
+data and logs with receive-time prefixes).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from dataclasses import dataclass
+from typing import Literal
+
+CanQuantity = Literal[
+    "speed",
+    "yaw_rate",
+    "wheel_speed_fl",
+    "wheel_speed_fr",
+    "wheel_speed_rl",
+    "wheel_speed_rr",
+    "steering_angle",
+    "lat_accel",
+    "lon_accel",
+]
+"""Quantities the DBC signal mapping may provide, with their SI units:
+speed and wheel speeds m/s, yaw_rate rad/s (anticlockwise positive), steering_angle rad (left positive),
+accelerations m/s^2."""
+
+CAN_QUANTITIES: tuple[str, ...] = CanQuantity.__args__  # type: ignore[attr-defined]
+
+GpsStatus = Literal["ok", "outage", "rejected"]
+
+
+@dataclass(frozen=True, slots=True)
+class GnssFix:
+    """One GNSS epoch: the sentences of one UTC time of fix assembled into one fix.
+
+    ``t`` is the receive time (s, service clock) when the line carried one, else the fix's UTC time as
+    Unix seconds. ``valid`` is False for fixes with no position (GGA quality 0, RMC status V); such a fix
+    is never used as a position.
+    """
+
+    t: float
+    time_utc: dt.datetime | None
+    lat_deg: float | None
+    lon_deg: float | None
+    alt_m: float | None
+    quality: int
+    valid: bool
+    sats: int | None = None
+    hdop: float | None = None
+    speed_mps: float | None = None
+    course_rad: float | None = None
+    heading_rad: float | None = None
+    sigma_lat_m: float | None = None
+    sigma_lon_m: float | None = None
+    sigma_alt_m: float | None = None
+    talker: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class CanSample:
+    """One decoded CAN quantity, in SI units, at the frame's timestamp ``t`` (s)."""
+
+    t: float
+    quantity: str
+    value: float
+
+
+Sample = GnssFix | CanSample
+"""What every source (serial, CAN bus, replay) yields, in time order per source."""
+
+
+@dataclass(frozen=True, slots=True)
+class Estimate:
+    """One position estimate as the sinks send it.
+
+    ``east_m``/``north_m`` are metres from the datum; ``track_rad`` clockwise from north;
+    ``yaw_rate_rps`` anticlockwise positive. ``gps`` says whether GPS was used at this estimate.
+    ``bound_east_m``/``bound_north_m`` are half-widths of the feasible set of the newest position
+    where the estimator knows them.
+    """
+
+    t: float
+    east_m: float
+    north_m: float
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+    track_rad: float
+    speed_mps: float
+    yaw_rate_rps: float
+    gps: GpsStatus
+    mode: str
+    window: int = 0
+    solve_ms: float = 0.0
+    bound_east_m: float | None = None
+    bound_north_m: float | None = None
