@@ -1,0 +1,197 @@
+"""The shape every live source shares: an async iterator fed by a reader thread through a bounded queue.
+
+A subclass provides three blocking methods: ``_open()`` (acquire the device), ``_read()`` (one blocking read
+returning a list of items, possibly empty on a device-level timeout) and ``_close()``. The base class runs them
+in a daemon thread, reconnects with capped exponential back-off when the device vanishes (any exception from
+``_open``/``_read``), and hands items to the event loop through a bounded queue that drops the OLDEST item when
+full (fresh data beats complete data), counting drops. ``async for`` raises :class:`SourceTimeout` when nothing
+arrived for ``receive_timeout_s``; the source keeps running, so the caller may simply continue iterating.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+from abc import ABC, abstractmethod
+from collections import deque
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from typing import Generic, TypeVar
+
+from sumhe.errors import SourceError
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+
+class SourceTimeout(SourceError, TimeoutError):
+    """Nothing was received within the source's receive timeout."""
+
+
+@dataclass
+class SourceStats:
+    """Counters of one source (read by the status line)."""
+
+    received: int = 0
+    dropped: int = 0
+    reconnects: int = 0
+    errors: int = 0
+    connected: bool = False
+    last_error: str = ""
+
+
+class Backoff:
+    """Capped exponential back-off: 0.1 s, 0.2 s, 0.4 s ... up to ``cap_s``; ``reset()`` after success."""
+
+    def __init__(self, cap_s: float, first_s: float = 0.1) -> None:
+        self.cap_s = cap_s
+        self.first_s = min(first_s, cap_s)
+        self._next = self.first_s
+
+    def next_delay(self) -> float:
+        delay = self._next
+        self._next = min(self._next * 2.0, self.cap_s)
+        return delay
+
+    def reset(self) -> None:
+        self._next = self.first_s
+
+
+class DropOldestQueue(Generic[T]):
+    """A bounded thread-to-asyncio queue that drops the oldest item when full."""
+
+    def __init__(self, maxsize: int, stats: SourceStats) -> None:
+        if maxsize <= 0:
+            raise ValueError("maxsize: must be positive")
+        self._items: deque[T] = deque()
+        self._maxsize = maxsize
+        self._stats = stats
+        self._event = asyncio.Event()
+
+    def put_nowait(self, item: T) -> None:
+        """Append ``item`` (event-loop thread only), dropping the oldest when full."""
+        if len(self._items) >= self._maxsize:
+            self._items.popleft()
+            self._stats.dropped += 1
+        self._items.append(item)
+        self._event.set()
+
+    async def get(self, timeout_s: float) -> T:
+        """Next item; :class:`SourceTimeout` after ``timeout_s`` with nothing."""
+        while not self._items:
+            self._event.clear()
+            try:
+                await asyncio.wait_for(self._event.wait(), timeout_s)
+            except asyncio.TimeoutError as e:
+                raise SourceTimeout(f"nothing received for {timeout_s:g} s") from e
+        return self._items.popleft()
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+class ThreadedSource(ABC, Generic[T]):
+    """Base of the live sources: async context manager and async iterator (see the module docstring)."""
+
+    name = "source"
+
+    def __init__(self, receive_timeout_s: float, queue_size: int, reconnect_max_s: float) -> None:
+        self.receive_timeout_s = receive_timeout_s
+        self.stats = SourceStats()
+        self._queue_size = queue_size
+        self._backoff = Backoff(reconnect_max_s)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._queue: DropOldestQueue[T] | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+
+    @abstractmethod
+    def _open(self) -> None:
+        """Blocking; runs in the reader thread."""
+
+    @abstractmethod
+    def _read(self) -> list[T]:
+        """Blocking; runs in the reader thread."""
+
+    @abstractmethod
+    def _close(self) -> None:
+        """Blocking; runs in the reader thread."""
+
+    async def start(self) -> None:
+        """Start the reader thread (idempotent)."""
+        if self._thread is not None:
+            return
+        self._loop = asyncio.get_running_loop()
+        self._queue = DropOldestQueue(self._queue_size, self.stats)
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name=f"sumhe-{self.name}", daemon=True)
+        self._thread.start()
+
+    async def close(self) -> None:
+        """Stop the reader thread and release the device (idempotent)."""
+        self._stop.set()
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            await asyncio.to_thread(thread.join, 2.0)
+            if thread.is_alive():
+                log.warning("%s: reader thread did not stop within 2 s", self.name)
+
+    async def __aenter__(self) -> ThreadedSource[T]:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    def __aiter__(self) -> AsyncIterator[T]:
+        return self
+
+    async def __anext__(self) -> T:
+        if self._queue is None:
+            await self.start()
+        assert self._queue is not None
+        return await self._queue.get(self.receive_timeout_s)
+
+    def _deliver(self, items: list[T]) -> None:
+        assert self._queue is not None
+        for item in items:
+            self._queue.put_nowait(item)
+
+    def _run(self) -> None:
+        assert self._loop is not None
+        while not self._stop.is_set():
+            try:
+                self._open()
+            except Exception as e:  # any failure to open is retried: the device may come back
+                self._note_failure("open", e)
+                continue
+            self.stats.connected = True
+            self._backoff.reset()
+            log.info("%s: connected", self.name)
+            try:
+                while not self._stop.is_set():
+                    items = self._read()
+                    if items:
+                        self.stats.received += len(items)
+                        self._loop.call_soon_threadsafe(self._deliver, items)
+            except Exception as e:  # the device vanished or failed: close, back off, reopen
+                self._note_failure("read", e)
+            finally:
+                self.stats.connected = False
+                self._safe_close()
+
+    def _note_failure(self, what: str, err: Exception) -> None:
+        self.stats.errors += 1
+        self.stats.last_error = f"{what}: {err}"
+        delay = self._backoff.next_delay()
+        self.stats.reconnects += 1
+        log.warning("%s: %s failed (%s); retrying in %.1f s", self.name, what, err, delay)
+        self._stop.wait(delay)
+
+    def _safe_close(self) -> None:
+        try:
+            self._close()
+        except Exception as e:  # closing a vanished device may fail; nothing more to do
+            log.debug("%s: close failed: %s", self.name, e)
