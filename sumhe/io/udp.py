@@ -1,0 +1,120 @@
+"""UDP output: each estimate as one JSON object per datagram and/or as NMEA GGA + RMC sentences.
+
+Sending never blocks (non-blocking sockets; a full socket buffer drops the datagram and counts it) and a missing
+receiver is not an error (counted, logged once per destination). JSON keys are documented in the README.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import logging
+import math
+import socket
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+from sumhe.config import parse_host_port
+from sumhe.messages import Estimate
+
+log = logging.getLogger(__name__)
+
+
+def iso_utc(t: float) -> str:
+    """Unix seconds -> ISO 8601 UTC with milliseconds, e.g. ``2026-06-01T08:00:00.100Z``."""
+    return dt.datetime.fromtimestamp(t, tz=dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
+
+
+def _round(value: float | None, digits: int) -> float | None:
+    return None if value is None or not math.isfinite(value) else round(value, digits)
+
+
+def estimate_to_json(est: Estimate) -> dict[str, Any]:
+    """The JSON object sent for one estimate (gpsd-like ``TPV``); ``track`` in degrees clockwise from north."""
+    out: dict[str, Any] = {
+        "class": "TPV",
+        "time": iso_utc(est.t),
+        "t": round(est.t, 4),
+        "lat": _round(est.lat_deg, 9),
+        "lon": _round(est.lon_deg, 9),
+        "alt": _round(est.alt_m, 3),
+        "east": _round(est.east_m, 3),
+        "north": _round(est.north_m, 3),
+        "track": _round(math.degrees(est.track_rad) % 360.0, 3),
+        "speed": _round(est.speed_mps, 3),
+        "yaw_rate": _round(est.yaw_rate_rps, 5),
+        "gps": est.gps,
+        "mode": est.mode,
+        "window": est.window,
+        "solve_ms": _round(est.solve_ms, 3),
+    }
+    if est.bound_east_m is not None and est.bound_north_m is not None:
+        out["bound_east"] = _round(est.bound_east_m, 3)
+        out["bound_north"] = _round(est.bound_north_m, 3)
+    return out
+
+
+def encode_json(est: Estimate) -> bytes:
+    """One datagram: compact JSON, UTF-8, no trailing newline."""
+    return json.dumps(estimate_to_json(est), separators=(",", ":")).encode()
+
+
+@dataclass
+class UdpStats:
+    sent: int = 0
+    dropped: int = 0
+    refused: int = 0
+    errors: int = 0
+
+
+class UdpSender:
+    """Fire-and-forget datagrams to fixed ``host:port`` destinations (IPv4 or IPv6)."""
+
+    def __init__(self, destinations: Iterable[str]) -> None:
+        self.stats = UdpStats()
+        self._dests: list[tuple[socket.socket, tuple[Any, ...], str]] = []
+        self._socks: dict[int, socket.socket] = {}
+        self._warned: set[str] = set()
+        for text in destinations:
+            host, port = parse_host_port(text)
+            family, _, _, _, addr = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)[0]
+            sock = self._socks.get(family)
+            if sock is None:
+                sock = socket.socket(family, socket.SOCK_DGRAM)
+                sock.setblocking(False)
+                self._socks[family] = sock
+            self._dests.append((sock, addr, text))
+
+    def send(self, payload: bytes) -> None:
+        """Send ``payload`` to every destination; never blocks, never raises for a network condition."""
+        for sock, addr, text in self._dests:
+            try:
+                sock.sendto(payload, addr)
+                self.stats.sent += 1
+            except BlockingIOError:
+                self.stats.dropped += 1
+            except ConnectionRefusedError:
+                self.stats.refused += 1
+                self._warn_once(text, "no receiver")
+            except OSError as e:
+                self.stats.errors += 1
+                self._warn_once(text, str(e))
+
+    def _warn_once(self, dest: str, why: str) -> None:
+        if dest not in self._warned:
+            self._warned.add(dest)
+            log.warning("udp %s: %s (counted; further occurrences are not logged)", dest, why)
+
+    def close(self) -> None:
+        """Close the sockets (idempotent)."""
+        for sock in self._socks.values():
+            sock.close()
+        self._socks.clear()
+        self._dests.clear()
+
+    def __enter__(self) -> UdpSender:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,114 @@
+from pathlib import Path
+
+import pytest
+
+from sumhe.config import Config, load_config, parse_host_port
+from sumhe.errors import ConfigError
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "c.toml"
+    p.write_text(text)
+    return p
+
+
+def test_every_example_config_loads():
+    configs = sorted((REPO / "configs").glob("*.toml"))
+    assert configs, "configs/ has example configs"
+    for path in configs:
+        cfg = load_config(path, env={})
+        assert cfg.dbc_path.is_file()
+
+
+def test_defaults_are_socketcan_on_vcan0_on_linux(monkeypatch):
+    monkeypatch.setattr("sys.platform", "linux")
+    cfg = Config()
+    assert cfg.can.channel == "vcan0"
+    from sumhe.config import default_can_interface
+
+    assert default_can_interface() == "socketcan"
+
+
+def test_signal_mapping_string_and_table_forms(tmp_path):
+    cfg = load_config(
+        _write(
+            tmp_path,
+            '[can.signals]\nspeed = "SPEED.SPEED"\nyaw_rate = { signal = "KINEMATICS.YAW_RATE", scale = -1.0, unit = "deg/s" }\n',
+        ),
+        env={},
+    )
+    assert cfg.can.signals["speed"].name == "SPEED.SPEED"
+    assert cfg.can.signals["yaw_rate"].scale == -1.0
+    assert cfg.can.signals["yaw_rate"].unit == "deg/s"
+
+
+@pytest.mark.parametrize(
+    ("text", "key"),
+    [
+        ("[can]\nbitrate = 'fast'\n", "can.bitrate"),
+        ("[can]\nchanel = 'vcan0'\n", "can.chanel"),
+        ("[cann]\nchannel = 'vcan0'\n", "cann"),
+        ("[can.signals]\nspeed = 'SPEED'\n", "can.signals.speed"),
+        ("[can.signals]\nvelocity = 'A.B'\n", "can.signals.velocity"),
+        ("[can.signals]\nspeed = { signal = 'A.B', scale = 0 }\n", "can.signals.speed.scale"),
+        ("[gps]\nbaudrate = -1\n", "gps.baudrate"),
+        ("[gps]\nlatency_s = -0.1\n", "gps.latency_s"),
+        ("[datum]\nmode = 'fixed'\n", "datum.lat"),
+        ("[datum]\nmode = 'fixed'\nlat = 91.0\nlon = 0.0\n", "datum.lat"),
+        ("[output]\nudp = ['localhost']\n", "output"),
+        ("[output]\nformats = ['xml']\n", "output.formats"),
+        ("[output]\nudp = '127.0.0.1:1'\n", "output.udp"),
+        ("[estimator]\nmodel = 'su9'\n", "estimator.model"),
+        ("can = 3\n", "can"),
+    ],
+)
+def test_errors_name_the_file_and_the_key(tmp_path, text, key):
+    path = _write(tmp_path, text)
+    with pytest.raises(ConfigError) as err:
+        load_config(path, env={})
+    msg = str(err.value)
+    assert str(path) in msg
+    assert key in msg
+
+
+def test_missing_file_and_bad_toml(tmp_path):
+    with pytest.raises(ConfigError, match="file not found"):
+        load_config(tmp_path / "nope.toml", env={})
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(_write(tmp_path, "[can\n"), env={})
+
+
+def test_missing_dbc_names_the_key(tmp_path):
+    cfg = load_config(_write(tmp_path, "[can]\ndbc = 'no/such.dbc'\n"), env={})
+    with pytest.raises(ConfigError, match=r"can\.dbc"):
+        _ = cfg.dbc_path
+
+
+def test_precedence_overrides_then_env_then_file(tmp_path):
+    path = _write(tmp_path, "[can]\nchannel = 'can0'\nbitrate = 250000\n")
+    cfg = load_config(path, env={"SUMHE_CAN__CHANNEL": "vcan1", "SUMHE_CAN__BITRATE": "500000"})
+    assert (cfg.can.channel, cfg.can.bitrate) == ("vcan1", 500000)
+    cfg = load_config(path, env={"SUMHE_CAN__CHANNEL": "vcan1"}, overrides={"can.channel": "vcan2"})
+    assert cfg.can.channel == "vcan2"
+    with pytest.raises(ConfigError, match="environment"):
+        load_config(path, env={"SUMHE_NOPE__X": "1"})
+
+
+def test_settings_are_frozen(tmp_path):
+    cfg = load_config(_write(tmp_path, ""), env={})
+    with pytest.raises(AttributeError):
+        cfg.can.channel = "x"  # type: ignore[misc]
+
+
+@pytest.mark.parametrize("text", ["127.0.0.1:5005", "[::1]:5005", "localhost:1"])
+def test_parse_host_port_accepts(text):
+    host, port = parse_host_port(text)
+    assert port in (5005, 1) and host
+
+
+@pytest.mark.parametrize("text", ["127.0.0.1", ":5005", "h:0", "h:70000", "h:x"])
+def test_parse_host_port_rejects(text):
+    with pytest.raises(ValueError):
+        parse_host_port(text)
