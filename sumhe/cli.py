@@ -21,6 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "nmea": ("sumhe.commands.nmea", "decode NMEA sentences into fixes (JSON lines)"),
     "candump": ("sumhe.commands.candump", "decode a CAN log with the configured DBC mapping (JSON lines)"),
     "record": ("sumhe.commands.record", "record live CAN frames and NMEA lines for later replay"),
+    "simulate": ("sumhe.commands.simulate", "simulate a drive (CAN log, NMEA, truth) or measure a drive's errors"),
 }
 
 

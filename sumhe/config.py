@@ -63,6 +63,8 @@ class CanSettings:
     queue_size: int = 2000
     reconnect_max_s: float = 5.0
     signals: Mapping[str, SignalSpec] = field(default_factory=dict)
+    e2e: tuple[str, ...] = ()
+    """Messages protected by CRC-8 in byte 0 and a 4-bit rolling counter (see :mod:`sumhe.io.can`)."""
 
     def __post_init__(self) -> None:
         _positive(self, "receive_timeout_s", "queue_size", "reconnect_max_s")

@@ -44,12 +44,20 @@ def ecef_to_geodetic(xyz: ArrayLike) -> NDArray[np.float64]:
     theta = np.arctan2(z * WGS84_A, p * WGS84_B)
     lat = np.arctan2(z + WGS84_EP2 * WGS84_B * np.sin(theta) ** 3, p - WGS84_E2 * WGS84_A * np.cos(theta) ** 3)
     for _ in range(2):
+        h = _height(p, z, lat)
         n = WGS84_A / np.sqrt(1.0 - WGS84_E2 * np.sin(lat) ** 2)
-        h = p / np.cos(lat) - n
         lat = np.arctan2(z, p * (1.0 - WGS84_E2 * n / (n + h)))
-    n = WGS84_A / np.sqrt(1.0 - WGS84_E2 * np.sin(lat) ** 2)
-    h = p / np.cos(lat) - n
-    return np.stack([np.degrees(lat), np.degrees(lon), h], axis=-1)
+    return np.stack([np.degrees(lat), np.degrees(lon), _height(p, z, lat)], axis=-1)
+
+
+def _height(p: NDArray[np.float64], z: NDArray[np.float64], lat: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Height above the ellipsoid (m) at distance ``p`` from the axis, ``z`` along it, latitude ``lat`` (rad).
+
+    ``p cos(lat) + z sin(lat) - a sqrt(1 - e2 sin^2 lat)`` is exact and stable everywhere; the textbook
+    ``p / cos(lat) - N`` loses all accuracy near the poles (km of error within a metre of the axis).
+    """
+    sl, cl = np.sin(lat), np.cos(lat)
+    return p * cl + z * sl - WGS84_A * np.sqrt(1.0 - WGS84_E2 * sl * sl)
 
 
 @dataclass(frozen=True)

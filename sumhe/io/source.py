@@ -170,17 +170,20 @@ class ThreadedSource(ABC, Generic[T]):
             self.stats.connected = True
             self._backoff.reset()
             log.info("%s: connected", self.name)
+            failure: Exception | None = None
             try:
                 while not self._stop.is_set():
                     items = self._read()
                     if items:
                         self.stats.received += len(items)
                         self._loop.call_soon_threadsafe(self._deliver, items)
-            except Exception as e:  # the device vanished or failed: close, back off, reopen
-                self._note_failure("read", e)
+            except Exception as e:  # the device vanished or failed: close first, then back off and reopen
+                failure = e
             finally:
                 self.stats.connected = False
                 self._safe_close()
+            if failure is not None:
+                self._note_failure("read", failure)
 
     def _note_failure(self, what: str, err: Exception) -> None:
         self.stats.errors += 1

@@ -1,0 +1,96 @@
+"""``sumhe candump LOG [--config FILE] [--all]``: decode a CAN log with the configured DBC mapping.
+
+Prints one JSON line per decoded sample (``t`` s, ``message``, ``quantity``, ``value`` in SI units) or, with
+``--all``, one line per signal of every DBC message (``t``, ``message``, ``signal``, ``value``, ``unit`` as
+in the DBC). A summary goes to stderr: frames, per-message rates, decode errors and unused ids. Without
+``--config`` the reference vehicle's mapping (``dbc/sumhe_ref.dbc``) is used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Iterable
+from typing import TextIO
+
+import can
+
+from sumhe.config import Config, load_config
+from sumhe.io.can import EXTENDED_FLAG, REFERENCE_E2E, REFERENCE_SIGNALS, CanDecoder, DecodeStats, LogStats, read_log
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("log", help="CAN log: candump -L .log, .asc, .blf, .trc or .csv (optionally .gz)")
+    parser.add_argument(
+        "--config", metavar="FILE", help="TOML config with [can] dbc and signals (default: reference vehicle)"
+    )
+    parser.add_argument(
+        "--all", action="store_true", help="print every signal of every DBC message in DBC units instead"
+    )
+
+
+def reference_config() -> Config:
+    """Defaults plus the reference vehicle's signal mapping and end-to-end protected messages."""
+    return load_config(None, overrides={"can.signals": REFERENCE_SIGNALS, "can.e2e": list(REFERENCE_E2E)})
+
+
+def run(args: argparse.Namespace) -> int:
+    config = load_config(args.config) if args.config else reference_config()
+    decoder = CanDecoder.from_config(config, every_message=args.all)
+    log_stats = LogStats()
+    frames = read_log(args.log, log_stats)
+    if args.all:
+        _dump_signals(decoder, frames, sys.stdout)
+    else:
+        _dump_samples(decoder, frames, sys.stdout)
+    sys.stdout.flush()
+    sys.stderr.write(summary(decoder.stats, log_stats))
+    return 0
+
+
+def _dump_samples(decoder: CanDecoder, frames: Iterable[can.Message], out: TextIO) -> None:
+    names = decoder.message_names()
+    for msg in frames:
+        for s in decoder.decode(msg):
+            line = {"t": s.t, "message": names[s.quantity], "quantity": s.quantity, "value": s.value}
+            out.write(json.dumps(line) + "\n")
+
+
+def _dump_signals(decoder: CanDecoder, frames: Iterable[can.Message], out: TextIO) -> None:
+    units = {(m.name, s.name): s.unit or "" for m in decoder.db.messages for s in m.signals}
+    for msg in frames:
+        decoded = decoder.decode_signals(msg)
+        if decoded is None:
+            continue
+        name, values = decoded
+        for signal, value in values.items():
+            line = {"t": msg.timestamp, "message": name, "signal": signal, "value": value, "unit": units[name, signal]}
+            out.write(json.dumps(line) + "\n")
+
+
+def summary(stats: DecodeStats, log_stats: LogStats) -> str:
+    """The human-readable stderr summary: counters, mean rate of each message over the log span, unused ids."""
+    duration_s = stats.last_t - stats.first_t
+    lines = [
+        f"frames: {stats.frames} over {duration_s:.3f} s; decoded {stats.decoded}, unused {stats.unused}, "
+        f"decode errors {stats.decode_errors}, CRC errors {stats.crc_errors}, stale {stats.stale}, "
+        f"counter jumps {stats.counter_jumps} ({stats.frames_lost} frames lost), error frames {stats.error_frames}, "
+        f"remote frames {stats.remote_frames}, malformed log lines {log_stats.malformed}"
+    ]
+    if log_stats.error:
+        lines.append(f"log ended early: {log_stats.error}")
+    for name, count in sorted(stats.per_message.items()):
+        if count:
+            rate = f"{count / duration_s:.1f} Hz" if duration_s > 0 else "- Hz"
+            lines.append(f"  {name}: {count} frames, {rate}")
+    if stats.unused_ids:
+        top = sorted(stats.unused_ids.items(), key=lambda kv: -kv[1])[:20]
+        ids = ", ".join(f"{_format_id(k)} ({n})" for k, n in top)
+        more = f" and {len(stats.unused_ids) - len(top)} more" if len(stats.unused_ids) > len(top) else ""
+        lines.append(f"unused ids: {ids}{more}")
+    return "\n".join(lines) + "\n"
+
+
+def _format_id(key: int) -> str:
+    return f"0x{key & ~EXTENDED_FLAG:08X}" if key & EXTENDED_FLAG else f"0x{key:03X}"

@@ -1,0 +1,101 @@
+"""``sumhe simulate --out DIR --seed N [...]`` writes a simulated drive; ``--errors DIR ...`` measures drives.
+
+A drive is ``DIR/drive.log`` (candump -L), ``DIR/drive.nmea`` (receive-time-prefixed NMEA; ``drive2.nmea`` for
+a second antenna), ``DIR/truth.csv`` and ``DIR/scenario.toml``; ``--settings DIR/scenario.toml`` regenerates
+it byte for byte (options given as well override the file). ``--outage 60+10`` is an outage of 10 s from 60 s.
+``--errors`` prints the sensor errors of existing drive directories against their truth, decoded with sumhe's
+own CAN and NMEA decoders.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+
+from sumhe.errors import ConfigError
+from sumhe.sim import SimSettings, load_settings, simulate, write_drive
+from sumhe.sim.measure import format_table, measure_errors
+from sumhe.sim.settings import GPS_ERROR_MODELS, OUTAGE_STYLES, SCENARIO_NAMES
+
+_OVERRIDES = {
+    "seed": "seed",
+    "duration": "duration_s",
+    "scenario": "scenario",
+    "outage": "outages",
+    "outage_style": "outage_style",
+    "gps_error": "gps_error",
+    "gps_error_m": "gps_error_m",
+    "gps_rate": "gps_rate_hz",
+    "multipath": "multipath_per_min",
+    "antennas": "antennas",
+    "antenna_distance": "antenna_distance_m",
+    "truth_rate": "truth_rate_hz",
+    "can_drop_rate": "can_drop_rate",
+}
+"""Command-line option (dest) -> SimSettings field."""
+
+
+def outage(text: str) -> tuple[float, float]:
+    """``START+LEN`` (s) -> (start_s, length_s)."""
+    start, plus, length = text.partition("+")
+    try:
+        if not plus:
+            raise ValueError(text)
+        return float(start), float(length)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected START+LENGTH in seconds (e.g. 60+10), got {text!r}") from None
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    action = parser.add_mutually_exclusive_group(required=True)
+    action.add_argument("--out", type=Path, metavar="DIR", help="write the drive's files into DIR")
+    action.add_argument("--errors", type=Path, nargs="+", metavar="DIR", help="print the errors of drive directories")
+    parser.add_argument("--settings", type=Path, metavar="FILE", help="start from a scenario.toml")
+    parser.add_argument("--seed", type=int, metavar="N", help="random seed (default 0)")
+    parser.add_argument("--duration", type=float, metavar="S", help="length of the drive in s (default 240)")
+    parser.add_argument("--scenario", choices=SCENARIO_NAMES, help="route and driving style (default urban)")
+    parser.add_argument("--outage", type=outage, nargs="+", metavar="START+LEN", help="GPS outages, s from the start")
+    parser.add_argument("--outage-style", choices=OUTAGE_STYLES, help="silent receiver or 'no fix' sentences")
+    parser.add_argument("--gps-error", choices=GPS_ERROR_MODELS, help="GPS error model (default walk)")
+    parser.add_argument("--gps-error-m", type=float, metavar="M", help="scale of the GPS error model (m)")
+    parser.add_argument("--gps-rate", type=float, metavar="HZ", help="GPS fixes per second (default 10)")
+    parser.add_argument("--multipath", type=float, metavar="PER_MIN", help="multipath jumps of 5-50 m per minute")
+    parser.add_argument("--antennas", type=int, choices=(1, 2), help="GPS antennas (2: drive2.nmea and HDT)")
+    parser.add_argument("--antenna-distance", type=float, metavar="M", help="distance between the antennas (m)")
+    parser.add_argument("--truth-rate", type=float, metavar="HZ", help="truth.csv samples per second (default 100)")
+    parser.add_argument("--can-drop-rate", type=float, metavar="P", help="fraction of CAN frames lost (default 0)")
+
+
+def settings_from_args(args: argparse.Namespace) -> SimSettings:
+    """The SimSettings of the command line; ConfigError naming the field when a value is out of range."""
+    overrides = {field: getattr(args, dest) for dest, field in _OVERRIDES.items() if getattr(args, dest) is not None}
+    if "outages" in overrides:
+        overrides["outages"] = tuple(overrides["outages"])
+    try:
+        base = load_settings(args.settings) if args.settings is not None else SimSettings()
+        return dataclasses.replace(base, **overrides)
+    except ValueError as e:
+        raise ConfigError(f"simulate: {e}") from e
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.errors:
+        return _errors(args.errors)
+    settings = settings_from_args(args)
+    drive = simulate(settings)
+    paths = write_drive(drive, args.out)
+    epochs = drive.gps[0]
+    print(
+        f"wrote {args.out}: {settings.scenario} seed {settings.seed}, {settings.duration_s:g} s, "
+        f"{float(drive.applied['distance_m']) / 1000:.2f} km, {len(drive.can_frames)} CAN frames, "
+        f"{int(epochs.sent.sum())} GPS epochs sent ({int((~epochs.valid).sum())} in outages); "
+        f"{', '.join(p.name for p in paths)}"
+    )
+    return 0
+
+
+def _errors(dirs: list[Path]) -> int:
+    for d in dirs:
+        print(format_table(measure_errors(d), f"== {d}"))
+    return 0

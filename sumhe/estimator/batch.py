@@ -1,0 +1,323 @@
+"""The batch state-uniform (SU) estimator: MAP (000 (15)-(17)) made well-posed, and its LP start point.
+
+Pipeline for one window of samples (a time-ordered list of :class:`~sumhe.messages.GnssFix` and
+:class:`~sumhe.messages.CanSample`):
+
+1. :func:`~sumhe.estimator.grid.build_grid`: GNSS epochs as steps, outage gaps filled, CAN on the grid,
+   per-epoch error allowances. :func:`~sumhe.estimator.bounds.noise_bounds`: floors and caps of q and r.
+2. Start point (000 sec. 4.2): the linear SU program (21)-(22) with OSQP and 001's retry rule
+   (:mod:`sumhe.estimator.lp`). :func:`estimate_lp` returns it as an estimator of its own.
+3. Stage 1, the MAP of (q, r) over the feasible set S of (14) with the box prior (11) from the derived
+   floors and caps, by ``settings.objective``:
+   ``"log"``: the paper's (15), ``sum ln q_i + sum (K_j/T) ln r_j`` (K_j: outputs of kind j present);
+   ``"linear"``: ``sum q_i/qcap_i + sum (K_j/T) r_j/rcap_j`` (001's linearised MAP, normalised);
+   ``"caps"``: no stage 1, q and r are their caps (a pure set-membership estimate).
+4. Stage 2, the reported point (``settings.centre``). The objective depends on q and r only, so every
+   trajectory in S(q, r) is a MAP estimate; ``"lsq"`` reports the centre of S(q', r'), with q and r fixed
+   at the stage-1 values widened by ``centre_margin`` (``q' = (1 + margin) q``), as the point minimising
+   ``sum (w_ti / q'_i)^2 + sum (e_kj / r'_j)^2``: the constrained least-squares smoother whose weights are
+   the variances ``q^2/3``, ``r^2/3`` of the uniform noises. ``"none"`` reports the stage-1 point.
+5. On request, the extent of the newest position over S(q', r'): min and max of its east and north
+   (four more solves with a linear objective; a local optimum of a nearly convex set).
+
+One :class:`~sumhe.estimator.problem.SuNlp` per model and window size serves every stage (objective
+weights and bounds are parameters; fixed q, r are variables with equal bounds). If IPOPT fails, the result
+carries the last good point (stage 1, else the LP start) with ``success=False`` and the IPOPT status.
+See ``docs/formulation.md`` for the choices against the paper and their measured effect.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sumhe.estimator.bounds import NoiseBounds, noise_bounds
+from sumhe.estimator.grid import Grid, build_grid
+from sumhe.estimator.lp import LpSolution, solve_lp
+from sumhe.estimator.problem import NlpSolution, SuNlp, build_nlp
+from sumhe.estimator.settings import EstimatorSettings
+from sumhe.geo import LocalFrame
+from sumhe.messages import Sample
+from sumhe.model.su import BIAS_STATE, SCALE_STATE, SuModel, antenna_distance_residual, su_model, wrap_angle
+
+log = logging.getLogger(__name__)
+
+WEIGHTS = {"log": (1.0, 0.0, 0.0), "linear": (0.0, 1.0, 0.0)}
+CENTRE_WEIGHTS = (0.0, 0.0, 1.0)
+NO_WEIGHTS = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class SuResult:
+    """A batch SU estimate on the window's step grid.
+
+    ``states`` (N x m) in the local ``frame`` (positions m, phi rad clockwise from north, v m/s, omega rad/s
+    anticlockwise, bias rad/s, scale 1). ``q`` (at the reference step ``bounds.h_ref``) and ``r`` are the
+    estimated noise bounds in the units of their state/output (NaN where the method does not estimate one).
+    ``extent`` is (east_min, east_max, north_min, north_max) of the newest position, m, when requested.
+    Times in s: ``solve_time_s`` is the whole call, ``ipopt_time_s`` the NLP solves, ``lp_time_s`` the LP.
+    """
+
+    t: NDArray[np.float64]
+    states: NDArray[np.float64]
+    state_names: tuple[str, ...]
+    q: NDArray[np.float64]
+    r: NDArray[np.float64]
+    output_names: tuple[str, ...]
+    method: str
+    status: str
+    success: bool
+    solve_time_s: float
+    ipopt_time_s: float
+    lp_time_s: float
+    iterations: int
+    lp_retries: int
+    gps: NDArray[np.bool_]
+    frame: LocalFrame
+    bounds: NoiseBounds
+    extent: tuple[float, float, float, float] | None = None
+
+    def state(self, name: str) -> NDArray[np.float64]:
+        """One state over the window by name (e.g. ``"px"``, ``"phi"``, ``"yaw_rate_bias"``)."""
+        return self.states[:, self.state_names.index(name)]
+
+    @property
+    def east(self) -> NDArray[np.float64]:
+        """East of the (first) antenna, m."""
+        return self.states[:, 0]
+
+    @property
+    def north(self) -> NDArray[np.float64]:
+        """North of the (first) antenna, m."""
+        return self.states[:, 1]
+
+
+def model_for(settings: EstimatorSettings) -> SuModel:
+    """The SU model the settings select (``model``, ``yaw_rate_bias``, ``speed_scale``)."""
+    return su_model(settings.model, settings.yaw_rate_bias, settings.speed_scale)
+
+
+def state_residuals(model: SuModel, x: NDArray[np.float64], h: NDArray[np.float64]) -> NDArray[np.float64]:
+    """State noise ``w_t = x_t - g(x_{t-1})`` (N-1 x m_dynamic) of a trajectory ``x`` (N x m); angles wrapped."""
+    md = model.n_dynamic
+    w = x[1:, :md] - np.array(model.step(x[:-1].T, h)[:md]).T
+    for i in model.angle_states:
+        w[:, i] = wrap_angle(w[:, i])
+    return w
+
+
+def output_residuals(model: SuModel, x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Output noise ``e_k = y_k - h(x_k)`` (N x n) for all steps (mask the missing ones); angles wrapped."""
+    e = y - np.array(model.output(x.T)).T
+    for j in model.angle_outputs:
+        e[:, j] = wrap_angle(e[:, j])
+    return e
+
+
+def state_box(model: SuModel, n_steps: int, settings: EstimatorSettings) -> tuple[NDArray, NDArray]:
+    """Bounds (11) on every x_t (N x m): speed, yaw rate, CAN bias and scale limits; positions, phi free."""
+    lo = np.full(model.n_states, -np.inf)
+    hi = np.full(model.n_states, np.inf)
+    limits = {
+        "v": (-settings.max_reverse_speed_mps, settings.max_speed_mps),
+        "omega": (-settings.max_yaw_rate_rps, settings.max_yaw_rate_rps),
+        BIAS_STATE: (-settings.yaw_rate_bias_max_rps, settings.yaw_rate_bias_max_rps),
+        SCALE_STATE: (1.0 - settings.speed_scale_max, 1.0 + settings.speed_scale_max),
+    }
+    for name, (a, b) in limits.items():
+        if name in model.states:
+            lo[model.index(name)], hi[model.index(name)] = a, b
+    return np.tile(lo, (n_steps, 1)), np.tile(hi, (n_steps, 1))
+
+
+def start_states(lp: LpSolution, model: SuModel, origin: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The NLP start X0 (000 sec. 4.2) from the LP: positions, its azimuth input, CAN speed and yaw rate."""
+    N = len(lp.phi)
+    x = np.zeros((N, model.n_states))
+    n_pos = 2 * model.antennas
+    x[:, :n_pos] = lp.p - np.tile(origin, model.antennas)
+    x[:, model.index("phi")] = lp.phi
+    x[:, model.index("v")] = lp.speed
+    x[:, model.index("omega")] = lp.yaw_rate
+    if SCALE_STATE in model.states:
+        x[:, model.index(SCALE_STATE)] = 1.0
+    return x
+
+
+def _centred(grid: Grid, model: SuModel, origin: NDArray[np.float64]) -> NDArray[np.float64]:
+    shift = np.zeros(model.n_outputs)
+    shift[: 2 * model.antennas] = np.tile(origin, model.antennas)
+    return np.where(grid.avail, grid.y - shift, 0.0)
+
+
+def _start_noise(
+    model: SuModel, grid: Grid, bounds: NoiseBounds, x: NDArray, y: NDArray
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """q, r that make the start point feasible, clipped into their boxes."""
+    w = np.abs(state_residuals(model, x, grid.h)) / bounds.q_scale
+    e = np.where(grid.avail, np.abs(output_residuals(model, x, y)) / bounds.r_scale, 0.0)
+    return np.clip(w.max(axis=0), bounds.q_lo, bounds.q_hi), np.clip(e.max(axis=0), bounds.r_lo, bounds.r_hi)
+
+
+class _Window:
+    """One window's NLP inputs; ``solve`` runs one stage (objective weights, fixed or free q and r)."""
+
+    def __init__(self, nlp: SuNlp, model: SuModel, grid: Grid, bounds: NoiseBounds, settings: EstimatorSettings):
+        self.nlp, self.model, self.grid, self.bounds, self.settings = nlp, model, grid, bounds, settings
+        self.origin = np.mean(grid.y[grid.gps, :2], axis=0)
+        self.y = _centred(grid, model, self.origin)
+        self.lbx, self.ubx = state_box(model, grid.n_steps, settings)
+        self.kw = grid.avail.sum(axis=0) / (grid.n_steps - 1)
+        self.ipopt_time = 0.0
+        self.iterations = 0
+
+    def solve(
+        self,
+        x0: NDArray,
+        q: tuple[NDArray, NDArray, NDArray],
+        r: tuple[NDArray, NDArray, NDArray],
+        weights: tuple[float, float, float],
+        c_ext: tuple[float, float] = (0.0, 0.0),
+    ) -> NlpSolution:
+        """One IPOPT solve; ``q`` and ``r`` are (start, lower, upper)."""
+        g, b, s = self.grid, self.bounds, self.settings
+        p = self.nlp.params(
+            self.y, g.avail, b.r_scale, b.q_scale, g.h, self.kw, b.q_hi, b.r_hi, weights, c_ext, s.antenna_distance_m
+        )
+        x0 = np.clip(x0, self.lbx, self.ubx)
+        sol = self.nlp.solve(x0, q[0], r[0], p, self.lbx, self.ubx, q[1:], r[1:], s.antenna_tolerance_m2)
+        self.ipopt_time += sol.time_s
+        self.iterations += sol.iterations
+        if not sol.success:
+            log.warning("SU NLP stage %s: IPOPT %s after %d iterations", weights, sol.status, sol.iterations)
+        return sol
+
+
+def estimate_batch(
+    samples: Sequence[Sample],
+    settings: EstimatorSettings | None = None,
+    *,
+    frame: LocalFrame | None = None,
+    gps_latency_s: float = 0.0,
+    extent: bool = False,
+) -> SuResult:
+    """Batch SU estimate of a window of samples (see the module docstring for the stages).
+
+    ``frame`` is the local frame of the result (default: at the first valid fix). Raises
+    EstimatorInputError for unusable input and SolverError if even the LP start point cannot be found.
+    """
+    t_start = time.perf_counter()
+    settings = settings or EstimatorSettings()
+    model = model_for(settings)
+    grid = build_grid(samples, model, settings, frame, gps_latency_s)
+    bounds = noise_bounds(model, grid, settings)
+    nlp = build_nlp(
+        settings.model, settings.yaw_rate_bias, settings.speed_scale, grid.n_steps, settings.ipopt_max_iter,
+        settings.ipopt_tol,
+    )
+    win = _Window(nlp, model, grid, bounds, settings)
+    lp = solve_lp(grid, model, bounds, settings, win.origin)
+    x = start_states(lp, model, win.origin)
+    q, r = _start_noise(model, grid, bounds, x, win.y)
+    status, success = "Solve_Succeeded", True
+    if settings.objective != "caps":
+        sol = win.solve(x, (q, bounds.q_lo, bounds.q_hi), (r, bounds.r_lo, bounds.r_hi), WEIGHTS[settings.objective])
+        status, success = sol.status, sol.success
+        if sol.success:
+            x, q, r = sol.x, sol.q, sol.r
+    else:
+        q, r = bounds.q_hi.copy(), bounds.r_hi.copy()
+    widen = 1.0 + settings.centre_margin if settings.objective != "caps" else 1.0
+    q2, r2 = q * widen, r * widen
+    if success and settings.centre == "lsq":
+        sol = win.solve(x, (q2, q2, q2), (r2, r2, r2), CENTRE_WEIGHTS)
+        status, success = sol.status, sol.success
+        if sol.success:
+            x = sol.x
+    box = _extent(win, x, q2, r2) if extent and success else None
+    x = x.copy()
+    x[:, : 2 * model.antennas] += np.tile(win.origin, model.antennas)
+    return SuResult(
+        t=grid.t,
+        states=x,
+        state_names=model.states,
+        q=q,
+        r=r,
+        output_names=model.outputs,
+        method="nlp",
+        status=status,
+        success=success,
+        solve_time_s=time.perf_counter() - t_start,
+        ipopt_time_s=win.ipopt_time,
+        lp_time_s=lp.time_s,
+        iterations=win.iterations,
+        lp_retries=lp.retries,
+        gps=grid.gps,
+        frame=grid.frame,
+        bounds=bounds,
+        extent=box,
+    )
+
+
+def _extent(win: _Window, x: NDArray, q: NDArray, r: NDArray) -> tuple[float, float, float, float] | None:
+    """(east_min, east_max, north_min, north_max) of the newest position over S(q, r), in the frame (m)."""
+    out = []
+    for c_ext, sign in (((1.0, 0.0), 1.0), ((-1.0, 0.0), -1.0), ((0.0, 1.0), 1.0), ((0.0, -1.0), -1.0)):
+        sol = win.solve(x, (q, q, q), (r, r, r), NO_WEIGHTS, c_ext)
+        if not sol.success:
+            return None
+        axis = 0 if c_ext[0] else 1
+        out.append(sign * sol.f + win.origin[axis])
+    return out[0], out[1], out[2], out[3]
+
+
+def estimate_lp(
+    samples: Sequence[Sample],
+    settings: EstimatorSettings | None = None,
+    *,
+    frame: LocalFrame | None = None,
+    gps_latency_s: float = 0.0,
+) -> SuResult:
+    """The linear SU estimate alone (000 (21)-(22) as 001's LP): positions from the LP, azimuth from its
+    input phi-hat, speed and yaw rate from CAN; q and r only for the position states and outputs."""
+    t_start = time.perf_counter()
+    settings = settings or EstimatorSettings()
+    model = model_for(settings)
+    grid = build_grid(samples, model, settings, frame, gps_latency_s)
+    bounds = noise_bounds(model, grid, settings)
+    origin = np.mean(grid.y[grid.gps, :2], axis=0)
+    lp = solve_lp(grid, model, bounds, settings, origin)
+    x = start_states(lp, model, np.zeros(2))
+    n_pos = 2 * model.antennas
+    q = np.full(model.n_states, np.nan)
+    r = np.full(model.n_outputs, np.nan)
+    q[:n_pos], r[:n_pos] = lp.q, lp.r
+    return SuResult(
+        t=grid.t,
+        states=x,
+        state_names=model.states,
+        q=q,
+        r=r,
+        output_names=model.outputs,
+        method="lp",
+        status=lp.status,
+        success=True,
+        solve_time_s=time.perf_counter() - t_start,
+        ipopt_time_s=0.0,
+        lp_time_s=lp.time_s,
+        iterations=lp.iterations,
+        lp_retries=lp.retries,
+        gps=grid.gps,
+        frame=grid.frame,
+        bounds=bounds,
+    )
+
+
+def antenna_distance_error(result: SuResult, distance_m: float) -> NDArray[np.float64]:
+    """``|dist^2 - d^2|`` (m^2) per step of an su7 result: the left side of (23)."""
+    return np.abs(antenna_distance_residual(result.states.T) - distance_m**2)

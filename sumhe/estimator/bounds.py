@@ -1,0 +1,120 @@
+"""Floors and caps of the noise bounds q (state) and r (output): what makes the MAP problem well-posed.
+
+The paper's prior (11) is ``0 <= q <= qbar``, ``0 <= r <= rbar``. With the objective (15) falling without
+limit as any ``q_i -> 0``, the lower ends decide the answer, so both ends are derived here, per window:
+
+* q caps: what a vehicle can do in one step of the reference length ``h``: the Euler error of a position
+  ``h^2/2 * max_accel``, of the azimuth ``h^2/2 * max_yaw_accel``, one-step changes ``h * max_accel`` (v)
+  and ``h * max_yaw_accel`` (omega). The CAN-error states (bias, scale) are constant over a window and
+  have no q.
+* q floors (``derived_floors``): the same quantities evaluated on this window's CAN data (longitudinal
+  acceleration from the speed differences, lateral ``v * omega``, yaw acceleration from the yaw-rate
+  differences): the model error the measured motion itself implies, so a floor never excludes the truth
+  of a vehicle that did what its CAN says. Otherwise a token floor ``1e-6 * cap`` (the paper: ``q >= 0``).
+* r caps: the median per-epoch error allowance of :mod:`sumhe.estimator.grid` (``r_cap_sigmas`` times
+  the receiver's sigma, CAN resolution and noise, plus the unmodelled CAN scale/bias when those states are
+  off). Per-epoch differences enter as scales: the output bound at epoch k is ``r_j * r_scale[k, j]``.
+* r floors: the quantisation of each output (half a CAN resolution step, the NMEA position resolution).
+
+State-noise bounds scale with the step length as ``(h_t / h_ref) ** q_power``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sumhe.estimator.grid import Grid
+from sumhe.estimator.settings import EstimatorSettings
+from sumhe.model.su import SuModel
+
+TOKEN_FLOOR = 1e-6
+
+
+@dataclass(frozen=True)
+class NoiseBounds:
+    """Box prior on q (at the reference step ``h_ref``, s) and r, and the per-step/per-epoch scales."""
+
+    q_lo: NDArray[np.float64]
+    q_hi: NDArray[np.float64]
+    r_lo: NDArray[np.float64]
+    r_hi: NDArray[np.float64]
+    q_scale: NDArray[np.float64]
+    r_scale: NDArray[np.float64]
+    h_ref: float
+
+
+def fill_gaps(values: NDArray[np.float64], t: NDArray[np.float64], default: float = 0.0) -> NDArray[np.float64]:
+    """``values`` on the grid ``t`` with NaNs interpolated (held at the ends); ``default`` if none is finite."""
+    ok = np.isfinite(values)
+    if not ok.any():
+        return np.full(len(t), default)
+    return np.interp(t, t[ok], values[ok])
+
+
+def _state_kind(name: str) -> str:
+    if name.startswith(("px", "py")):
+        return "position"
+    return name
+
+
+def q_caps(model: SuModel, h: float, settings: EstimatorSettings) -> NDArray[np.float64]:
+    """Cap on the state noise of each dynamic state for a step of ``h`` s: vehicle limits."""
+    caps = {
+        "position": 0.5 * h * h * settings.max_accel_mps2,
+        "phi": 0.5 * h * h * settings.max_yaw_accel_rps2,
+        "v": h * settings.max_accel_mps2,
+        "omega": h * settings.max_yaw_accel_rps2,
+    }
+    return np.array([caps[_state_kind(s)] for s in model.states[: model.n_dynamic]])
+
+
+def q_floors(model: SuModel, grid: Grid, q_scale: NDArray[np.float64], cap: NDArray[np.float64]) -> NDArray:
+    """Floor on the state noise of each dynamic state (at ``h_ref``): the model error the window's CAN data
+    implies (accelerations from speed and yaw-rate differences, lateral ``v * omega``)."""
+    h = grid.h
+    v = fill_gaps(grid.can_speed, grid.t)
+    w = fill_gaps(grid.can_yaw_rate, grid.t)
+    dv, dw = np.abs(np.diff(v)), np.abs(np.diff(w))
+    accel = np.hypot(dv / h, np.abs(v[:-1] * w[:-1]))
+    per_step = {
+        "position": 0.5 * h * h * accel,
+        "phi": 0.5 * h * dw,
+        "v": dv,
+        "omega": dw,
+    }
+    kinds = [_state_kind(s) for s in model.states[: model.n_dynamic]]
+    lo = np.array([np.max(per_step[k] / q_scale[:, i]) for i, k in enumerate(kinds)])
+    return np.clip(lo, TOKEN_FLOOR * cap, cap)
+
+
+def r_floors(model: SuModel, settings: EstimatorSettings) -> NDArray[np.float64]:
+    """Per-output floor on the output noise: quantisation of the measured values."""
+    res = settings.gps_resolution_m
+    floors = [res] * (2 * model.antennas)
+    floors.append(2.0 * res / settings.antenna_distance_m if model.antennas == 2 else 1e-4)
+    floors += [0.5 * settings.can_speed_resolution_mps, 0.5 * settings.can_yaw_rate_resolution_rps]
+    return np.array(floors)
+
+
+def noise_bounds(model: SuModel, grid: Grid, settings: EstimatorSettings) -> NoiseBounds:
+    """The floors, caps and scales of q and r for this window (see the module docstring)."""
+    h = grid.h
+    h_ref = float(np.median(h))
+    q_scale = (h[:, None] / h_ref) ** np.array(model.q_power)[None, :]
+    q_hi = q_caps(model, h_ref, settings)
+    r_hi = np.ones(model.n_outputs)
+    r_scale = np.ones_like(grid.allow)
+    for j in range(model.n_outputs):
+        ok = grid.avail[:, j]
+        if ok.any():
+            r_hi[j] = float(np.median(grid.allow[ok, j]))
+            r_scale[ok, j] = grid.allow[ok, j] / r_hi[j]
+    if settings.derived_floors:
+        q_lo = q_floors(model, grid, q_scale, q_hi)
+        r_lo = np.minimum(r_floors(model, settings), r_hi)
+    else:
+        q_lo, r_lo = TOKEN_FLOOR * q_hi, TOKEN_FLOOR * r_hi
+    return NoiseBounds(q_lo=q_lo, q_hi=q_hi, r_lo=r_lo, r_hi=r_hi, q_scale=q_scale, r_scale=r_scale, h_ref=h_ref)

@@ -1,0 +1,271 @@
+"""From time-ordered samples to the estimator's time grid: outputs, availability and error allowances.
+
+The grid's steps are the GNSS epochs (fix times minus the receiver latency); gaps longer than 1.5 nominal
+periods (an outage) are filled with evenly spaced steps that carry only CAN outputs, and the grid reaches
+the first and last sample. CAN speed and yaw rate are averaged over each step's half-intervals (linear
+interpolation when no sample falls inside, nothing when the nearest sample is farther than
+``can_max_gap_s``). Each output also gets a per-step *error allowance*: a bound on its measurement error
+in its own unit, from the receiver's reported accuracy (GST sigmas, else quality / HDOP) and the CAN
+sensors' resolution and noise; :mod:`sumhe.estimator.bounds` turns allowances into caps on r.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sumhe.errors import EstimatorInputError
+from sumhe.estimator.settings import EstimatorSettings
+from sumhe.geo import LocalFrame
+from sumhe.messages import CanSample, GnssFix, Sample
+from sumhe.model.su import SuModel, antenna_azimuth
+
+log = logging.getLogger(__name__)
+
+GGA_RTK_FIXED = 4
+GGA_RTK_FLOAT = 5
+
+
+@dataclass(frozen=True)
+class Grid:
+    """Data of one estimation window on its step grid (``N`` steps, ``n`` outputs of the model).
+
+    ``y`` holds the outputs (positions in the local frame, m; angles rad; CAN SI) with 0 where missing;
+    ``avail`` says which are present; ``allow`` is each output's error allowance (its unit) where present.
+    ``can_speed``/``can_yaw_rate`` are the CAN values on the grid (NaN where missing).
+    """
+
+    t: NDArray[np.float64]
+    y: NDArray[np.float64]
+    avail: NDArray[np.bool_]
+    allow: NDArray[np.float64]
+    can_speed: NDArray[np.float64]
+    can_yaw_rate: NDArray[np.float64]
+    frame: LocalFrame
+
+    @property
+    def h(self) -> NDArray[np.float64]:
+        """Step lengths (s), ``N - 1`` of them."""
+        return np.diff(self.t)
+
+    @property
+    def n_steps(self) -> int:
+        return len(self.t)
+
+    @property
+    def gps(self) -> NDArray[np.bool_]:
+        """Steps with a GNSS position (of antenna 1)."""
+        return self.avail[:, 0]
+
+
+def check_samples(samples: Sequence[Sample]) -> None:
+    """Raise EstimatorInputError for input no estimator can use: empty, one sample, NaN, time going back."""
+    if len(samples) < 2:
+        raise EstimatorInputError(f"need at least 2 samples, got {len(samples)}")
+    prev = -math.inf
+    for i, s in enumerate(samples):
+        if not isinstance(s, GnssFix | CanSample):
+            raise EstimatorInputError(f"sample {i}: not a GnssFix or CanSample: {type(s).__name__}")
+        if not math.isfinite(s.t):
+            raise EstimatorInputError(f"sample {i}: time is not finite: {s.t!r}")
+        if s.t < prev:
+            raise EstimatorInputError(f"sample {i}: time goes backwards ({s.t:.3f} s after {prev:.3f} s)")
+        prev = s.t
+        if isinstance(s, CanSample) and not math.isfinite(s.value):
+            raise EstimatorInputError(f"sample {i}: CAN {s.quantity} is not finite: {s.value!r}")
+        if isinstance(s, GnssFix) and s.valid:
+            for name in ("lat_deg", "lon_deg"):
+                value = getattr(s, name)
+                if value is None or not math.isfinite(value):
+                    raise EstimatorInputError(f"sample {i}: valid fix with {name} = {value!r}")
+
+
+def gps_sigma_m(fix: GnssFix, settings: EstimatorSettings) -> tuple[float, float]:
+    """1-sigma error (east, north) in m of a fix: GST sigmas, else by GGA quality (RTK), else HDOP x UERE."""
+    if fix.sigma_lat_m is not None and fix.sigma_lon_m is not None:
+        return fix.sigma_lon_m, fix.sigma_lat_m
+    if fix.quality == GGA_RTK_FIXED:
+        s = settings.gps_sigma_rtk_m
+    elif fix.quality == GGA_RTK_FLOAT:
+        s = settings.gps_sigma_float_m
+    elif fix.hdop is not None and math.isfinite(fix.hdop):
+        s = fix.hdop * settings.gps_uere_m
+    else:
+        s = settings.gps_sigma_m
+    return s, s
+
+
+def step_times(anchors: NDArray[np.float64], t_lo: float, t_hi: float, period: float) -> NDArray[np.float64]:
+    """The grid: ``anchors`` (GNSS epochs, s), widened to [t_lo, t_hi] and with gaps filled at ``period``."""
+    pts = np.unique(anchors)
+    if pts[0] - t_lo > 0.5 * period:
+        pts = np.concatenate([[t_lo], pts])
+    if t_hi - pts[-1] > 0.5 * period:
+        pts = np.concatenate([pts, [t_hi]])
+    out = [pts[:1]]
+    for a, b in zip(pts[:-1], pts[1:], strict=True):
+        n = round((b - a) / period)
+        if n >= 2 and b - a > 1.5 * period:
+            out.append(np.linspace(a, b, n + 1)[1:])
+        else:
+            out.append(np.array([b]))
+    return np.concatenate(out)
+
+
+def can_on_grid(ts: NDArray[np.float64], vs: NDArray[np.float64], t: NDArray[np.float64], max_gap: float) -> NDArray:
+    """CAN values (``vs`` at times ``ts``) on the grid ``t``: mean over each step's half-intervals, else
+    linear interpolation, else NaN where the nearest sample is more than ``max_gap`` s away."""
+    out = np.full(len(t), np.nan)
+    if len(ts) == 0:
+        return out
+    mid = 0.5 * (t[1:] + t[:-1])
+    lo = np.concatenate([[t[0] - (mid[0] - t[0] if len(mid) else 0.05)], mid])
+    hi = np.concatenate([mid, [t[-1] + (t[-1] - mid[-1] if len(mid) else 0.05)]])
+    cum = np.concatenate([[0.0], np.cumsum(vs)])
+    i0 = np.searchsorted(ts, lo, side="left")
+    i1 = np.searchsorted(ts, hi, side="left")
+    count = i1 - i0
+    has = count > 0
+    out[has] = (cum[i1[has]] - cum[i0[has]]) / count[has]
+    near = np.abs(ts[np.clip(np.searchsorted(ts, t), 0, len(ts) - 1)] - t)
+    near = np.minimum(near, np.abs(ts[np.clip(np.searchsorted(ts, t) - 1, 0, len(ts) - 1)] - t))
+    interp = ~has & (near <= max_gap) & (t >= ts[0] - max_gap) & (t <= ts[-1] + max_gap)
+    out[interp] = np.interp(t[interp], ts, vs)
+    return out
+
+
+def build_grid(
+    samples: Sequence[Sample],
+    model: SuModel,
+    settings: EstimatorSettings,
+    frame: LocalFrame | None = None,
+    gps_latency_s: float = 0.0,
+) -> Grid:
+    """Check the samples and put them on the step grid of ``model``; EstimatorInputError if unusable.
+
+    ``frame`` defaults to a local frame at the first valid fix. ``gps_latency_s`` is subtracted from the
+    fixes' receive times. For ``su7``, fixes whose talker is ``settings.antenna2_talker`` are antenna 2.
+    """
+    check_samples(samples)
+    fixes = [s for s in samples if isinstance(s, GnssFix)]
+    ant2 = [f for f in fixes if model.antennas == 2 and f.talker == settings.antenna2_talker]
+    ant1 = [f for f in fixes if not (model.antennas == 2 and f.talker == settings.antenna2_talker)]
+    valid1 = [f for f in ant1 if f.valid]
+    if len(valid1) < 2:
+        raise EstimatorInputError(f"need at least 2 valid GNSS positions in the window, got {len(valid1)}")
+    if frame is None:
+        first = valid1[0]
+        frame = LocalFrame(float(first.lat_deg), float(first.lon_deg))  # type: ignore[arg-type]
+    t_all = np.array([s.t - (gps_latency_s if isinstance(s, GnssFix) else 0.0) for s in samples])
+    epochs = np.array([f.t - gps_latency_s for f in ant1])
+    d_ep = np.diff(np.unique(epochs))
+    period = float(np.median(d_ep)) if len(d_ep) else settings.step_s
+    t = step_times(epochs, float(t_all.min()), float(t_all.max()), period)
+    n_out = model.n_outputs
+    y = np.zeros((len(t), n_out))
+    avail = np.zeros((len(t), n_out), dtype=bool)
+    allow = np.ones((len(t), n_out))
+    k_sig = settings.r_cap_sigmas
+    for group, col in ((valid1, 0), ([f for f in ant2 if f.valid], 2)):
+        if not group:
+            continue
+        tf = np.array([f.t - gps_latency_s for f in group])
+        k = _nearest(t, tf, 0.5 * period)
+        ok = k >= 0
+        enu = frame.to_enu([f.lat_deg for f in group], [f.lon_deg for f in group])
+        sig = np.array([gps_sigma_m(f, settings) for f in group])
+        for c in (0, 1):
+            y[k[ok], col + c] = enu[ok, c]
+            avail[k[ok], col + c] = True
+            allow[k[ok], col + c] = k_sig * np.maximum(sig[ok, c], settings.gps_resolution_m)
+    can_speed, can_yaw = (
+        can_on_grid(
+            np.array([s.t for s in samples if isinstance(s, CanSample) and s.quantity == q]),
+            np.array([s.value for s in samples if isinstance(s, CanSample) and s.quantity == q]),
+            t,
+            settings.can_max_gap_s,
+        )
+        for q in ("speed", "yaw_rate")
+    )
+    _angle_output(model, settings, t, y, avail, allow, valid1, can_speed, can_yaw, period, gps_latency_s)
+    has_bias = "yaw_rate_bias" in model.states
+    has_scale = "speed_scale" in model.states
+    i_v, i_w = n_out - 2, n_out - 1
+    for col, values in ((i_v, can_speed), (i_w, can_yaw)):
+        ok = np.isfinite(values)
+        y[ok, col] = values[ok]
+        avail[ok, col] = True
+    allow[:, i_v] = (
+        0.5 * settings.can_speed_resolution_mps
+        + k_sig * settings.can_speed_sigma_mps
+        + (0.0 if has_scale else settings.speed_scale_max * np.abs(np.nan_to_num(can_speed)))
+    )
+    allow[:, i_w] = (
+        0.5 * settings.can_yaw_rate_resolution_rps
+        + k_sig * settings.can_yaw_rate_sigma_rps
+        + (0.0 if has_bias else settings.yaw_rate_bias_max_rps)
+    )
+    log.debug("grid: %d steps over %.2f s, %d with GNSS", len(t), t[-1] - t[0], int(avail[:, 0].sum()))
+    return Grid(t=t, y=y, avail=avail, allow=allow, can_speed=can_speed, can_yaw_rate=can_yaw, frame=frame)
+
+
+def _nearest(t: NDArray[np.float64], tf: NDArray[np.float64], tol: float) -> NDArray[np.int64]:
+    """Index of the grid step nearest to each time in ``tf``; -1 where farther than ``tol``."""
+    k = np.clip(np.searchsorted(t, tf), 1, len(t) - 1)
+    k = np.where(np.abs(t[k - 1] - tf) <= np.abs(t[k] - tf), k - 1, k)
+    return np.where(np.abs(t[k] - tf) <= tol + 1e-9, k, -1)
+
+
+def _angle_output(
+    model: SuModel,
+    settings: EstimatorSettings,
+    t: NDArray[np.float64],
+    y: NDArray[np.float64],
+    avail: NDArray[np.bool_],
+    allow: NDArray[np.float64],
+    fixes: list[GnssFix],
+    can_speed: NDArray[np.float64],
+    can_yaw: NDArray[np.float64],
+    period: float,
+    latency: float,
+) -> None:
+    """Fill the azimuth output in place: xi of the antenna pair (su7) or the receiver's heading/course (su5).
+
+    The allowance adds half a step of turning, ``h |omega| / 2``: the Euler model's azimuth is the chord
+    direction of the step, half a step behind the instantaneous one.
+    """
+    j = model.angle_outputs[0]
+    h = np.concatenate([np.diff(t), [period]])
+    turn = 0.5 * h * np.abs(np.nan_to_num(can_yaw))
+    k_sig = settings.r_cap_sigmas
+    if model.antennas == 2:
+        both = avail[:, 0] & avail[:, 2]
+        y[both, j] = antenna_azimuth(y[both, 0], y[both, 1], y[both, 2], y[both, 3])
+        avail[both, j] = True
+        allow[both, j] = (allow[both, 0] + allow[both, 2]) * math.sqrt(2) / settings.antenna_distance_m + turn[both]
+        return
+    k = _nearest(t, np.array([f.t - latency for f in fixes]), 0.5 * period)
+    for f, kk in zip(fixes, k, strict=True):
+        if kk < 0:
+            continue
+        speed = f.speed_mps if f.speed_mps is not None else can_speed[kk]
+        if settings.use_heading and f.heading_rad is not None and math.isfinite(f.heading_rad):
+            angle, sigma = f.heading_rad, settings.gps_heading_sigma_rad
+        elif (
+            f.course_rad is not None
+            and math.isfinite(f.course_rad)
+            and speed is not None
+            and math.isfinite(speed)
+            and speed >= settings.course_min_speed_mps
+        ):
+            angle, sigma = f.course_rad, settings.gps_speed_sigma_mps / max(speed, 1e-3)
+        else:
+            continue
+        y[kk, j] = angle
+        avail[kk, j] = True
+        allow[kk, j] = k_sig * sigma + turn[kk]

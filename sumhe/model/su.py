@@ -1,0 +1,181 @@
+"""State-uniform (SU) vehicle models: the paper's two-antenna model and a single-antenna variant.
+
+Paper 000 (``shared/seeds/000_*.txt``), section 4.1: the state equation (19), the output equation (20) and
+the antenna-distance restriction (23). Every function here is pure and works on floats, numpy arrays and
+CasADi symbols alike: a state ``x`` is anything indexable by state number (a 1-D numpy array, a numpy array
+of shape ``(m, T)`` to evaluate ``T`` steps at once, or a CasADi ``SX``/``MX`` column), and ``ns`` is the
+namespace giving ``sin``, ``cos`` and ``arctan2`` (``numpy``, the default, or ``casadi``). Functions return
+one expression per state or output, as a list; stack them with ``numpy.array`` or ``casadi.vertcat``.
+
+Conventions (the whole package): px east, py north (m); azimuth phi clockwise from north (rad); yaw rate
+omega anticlockwise positive (rad/s), so a left turn decreases phi: ``phi_t = phi_{t-1} - h * omega_{t-1}``.
+
+Beyond the paper, two optional states model real CAN sensors (issue 7): a yaw-rate bias ``b``
+(CAN yaw rate = omega + b) and a speed scale factor ``k`` (CAN speed = k * v). They are appended after the
+kinematic states and carried unchanged by the state equation: within a window they are the time-invariant
+parameters Theta of paper 000 (2), with no state noise.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+SU7_STATES = ("px1", "py1", "px2", "py2", "phi", "v", "omega")
+SU7_OUTPUTS = ("px1", "py1", "px2", "py2", "azimuth", "can_speed", "can_yaw_rate")
+SU5_STATES = ("px", "py", "phi", "v", "omega")
+SU5_OUTPUTS = ("px", "py", "course", "can_speed", "can_yaw_rate")
+BIAS_STATE = "yaw_rate_bias"
+SCALE_STATE = "speed_scale"
+
+
+def wrap_angle(a: Any, ns: Any = np) -> Any:
+    """Wrap an angle (rad) to (-pi, pi] as ``atan2(sin a, cos a)``; smooth, so usable inside an NLP."""
+    w = ns.arctan2(ns.sin(a), ns.cos(a))
+    return np.where(w <= -np.pi, np.pi, w) if ns is np else w
+
+
+def _n_rows(x: Any) -> int:
+    return len(x) if isinstance(x, list | tuple) else int(x.shape[0])
+
+
+def su7_step(x: Any, h: Any, ns: Any = np) -> list[Any]:
+    """Paper (19) without noise: the state one step of ``h`` seconds later (explicit Euler).
+
+    ``x`` = (px1, py1, px2, py2, phi, v, omega, *extra); extra states (bias, scale) are carried unchanged.
+    Both antennas move by ``h v (sin phi, cos phi)``; ``phi`` decreases by ``h omega``; v and omega are
+    random walks (no fast changes between two epochs).
+    """
+    px1, py1, px2, py2, phi, v, omega = (x[i] for i in range(7))
+    dx = h * v * ns.sin(phi)
+    dy = h * v * ns.cos(phi)
+    extra = [x[i] for i in range(7, _n_rows(x))]
+    return [px1 + dx, py1 + dy, px2 + dx, py2 + dy, phi - h * omega, v, omega, *extra]
+
+
+def su5_step(x: Any, h: Any, ns: Any = np) -> list[Any]:
+    """Single-antenna twin of (19): ``x`` = (px, py, phi, v, omega, *extra), one step of ``h`` s later."""
+    px, py, phi, v, omega = (x[i] for i in range(5))
+    extra = [x[i] for i in range(5, _n_rows(x))]
+    return [px + h * v * ns.sin(phi), py + h * v * ns.cos(phi), phi - h * omega, v, omega, *extra]
+
+
+def antenna_azimuth(px1: Any, py1: Any, px2: Any, py2: Any, ns: Any = np) -> Any:
+    """xi of (20): azimuth (rad, clockwise from north) of antenna 1 (front) seen from antenna 2 (rear).
+
+    The paper builds it from arctan((px1-px2)/(py1-py2)) and the two signs, which is ``atan2``.
+    """
+    return ns.arctan2(px1 - px2, py1 - py2)
+
+
+def antenna_distance_residual(x: Any) -> Any:
+    """Left side of (23) before the tolerance: squared antenna distance (m^2) of an su7 state.
+
+    The restriction is ``|residual - d^2| <= alpha``.
+    """
+    return (x[0] - x[2]) ** 2 + (x[1] - x[3]) ** 2
+
+
+def can_outputs(v: Any, omega: Any, x: Any, bias_index: int | None, scale_index: int | None) -> list[Any]:
+    """CAN speed (m/s) and yaw rate (rad/s) as measured: ``k v`` and ``omega + b`` when those states exist."""
+    speed = v * x[scale_index] if scale_index is not None else v
+    yaw_rate = omega + x[bias_index] if bias_index is not None else omega
+    return [speed, yaw_rate]
+
+
+def su7_output(x: Any, ns: Any = np, bias_index: int | None = None, scale_index: int | None = None) -> list[Any]:
+    """Paper (20) without noise: both antenna positions (m), their azimuth xi (rad), CAN speed and yaw rate."""
+    px1, py1, px2, py2 = (x[i] for i in range(4))
+    xi = antenna_azimuth(px1, py1, px2, py2, ns)
+    return [px1, py1, px2, py2, xi, *can_outputs(x[5], x[6], x, bias_index, scale_index)]
+
+
+def su5_output(x: Any, ns: Any = np, bias_index: int | None = None, scale_index: int | None = None) -> list[Any]:
+    """Single-antenna outputs: GPS position (m), azimuth (course or heading, rad), CAN speed and yaw rate."""
+    return [x[0], x[1], x[2], *can_outputs(x[3], x[4], x, bias_index, scale_index)]
+
+
+@dataclass(frozen=True)
+class SuModel:
+    """One SU vehicle model as plain data: names, which entries are angles, and its two functions.
+
+    ``step(x, h, ns)`` is g of (8), ``output(x, ns)`` is h of (9). ``q_power[i]`` is the power of the step
+    length with which the state-noise bound of state ``i`` scales (2: Euler error of an integrated
+    quantity, 1: one-step change of a random walk). ``gps_outputs`` are the outputs present only with a
+    GNSS fix; ``position`` names the (east, north) state indices of the reported position. The first
+    ``n_dynamic`` states carry state noise; the rest (bias, scale) are constant over a window.
+    """
+
+    name: str
+    states: tuple[str, ...]
+    outputs: tuple[str, ...]
+    step: Callable[[Any, Any, Any], list[Any]]
+    output: Callable[[Any, Any], list[Any]]
+    angle_states: tuple[int, ...]
+    angle_outputs: tuple[int, ...]
+    gps_outputs: tuple[int, ...]
+    q_power: tuple[int, ...]
+    position: tuple[int, int]
+    antennas: int
+    n_dynamic: int
+
+    @property
+    def n_states(self) -> int:
+        return len(self.states)
+
+    @property
+    def n_outputs(self) -> int:
+        return len(self.outputs)
+
+    def index(self, state: str) -> int:
+        """Index of a state by name; ValueError for a state this model does not have."""
+        return self.states.index(state)
+
+
+def su_model(name: str, yaw_rate_bias: bool = False, speed_scale: bool = False) -> SuModel:
+    """The model ``"su7"`` (paper (19)-(20)) or ``"su5"`` (single antenna), with optional CAN-error states."""
+    if name not in ("su7", "su5"):
+        raise ValueError(f"model: unknown SU model {name!r} (su5, su7)")
+    base = SU7_STATES if name == "su7" else SU5_STATES
+    extra = (BIAS_STATE,) * yaw_rate_bias + (SCALE_STATE,) * speed_scale
+    states = base + extra
+    bias_index = states.index(BIAS_STATE) if yaw_rate_bias else None
+    scale_index = states.index(SCALE_STATE) if speed_scale else None
+    step = su7_step if name == "su7" else su5_step
+    out = su7_output if name == "su7" else su5_output
+
+    def output(x: Any, ns: Any = np) -> list[Any]:
+        return out(x, ns, bias_index, scale_index)
+
+    if name == "su7":
+        return SuModel(
+            name="su7",
+            states=states,
+            outputs=SU7_OUTPUTS,
+            step=step,
+            output=output,
+            angle_states=(4,),
+            angle_outputs=(4,),
+            gps_outputs=(0, 1, 2, 3, 4),
+            q_power=(2, 2, 2, 2, 2, 1, 1),
+            position=(0, 1),
+            antennas=2,
+            n_dynamic=7,
+        )
+    return SuModel(
+        name="su5",
+        states=states,
+        outputs=SU5_OUTPUTS,
+        step=step,
+        output=output,
+        angle_states=(2,),
+        angle_outputs=(2,),
+        gps_outputs=(0, 1, 2),
+        q_power=(2, 2, 2, 1, 1),
+        position=(0, 1),
+        antennas=1,
+        n_dynamic=5,
+    )

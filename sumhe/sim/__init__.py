@@ -1,0 +1,21 @@
+"""Drive simulator: seeded scenarios -> truth + CAN frames (candump -L) + NMEA, in the formats replay reads.
+
+``simulate(SimSettings(...))`` returns a :class:`Drive` in memory; ``write_drive(drive, dir)`` writes
+``drive.log``, ``drive.nmea``, ``truth.csv`` and ``scenario.toml``; ``load_truth`` reads ``truth.csv`` back.
+The demo drive shipped with the package is in :func:`bundled_drive_dir`.
+"""
+
+from sumhe.sim.drive import Drive, bundled_drive_dir, simulate, write_drive
+from sumhe.sim.settings import SimSettings, load_settings
+from sumhe.sim.truth import Truth, load_truth
+
+__all__ = [
+    "Drive",
+    "SimSettings",
+    "Truth",
+    "bundled_drive_dir",
+    "load_settings",
+    "load_truth",
+    "simulate",
+    "write_drive",
+]

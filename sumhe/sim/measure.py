@@ -1,0 +1,149 @@
+"""Measure a drive directory's sensor errors against its truth, from the files alone, with sumhe's decoders.
+
+This is what ``sumhe simulate --errors DIR`` prints: CAN speed and yaw rate minus the truth at the frame's
+timestamp (so timing, delay, scale, bias, noise and quantisation all show), GPS position minus the truth at the
+time of fix, the fix latency (receive time - time of fix), GPS speed and HDT heading errors, CAN timing jitter.
+It works on any directory with ``truth.csv``, ``drive.log`` and ``drive.nmea`` (``drive2.nmea`` if present).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from sumhe.config import SignalSpec
+from sumhe.errors import SourceError
+from sumhe.geo import LocalFrame
+from sumhe.io.can import REFERENCE_E2E, REFERENCE_SIGNALS, CanDecoder, read_log
+from sumhe.io.nmea import iter_fixes
+from sumhe.messages import GnssFix
+from sumhe.sim.can_frames import reference_db
+from sumhe.sim.truth import Truth, load_truth
+
+MOVING_MPS = 1.0
+"""Course, heading-of-motion and scale statistics use only samples faster than this."""
+
+
+@dataclass(frozen=True, slots=True)
+class ErrorRow:
+    """Statistics of one error: mean, standard deviation, 95th percentile and maximum of |error| over n samples."""
+
+    name: str
+    unit: str
+    n: int
+    mean: float
+    std: float
+    p95: float
+    max: float
+
+
+def error_row(name: str, unit: str, errors: ArrayLike) -> ErrorRow:
+    """The row of ``errors`` (mean and std signed; p95 and max of the absolute value); NaN when empty."""
+    e = np.asarray(errors, dtype=float)
+    e = e[np.isfinite(e)]
+    if e.size == 0:
+        return ErrorRow(name, unit, 0, math.nan, math.nan, math.nan, math.nan)
+    a = np.abs(e)
+    return ErrorRow(
+        name, unit, int(e.size), float(e.mean()), float(e.std()), float(np.percentile(a, 95)), float(a.max())
+    )
+
+
+def measure_errors(drive_dir: str | Path) -> list[ErrorRow]:
+    """The error table of one drive directory; SourceError when a file is missing or unreadable."""
+    d = Path(drive_dir)
+    try:
+        truth = load_truth(d / "truth.csv")
+    except ValueError as e:
+        raise SourceError(str(e)) from e
+    rows = _can_rows(truth, d / "drive.log")
+    rows += _gps_rows(truth, d / "drive.nmea", antenna=1)
+    if (d / "drive2.nmea").is_file():
+        rows += _gps_rows(truth, d / "drive2.nmea", antenna=2)
+    return rows
+
+
+def _can_rows(truth: Truth, path: Path) -> list[ErrorRow]:
+    signals = {q: SignalSpec(*name.split(".")) for q, name in REFERENCE_SIGNALS.items()}
+    decoder = CanDecoder(reference_db(), signals, REFERENCE_E2E, source=str(path))
+    series: dict[str, list[tuple[float, float]]] = {}
+    yaw_frames = []
+    yaw_id = reference_db().get_message_by_name("ESP_YAW_RATE").frame_id
+    for msg in read_log(path):
+        if msg.arbitration_id == yaw_id:
+            yaw_frames.append(msg.timestamp)
+        for s in decoder.decode(msg):
+            series.setdefault(s.quantity, []).append((s.t, s.value))
+    speed_t, speed = np.array(series.get("speed", [(math.nan, math.nan)])).T
+    yaw_t, yaw = np.array(series.get("yaw_rate", [(math.nan, math.nan)])).T
+    at_speed, at_yaw = truth.at(speed_t), truth.at(yaw_t)
+    moving = at_speed.speed > MOVING_MPS
+    period = np.diff(yaw_frames)
+    cycle = reference_db().get_message_by_name("ESP_YAW_RATE").cycle_time / 1000.0
+    return [
+        error_row("CAN speed - true speed", "m/s", speed - at_speed.speed),
+        error_row("CAN speed / true scale - true speed", "m/s", speed / at_speed.speed_scale - at_speed.speed),
+        error_row("CAN speed / true speed - 1 (moving)", "%", 100.0 * (speed[moving] / at_speed.speed[moving] - 1.0)),
+        error_row("CAN yaw rate - true yaw rate", "deg/s", np.degrees(yaw - at_yaw.yaw_rate)),
+        error_row("CAN yaw rate - true bias - true", "deg/s", np.degrees(yaw - at_yaw.yaw_rate_bias - at_yaw.yaw_rate)),
+        error_row("CAN ESP_YAW_RATE period - cycle", "ms", 1000.0 * (period - cycle)),
+    ]
+
+
+def _gps_rows(truth: Truth, path: Path, antenna: int) -> list[ErrorRow]:
+    fixes = list(iter_fixes(path))
+    valid = [f for f in fixes if f.valid and f.time_utc is not None]
+    label = f"GPS{antenna}"
+    rows = [error_row(f"{label} epochs without a valid fix", "", np.zeros(len(fixes) - len(valid)))]
+    if not valid:
+        return rows
+    t_fix = np.array([_fix_time(f) for f in valid])
+    at = truth.at(t_fix)
+    frame = LocalFrame(float(truth.lat[0]), float(truth.lon[0]))
+    measured = frame.to_enu([f.lat_deg for f in valid], [f.lon_deg for f in valid])
+    second = antenna == 2 and at.lat2 is not None and at.lon2 is not None
+    true_enu = frame.to_enu(at.lat2, at.lon2) if second else frame.to_enu(at.lat, at.lon)
+    err = measured[:, :2] - true_enu[:, :2]
+    moving = at.speed > MOVING_MPS
+    rows += [
+        error_row(f"{label} horizontal position error", "m", np.hypot(err[:, 0], err[:, 1])),
+        error_row(f"{label} east error", "m", err[:, 0]),
+        error_row(f"{label} north error", "m", err[:, 1]),
+        error_row(f"{label} fix latency (receive - fix time)", "ms", 1000.0 * (np.array([f.t for f in valid]) - t_fix)),
+        error_row(f"{label} speed - true speed", "m/s", _values(valid, "speed_mps") - at.speed),
+        error_row(
+            f"{label} course - true azimuth (moving)",
+            "deg",
+            _angle_deg(_values(valid, "course_rad") - at.azimuth)[moving],
+        ),
+    ]
+    heading = _values(valid, "heading_rad")
+    if np.isfinite(heading).any():
+        rows.append(error_row(f"{label} HDT heading - true azimuth", "deg", _angle_deg(heading - at.azimuth)))
+    return rows
+
+
+def _fix_time(fix: GnssFix) -> float:
+    assert fix.time_utc is not None
+    return fix.time_utc.timestamp()
+
+
+def _values(fixes: Iterable[GnssFix], name: str) -> NDArray[np.float64]:
+    return np.array([math.nan if getattr(f, name) is None else getattr(f, name) for f in fixes], dtype=float)
+
+
+def _angle_deg(diff_rad: NDArray[np.float64]) -> NDArray[np.float64]:
+    return np.degrees((diff_rad + math.pi) % (2.0 * math.pi) - math.pi)
+
+
+def format_table(rows: Iterable[ErrorRow], title: str) -> str:
+    """A fixed-width text table of the rows under ``title``."""
+    lines = [title, f"{'error':<42} {'unit':>5} {'n':>7} {'mean':>9} {'std':>9} {'p95|e|':>9} {'max|e|':>9}"]
+    for r in rows:
+        lines.append(f"{r.name:<42} {r.unit:>5} {r.n:>7d} {r.mean:>9.4f} {r.std:>9.4f} {r.p95:>9.4f} {r.max:>9.4f}")
+    return "\n".join(lines)
