@@ -35,7 +35,8 @@ def test_signal_mapping_string_and_table_forms(tmp_path):
     cfg = load_config(
         _write(
             tmp_path,
-            '[can.signals]\nspeed = "SPEED.SPEED"\nyaw_rate = { signal = "KINEMATICS.YAW_RATE", scale = -1.0, unit = "deg/s" }\n',
+            '[can.signals]\nspeed = "SPEED.SPEED"\n'
+            'yaw_rate = { signal = "KINEMATICS.YAW_RATE", scale = -1.0, unit = "deg/s" }\n',
         ),
         env={},
     )

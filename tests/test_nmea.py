@@ -475,7 +475,7 @@ REAL = [
 
 
 @settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(st.lists(st.binary(max_size=200), max_size=20))
+@given(st.lists(st.one_of(st.binary(max_size=200), st.text(max_size=100)), max_size=20))
 def test_arbitrary_bytes_never_crash_and_counters_stay_consistent(chunks):
     dec = NmeaDecoder()
     fixes = [f for chunk in chunks for f in dec.feed(chunk)] + dec.flush()

@@ -132,6 +132,7 @@ def test_gst_and_hdt_parse_back() -> None:
     assert hdt == "$GPHDT,270.000,T*" + nmea_checksum("GPHDT,270.000,T")
     assert float(pynmea2.parse(hdt, check=True).heading) == 270.0
     assert format_hdt(None).startswith("$GPHDT,,T*")
+    assert format_gst(T, rms_m=None, sigma_lat_m=None, sigma_lon_m=None).startswith("$GPGST,161234.56,,,,,,,*")
 
 
 @pytest.mark.parametrize(

@@ -5,11 +5,12 @@ import time
 import can
 import pytest
 
-from canframes import speed_frame
 from sumhe.cli import main
 from sumhe.io.can import read_log
 from sumhe.io.nmea import iter_fixes
 from sumhe.io.nmea_format import format_gga, format_rmc
+
+from canframes import speed_frame
 
 
 @pytest.fixture

@@ -1,16 +1,18 @@
 import asyncio
 import time
+from pathlib import Path
 
 import can
 import pytest
 
-from canframes import speed_frame, yaw_frame
 from sumhe.config import load_config
 from sumhe.io.nmea_format import format_gga, format_rmc
 from sumhe.io.replay import PacedReplay, log_samples, merge_by_time
 from sumhe.messages import CanSample, GnssFix
 
-REPO_CONFIG = "configs/default.toml"
+from canframes import speed_frame, yaw_frame
+
+REPO_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "default.toml"
 
 
 def _write_can_log(path, t0: float, seconds: float) -> None:

@@ -116,9 +116,9 @@ def test_receive_timeout_raises_and_iteration_continues(pty):
     run(main())
 
 
-def test_garbage_on_the_line_is_counted_not_fatal(pty):
+def test_garbage_on_the_line_is_counted_not_fatal(pty, caplog):
     async def main():
-        async with SerialNmeaSource(settings(pty.path)) as source:
+        async with SerialNmeaSource(settings(pty.path), report_every_s=0.0) as source:
             await until(lambda: source.stats.connected)
             bad_checksum = epoch(0).replace(b"545.4", b"545.5", 1)  # the GGA of epoch 0 no longer matches its *hh
             pty.write(b"\xb5b\x01\x07\x5c\x00\x80\xff\xfe\r\n" + bad_checksum + b"\x00\x00$GPGG\r\n")
@@ -129,6 +129,7 @@ def test_garbage_on_the_line_is_counted_not_fatal(pty):
             c = source.decoder.counters
             assert (c.sentences, c.checksum_errors, c.garbled) == (3, 1, 2)
             assert source.stats.errors == 0 and source.stats.reconnects == 0
+            await until(lambda: "bad NMEA input so far" in caplog.text)  # the periodic summary
 
     run(main())
 

@@ -122,17 +122,17 @@ def format_gst(
     t_unix_s: float,
     *,
     rms_m: float | None,
-    sigma_lat_m: float,
-    sigma_lon_m: float,
+    sigma_lat_m: float | None,
+    sigma_lon_m: float | None,
     sigma_alt_m: float | None = None,
     sigma_major_m: float | None = None,
     sigma_minor_m: float | None = None,
     orientation_rad: float | None = None,
     talker: str = "GP",
 ) -> str:
-    """GST: pseudorange residual RMS and 1-sigma position errors (m); the error ellipse is optional."""
-    for name, value in (("sigma_lat_m", sigma_lat_m), ("sigma_lon_m", sigma_lon_m)):
-        if not (math.isfinite(value) and value >= 0.0):
+    """GST: pseudorange residual RMS and 1-sigma position errors (m); None leaves a field empty (no fix)."""
+    for name, value in (("sigma_lat_m", sigma_lat_m), ("sigma_lon_m", sigma_lon_m), ("sigma_alt_m", sigma_alt_m)):
+        if value is not None and not (math.isfinite(value) and value >= 0.0):
             raise ValueError(f"{name}: must be finite and >= 0, got {value!r}")
     fields = [
         _talker(talker) + "GST",

@@ -7,10 +7,11 @@
 The reader reads whatever bytes are waiting, splits them at CR or LF and stamps each completed line with
 the arrival time of the chunk that completed it. A read that waits ``idle_s`` (default 50 ms) without a byte
 is an *idle gap*: receivers send an epoch's sentences as one burst, so the gap closes the epoch being
-assembled and its fix is emitted at once rather than when the next epoch starts. Sooner still, once the
-decoder has learned the receiver's cycle ender it emits an epoch on its last sentence. (Emitting as soon as
-GGA and RMC are in would drop what many receivers send after them: GST sigmas on the u-blox F9P and the
-Quectel L70, HDT heading on the Saab R4.) A line longer than ``MAX_LINE`` bytes (binary noise) is cut there.
+assembled and its fix is emitted ``idle_s`` after its last line rather than when the next epoch starts.
+Where bursts follow each other with no idle gap (high rates), the epochs end on a time change, the decoder
+learns the receiver's last sentence of a cycle and from then on emits each epoch on that sentence. (Emitting
+as soon as GGA and RMC are in would drop what many receivers send after them: GST sigmas on the u-blox F9P
+and the Quectel L70, HDT heading on the Saab R4.) A line longer than ``MAX_LINE`` bytes (binary noise) is cut there.
 
 A read error or end of file (device unplugged, pseudo-terminal closed) makes the base class close the port
 and reopen it with capped back-off, so the source resumes when the device comes back at the same path.
@@ -39,7 +40,7 @@ IDLE_S = 0.05
 MAX_LINE = 4096
 """Longest line kept whole (bytes); longer runs without CR/LF are binary noise and are cut."""
 REPORT_EVERY_S = 60.0
-"""How often :class:`SerialNmeaSource` logs its decoder counters when bad input was seen (s)."""
+"""How often :class:`SerialNmeaSource` logs its decoder counters, if bad input arrived meanwhile (s)."""
 
 T = TypeVar("T")
 _LINE_END = re.compile(rb"[\r\n]+")
@@ -127,11 +128,18 @@ class SerialLineSource(_SerialSource[NmeaLine]):
 class SerialNmeaSource(_SerialSource[GnssFix]):
     """Fixes decoded from the receiver; ``decoder.counters`` says what was seen on the line."""
 
-    def __init__(self, settings: GpsSettings, idle_s: float = IDLE_S, decoder: NmeaDecoder | None = None) -> None:
+    def __init__(
+        self,
+        settings: GpsSettings,
+        idle_s: float = IDLE_S,
+        decoder: NmeaDecoder | None = None,
+        report_every_s: float = REPORT_EVERY_S,
+    ) -> None:
         super().__init__(settings, idle_s)
         self.decoder = NmeaDecoder() if decoder is None else decoder
+        self.report_every_s = report_every_s
         self._reported_bad = 0
-        self._next_report = time.monotonic() + REPORT_EVERY_S
+        self._next_report = time.monotonic() + report_every_s
 
     def _read(self) -> list[GnssFix]:
         lines, idle = self.port.read()
@@ -146,7 +154,7 @@ class SerialNmeaSource(_SerialSource[GnssFix]):
         now = time.monotonic()
         if now < self._next_report:
             return
-        self._next_report = now + REPORT_EVERY_S
+        self._next_report = now + self.report_every_s
         c = self.decoder.counters
         bad = c.checksum_errors + c.garbled + c.late + c.backwards
         if bad > self._reported_bad:

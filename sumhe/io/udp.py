@@ -15,7 +15,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
-from sumhe.config import parse_host_port
+from sumhe.config import OutputSettings, parse_host_port
+from sumhe.io.nmea_format import format_gga, format_rmc
 from sumhe.messages import Estimate
 
 log = logging.getLogger(__name__)
@@ -58,6 +59,28 @@ def estimate_to_json(est: Estimate) -> dict[str, Any]:
 def encode_json(est: Estimate) -> bytes:
     """One datagram: compact JSON, UTF-8, no trailing newline."""
     return json.dumps(estimate_to_json(est), separators=(",", ":")).encode()
+
+
+GGA_GPS = 1
+GGA_DEAD_RECKONING = 6
+
+
+def encode_nmea(est: Estimate) -> bytes:
+    """GGA + RMC of one estimate, CRLF-terminated, in one datagram. While GPS is not used (outage or rejected
+    fix) GGA says quality 6 and RMC mode E (dead reckoning), the way gpsd understands."""
+    dead_reckoning = est.gps != "ok"
+    gga = format_gga(
+        est.t, est.lat_deg, est.lon_deg, GGA_DEAD_RECKONING if dead_reckoning else GGA_GPS, alt_msl_m=est.alt_m
+    )
+    rmc = format_rmc(
+        est.t,
+        est.lat_deg,
+        est.lon_deg,
+        mode="E" if dead_reckoning else "A",
+        speed_mps=max(est.speed_mps, 0.0) if math.isfinite(est.speed_mps) else None,
+        course_rad=est.track_rad if math.isfinite(est.track_rad) else None,
+    )
+    return f"{gga}\r\n{rmc}\r\n".encode("ascii")
 
 
 @dataclass
@@ -118,3 +141,19 @@ class UdpSender:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class UdpSink:
+    """The configured output: every estimate to every ``output.udp`` destination in every ``output.formats``."""
+
+    def __init__(self, settings: OutputSettings) -> None:
+        encoders = {"json": encode_json, "nmea": encode_nmea}
+        self._encoders = [encoders[f] for f in settings.formats]
+        self.sender = UdpSender(settings.udp)
+
+    def send(self, est: Estimate) -> None:
+        for encode in self._encoders:
+            self.sender.send(encode(est))
+
+    def close(self) -> None:
+        self.sender.close()

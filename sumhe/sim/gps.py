@@ -4,7 +4,8 @@ Per epoch (aligned to whole multiples of the period in UTC, as receivers do) the
 GST (and HDT from a two-antenna receiver), one serial line after another at 115200 baud, starting
 ``gps_latency_s`` + U(0, ``gps_latency_jitter_s``) after the fix time. Course over ground is held at its last
 value below 0.5 m/s (empty before the first motion), as receivers do at standstill. Inside an outage the
-receiver is silent or sends "no fix" sentences (GGA quality 0, RMC status V, mode N, empty position).
+receiver is silent or sends the same sentences saying "no fix" (GGA quality 0, RMC status V and mode N, GST and
+HDT empty), as a receiver in a tunnel does.
 """
 
 from __future__ import annotations
@@ -68,6 +69,8 @@ class GpsEpochs:
     hdop: FloatArray
     sigma_h: float
     sigma_alt: float
+    heading_sent: bool
+    """True for the receiver of a two-antenna system: HDT in every epoch (empty without a fix)."""
     error_east: FloatArray
     """The position error applied (m), multipath included; NaN when no fix was sent."""
     error_north: FloatArray
@@ -181,6 +184,7 @@ def simulate_receiver(
     latency = settings.gps_latency_s + rng.uniform(0.0, settings.gps_latency_jitter_s, n)
 
     valid = ~in_outage(settings, t_rel)
+    dual_heading = settings.antennas == 2 and antenna == 1
     nan = np.full(n, math.nan)
     lat, lon, alt, spd, course, heading = (nan.copy() for _ in range(6))
     last_course = math.nan
@@ -192,7 +196,7 @@ def simulate_receiver(
         if spd[k] >= COURSE_MIN_SPEED_MPS:
             last_course = quantize_angle_rad(float(true_course[k] + course_noise[k]))
         course[k] = last_course
-        if settings.antennas == 2 and antenna == 1:
+        if dual_heading:
             heading[k] = quantize_angle_rad(float(motion.azimuth[k] + heading_noise[k]))
     error = np.where(valid[:, None], errors[:, :2], math.nan)
     epochs = GpsEpochs(
@@ -212,6 +216,7 @@ def simulate_receiver(
         hdop=np.where(valid, np.round(0.5 + 5.0 / sats, 2), 99.99),
         sigma_h=round(reported_sigma_m(settings), 3),
         sigma_alt=round(VERTICAL_ERROR_FACTOR * reported_sigma_m(settings), 3),
+        heading_sent=dual_heading,
         error_east=error[:, 0],
         error_north=error[:, 1],
     )
@@ -235,13 +240,15 @@ def _transmit(epochs: GpsEpochs, latency: FloatArray) -> tuple[GpsEpochs, list[s
 
 
 def _sentences(e: GpsEpochs, k: int) -> list[str]:
-    """GGA, RMC, GST (and HDT) of epoch ``k``; GGA + RMC saying "no fix" when it is not valid."""
+    """GGA, RMC, GST (and HDT with two antennas) of epoch ``k``; with empty fields and "no fix" when not valid."""
     t = float(e.t_fix[k])
     if not e.valid[k]:
-        return [
+        no_fix = [
             format_gga(t, None, None, 0, sats=0, hdop=float(e.hdop[k]), talker=TALKER),
             format_rmc(t, None, None, status="V", mode="N", talker=TALKER),
+            format_gst(t, rms_m=None, sigma_lat_m=None, sigma_lon_m=None, talker=TALKER),
         ]
+        return no_fix + ([format_hdt(None, talker=TALKER)] if e.heading_sent else [])
     rtk = e.quality[k] == 4
     lat, lon = float(e.lat[k]), float(e.lon[k])
     out = [
@@ -280,6 +287,6 @@ def _sentences(e: GpsEpochs, k: int) -> list[str]:
             talker=TALKER,
         ),
     ]
-    if not math.isnan(e.heading[k]):
+    if e.heading_sent:
         out.append(format_hdt(float(e.heading[k]), talker=TALKER))
     return out

@@ -11,6 +11,7 @@ with two antennas also ``lat2``/``lon2``/``east2``/``north2`` of antenna 2.
 from __future__ import annotations
 
 import dataclasses
+import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -97,22 +98,27 @@ def write_truth(truth: Truth, path: Path) -> None:
 
 
 def load_truth(path: str | Path) -> Truth:
-    """Read a ``truth.csv`` back; ValueError naming the file when a column is missing or a value is bad."""
+    """Read a ``truth.csv`` back; ValueError naming the file when it is unreadable, a column is missing, a value
+    is not a number, there are no rows or time does not increase."""
     p = Path(path)
     try:
-        with p.open(encoding="utf-8") as f:
-            header = f.readline().strip().split(",")
-            table = np.loadtxt(f, delimiter=",", ndmin=2)
-    except (OSError, UnicodeDecodeError, ValueError) as e:
+        header, _, rows = p.read_text(encoding="utf-8").partition("\n")
+    except (OSError, UnicodeDecodeError) as e:
         raise ValueError(f"{p}: cannot read truth: {e}") from e
-    names = {f.name for f in dataclasses.fields(Truth)}
-    required = names - set(_SECOND_ANTENNA)
-    missing = required - set(header)
+    names = header.strip().split(",")
+    known = {f.name for f in dataclasses.fields(Truth)}
+    missing = known - set(_SECOND_ANTENNA) - set(names)
     if missing:
         raise ValueError(f"{p}: missing truth columns: {', '.join(sorted(missing))}")
-    if table.size and table.shape[1] != len(header):
-        raise ValueError(f"{p}: {table.shape[1]} values per row but {len(header)} columns in the header")
-    columns = {name: (table[:, i] if table.size else np.empty(0)) for i, name in enumerate(header) if name in names}
+    if not rows.strip():
+        raise ValueError(f"{p}: no truth rows")
+    try:
+        table = np.loadtxt(io.StringIO(rows), delimiter=",", ndmin=2)
+    except ValueError as e:
+        raise ValueError(f"{p}: cannot read truth: {e}") from e
+    if table.shape[1] != len(names):
+        raise ValueError(f"{p}: {table.shape[1]} values per row but {len(names)} columns in the header")
+    columns = {name: table[:, i] for i, name in enumerate(names) if name in known}
     if np.any(np.diff(columns["t"]) <= 0):
         raise ValueError(f"{p}: t must be strictly increasing")
     return Truth(**columns)

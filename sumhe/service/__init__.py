@@ -1,0 +1,1 @@
+"""The live service: sources -> time-ordered samples -> estimator -> sinks."""

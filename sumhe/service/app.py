@@ -1,0 +1,256 @@
+"""``sumhe run``: the live service wired with asyncio.
+
+sources (CAN bus, serial GNSS; or any async iterators of samples) -> a short reorder buffer (time order across
+sources) -> the estimator, run off the event loop in a worker thread -> sinks (UDP JSON / NMEA) and a status line.
+
+* Readers never stall: sources run in their own threads; the estimator runs in ``asyncio.to_thread``.
+* No backlog: samples released while a solve runs are taken as one batch; if the batch holds several GNSS epochs,
+  only the newest is solved, the older ones are skipped and counted (``skipped_epochs``).
+* The reorder buffer holds each sample ``hold_s`` after it arrived (default: the receiver latency + 50 ms, since
+  a fix is stamped ``latency`` before it arrives) and releases samples in time order.
+* Health: a status line every ``output.status_interval_s`` (log, and JSON to ``output.status_udp`` if set).
+* Lifecycle: SIGINT/SIGTERM set the stop event; tasks unwind and buses, ports and sockets close in ``finally``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import heapq
+import itertools
+import json
+import logging
+import signal
+import time
+from collections import deque
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from sumhe.config import Config, describe
+from sumhe.estimator.base import Estimator
+from sumhe.io.source import SourceTimeout
+from sumhe.io.udp import UdpSender, UdpSink
+from sumhe.messages import Estimate, GnssFix, Sample
+from sumhe.service.pipeline import Pipeline, TimeRules
+
+log = logging.getLogger(__name__)
+
+REORDER_MARGIN_S = 0.05
+SOLVE_WINDOW = 2000
+
+
+@dataclass
+class ServiceStats:
+    """What the status line reports (besides the sources' and the estimator's own counters)."""
+
+    started_wall: float = field(default_factory=time.monotonic)
+    received: dict[str, int] = field(default_factory=dict)
+    timeouts: dict[str, int] = field(default_factory=dict)
+    skipped_epochs: int = 0
+    batches: int = 0
+    sent: int = 0
+    solve_ms: deque[float] = field(default_factory=lambda: deque(maxlen=SOLVE_WINDOW))
+    latency_ms: deque[float] = field(default_factory=lambda: deque(maxlen=SOLVE_WINDOW))
+
+
+class Reorder:
+    """Holds samples ``hold_s`` after arrival and releases them in time order."""
+
+    def __init__(self, hold_s: float) -> None:
+        self.hold_s = hold_s
+        self._heap: list[tuple[float, int, float, Sample]] = []
+        self._seq = itertools.count()
+        self.event = asyncio.Event()
+
+    def put(self, sample: Sample, now: float) -> None:
+        heapq.heappush(self._heap, (sample.t, next(self._seq), now + self.hold_s, sample))
+        self.event.set()
+
+    def release(self, now: float) -> list[Sample]:
+        """Samples due by ``now``, in time order (a sample waits for any earlier-stamped one still held)."""
+        out: list[Sample] = []
+        while self._heap and self._heap[0][2] <= now:
+            out.append(heapq.heappop(self._heap)[3])
+        return out
+
+    def next_due(self) -> float | None:
+        """When the earliest-stamped sample is due (it gates all later-stamped ones)."""
+        return self._heap[0][2] if self._heap else None
+
+    def clear(self) -> None:
+        self._heap.clear()
+
+
+def newest_epoch_only(batch: list[Sample]) -> tuple[list[Sample], int]:
+    """Drop all GNSS epochs of a batch but the newest; returns the batch and how many were skipped."""
+    fix_positions = [i for i, s in enumerate(batch) if isinstance(s, GnssFix)]
+    if len(fix_positions) <= 1:
+        return batch, 0
+    skip = set(fix_positions[:-1])
+    return [s for i, s in enumerate(batch) if i not in skip], len(skip)
+
+
+def percentile(values: deque[float] | list[float], q: float) -> float:
+    return float(np.percentile(np.fromiter(values, float), q)) if values else float("nan")
+
+
+class Service:
+    """One running instance: ``await Service(...).run(stop)``."""
+
+    def __init__(
+        self,
+        config: Config,
+        estimator: Estimator,
+        sources: dict[str, AsyncIterator[Sample]],
+        sink: Callable[[Estimate], None] | None = None,
+        hold_s: float | None = None,
+        rules: TimeRules | None = None,
+    ) -> None:
+        self.config = config
+        self.estimator = estimator
+        self.sources = sources
+        self.pipeline = Pipeline(config, estimator, rules, wall_clock=time.time)
+        self.stats = ServiceStats()
+        self.reorder = Reorder(config.gps.latency_s + REORDER_MARGIN_S if hold_s is None else hold_s)
+        self._udp = UdpSink(config.output) if config.output.udp else None
+        self._status_udp = UdpSender([config.output.status_udp]) if config.output.status_udp else None
+        self._extra_sink = sink
+
+    async def run(self, stop: asyncio.Event) -> None:
+        """Run until ``stop`` is set; everything is closed when this returns."""
+        log.info("sumhe starting: %s", json.dumps(describe(self.config), default=str))
+        tasks = [asyncio.create_task(self._read(name, src), name=f"read-{name}") for name, src in self.sources.items()]
+        tasks.append(asyncio.create_task(self._estimate(), name="estimate"))
+        tasks.append(asyncio.create_task(self._status(), name="status"))
+        try:
+            stopper = asyncio.create_task(stop.wait())
+            done, _ = await asyncio.wait([stopper, *tasks], return_when=asyncio.FIRST_COMPLETED)
+            for task in done:
+                if task is not stopper and task.exception() is not None:
+                    raise task.exception()  # type: ignore[misc]
+        finally:
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            for src in self.sources.values():
+                close = getattr(src, "close", None)
+                if close is not None:
+                    with contextlib.suppress(Exception):
+                        await close()
+            if self._udp is not None:
+                self._udp.close()
+            if self._status_udp is not None:
+                self._status_udp.close()
+            log.info("sumhe stopped: %s", self.status_line())
+
+    async def _read(self, name: str, source: AsyncIterator[Sample]) -> None:
+        self.stats.received[name] = 0
+        self.stats.timeouts[name] = 0
+        loop = asyncio.get_running_loop()
+        while True:
+            try:
+                sample = await anext(source)
+            except SourceTimeout:
+                self.stats.timeouts[name] += 1
+                if self.stats.timeouts[name] in (1, 10) or self.stats.timeouts[name] % 60 == 0:
+                    log.warning("%s: nothing received (%d timeouts so far)", name, self.stats.timeouts[name])
+                continue
+            except StopAsyncIteration:
+                log.info("%s: source ended", name)
+                return
+            self.stats.received[name] += 1
+            self.reorder.put(sample, loop.time())
+
+    async def _estimate(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            due = self.reorder.next_due()
+            if due is None:
+                self.reorder.event.clear()
+                await self.reorder.event.wait()
+                continue
+            delay = due - loop.time()
+            if delay > 0:
+                self.reorder.event.clear()
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(self.reorder.event.wait(), delay)
+                continue
+            batch, skipped = newest_epoch_only(self.reorder.release(loop.time()))
+            if skipped:
+                self.stats.skipped_epochs += skipped
+                log.warning("estimator behind: %d GNSS epochs skipped (%d so far)", skipped, self.stats.skipped_epochs)
+            self.stats.batches += 1
+            estimates = await asyncio.to_thread(self._push_all, batch)
+            for est in estimates:
+                self._send(est)
+
+    def _push_all(self, batch: list[Sample]) -> list[Estimate]:
+        out: list[Estimate] = []
+        for sample in batch:
+            out.extend(self.pipeline.push(sample))
+        return out
+
+    def _send(self, est: Estimate) -> None:
+        if est.solve_ms > 0:
+            self.stats.solve_ms.append(est.solve_ms)
+        self.stats.latency_ms.append((time.time() - est.t) * 1000.0)
+        if self._udp is not None:
+            self._udp.send(est)
+        if self._extra_sink is not None:
+            self._extra_sink(est)
+        self.stats.sent += 1
+
+    async def _status(self) -> None:
+        interval = self.config.output.status_interval_s
+        while True:
+            await asyncio.sleep(interval)
+            log.info("status: %s", self.status_line())
+            if self._status_udp is not None:
+                self._status_udp.send(json.dumps(self.status(), default=str, separators=(",", ":")).encode())
+
+    def status(self) -> dict[str, Any]:
+        """The health figures as plain data (the JSON status datagram)."""
+        elapsed = max(time.monotonic() - self.stats.started_wall, 1e-9)
+        ps = self.pipeline.stats
+        est = ps.last_estimate
+        return {
+            "class": "STATUS",
+            "rates_hz": {k: round(v / elapsed, 2) for k, v in self.stats.received.items()},
+            "source_timeouts": dict(self.stats.timeouts),
+            "sources": {k: vars(getattr(s, "stats", None) or {}) for k, s in self.sources.items()},
+            "time": vars(self.pipeline.guard.stats),
+            "fix": "no fix yet" if ps.first_fix_t is None else "ok",
+            "estimates": ps.estimates,
+            "sent": self.stats.sent,
+            "skipped_epochs": self.stats.skipped_epochs,
+            "solve_ms_p50": round(percentile(self.stats.solve_ms, 50), 3),
+            "solve_ms_p99": round(percentile(self.stats.solve_ms, 99), 3),
+            "latency_ms_p50": round(percentile(self.stats.latency_ms, 50), 3),
+            "latency_ms_p99": round(percentile(self.stats.latency_ms, 99), 3),
+            "window": est.window if est else 0,
+            "mode": est.mode if est else "no fix yet",
+            "gps": est.gps if est else "outage",
+            "estimator": dict(self.estimator.stats()),
+        }
+
+    def status_line(self) -> str:
+        s = self.status()
+        t = s["time"]
+        time_drops = t["zero_time"] + t["future"] + t["stale"] + t["late"] + t["duplicate"]
+        rates = " ".join(f"{k}={v:g}Hz" for k, v in s["rates_hz"].items())
+        return (
+            f"{rates} fix={s['fix']} gps={s['gps']} mode={s['mode']} window={s['window']} "
+            f"solve p50/p99={s['solve_ms_p50']}/{s['solve_ms_p99']} ms sent={s['sent']} "
+            f"skipped={s['skipped_epochs']} time_drops={time_drops}"
+        )
+
+
+def install_signal_handlers(stop: asyncio.Event) -> None:
+    """SIGINT and SIGTERM set ``stop`` (where the platform allows it)."""
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+            loop.add_signal_handler(sig, stop.set)

@@ -1,0 +1,190 @@
+"""The synchronous core shared by ``sumhe run`` and ``sumhe replay``: samples in, estimates out.
+
+:class:`TimeGuard` judges every sample's timestamp before the estimator sees it; :class:`Pipeline` converts GNSS
+fixes to the local frame, feeds the estimator and turns its answers into geodetic estimates. Bad time never
+crashes the service and never reaches the estimator; each kind has a counter and a log line (rate-limited).
+
+Time rules (s; ``t`` is the sample's time on the service clock):
+
+* ``t <= 0`` or not finite: dropped (``zero_time``);
+* live only (a wall clock is given): ``t`` more than ``future_s`` ahead of the wall clock is dropped
+  (``future``), more than ``stale_s`` behind it is dropped (``stale``);
+* ``t`` more than ``jump_s`` away from the newest accepted time (either way): a clock jump; the estimator is
+  reset and starts over at the next valid fix (``clock_resets``);
+* otherwise older than the newest accepted time (out of order beyond the reorder buffer): dropped (``late``);
+  the same sample twice: dropped (``duplicate``);
+* GNSS fixes whose time is more than ``skew_s`` away from the newest CAN time, while both run: counted as
+  ``skew`` and reported (a receiver latency or clock offset is misconfigured); the fix is still used.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from sumhe.config import Config
+from sumhe.estimator.base import Estimator, FixConverter, LocalFix, to_estimate
+from sumhe.messages import CanSample, Estimate, GnssFix, Sample
+
+log = logging.getLogger(__name__)
+
+LOG_EVERY_S = 10.0
+
+
+@dataclass(frozen=True, slots=True)
+class TimeRules:
+    """Limits of :class:`TimeGuard` (s)."""
+
+    future_s: float = 2.0
+    stale_s: float = 10.0
+    jump_s: float = 30.0
+    skew_s: float = 1.0
+
+
+@dataclass
+class TimeStats:
+    accepted: int = 0
+    zero_time: int = 0
+    future: int = 0
+    stale: int = 0
+    late: int = 0
+    duplicate: int = 0
+    clock_resets: int = 0
+    skew: int = 0
+    last_skew_s: float = 0.0
+
+
+class TimeGuard:
+    """Decides, per sample, ``"ok"``, ``"drop"`` or ``"reset"`` (a clock jump: reset, then take the sample)."""
+
+    def __init__(self, rules: TimeRules, wall_clock: Callable[[], float] | None = None) -> None:
+        self.rules = rules
+        self.wall_clock = wall_clock
+        self.stats = TimeStats()
+        self._newest = -math.inf
+        self._newest_can = -math.inf
+        self._last_key: tuple[object, ...] | None = None
+        self._next_log = 0.0
+
+    def check(self, sample: Sample) -> str:
+        t, r, s = sample.t, self.rules, self.stats
+        verdict = "ok"
+        if not math.isfinite(t) or t <= 0.0:
+            s.zero_time += 1
+            verdict = "drop"
+        elif self.wall_clock is not None and t > self.wall_clock() + r.future_s:
+            s.future += 1
+            verdict = "drop"
+        elif self.wall_clock is not None and t < self.wall_clock() - r.stale_s:
+            s.stale += 1
+            verdict = "drop"
+        elif math.isfinite(self._newest) and abs(t - self._newest) > r.jump_s:
+            s.clock_resets += 1
+            log.warning("clock jump of %.1f s: estimator reset", t - self._newest)
+            self._newest = self._newest_can = -math.inf
+            verdict = "reset"
+        elif t < self._newest:
+            s.late += 1
+            verdict = "drop"
+        if verdict == "drop":
+            self._log_drops()
+            return verdict
+        key = _identity(sample)
+        if key == self._last_key:
+            s.duplicate += 1
+            return "drop"
+        self._last_key = key
+        self._newest = t
+        if isinstance(sample, CanSample):
+            self._newest_can = t
+        elif math.isfinite(self._newest_can) and abs(t - self._newest_can) > r.skew_s:
+            s.skew += 1
+            s.last_skew_s = t - self._newest_can
+        s.accepted += 1
+        return verdict
+
+    def _log_drops(self) -> None:
+        now = time.monotonic()
+        if now >= self._next_log:
+            self._next_log = now + LOG_EVERY_S
+            s = self.stats
+            log.warning(
+                "samples dropped for their time so far: zero %d, future %d, stale %d, late %d",
+                s.zero_time,
+                s.future,
+                s.stale,
+                s.late,
+            )
+
+
+def _identity(sample: Sample) -> tuple[object, ...]:
+    if isinstance(sample, CanSample):
+        return ("can", sample.t, sample.quantity, sample.value)
+    return ("gnss", sample.t, sample.lat_deg, sample.lon_deg)
+
+
+@dataclass
+class PipelineStats:
+    fixes: int = 0
+    valid_fixes: int = 0
+    can_samples: int = 0
+    estimates: int = 0
+    first_fix_t: float | None = None
+    last_estimate: Estimate | None = field(default=None, repr=False)
+
+
+class Pipeline:
+    """Samples in time order -> time checks -> local frame -> estimator -> geodetic estimates."""
+
+    def __init__(
+        self,
+        config: Config,
+        estimator: Estimator,
+        rules: TimeRules | None = None,
+        wall_clock: Callable[[], float] | None = None,
+    ) -> None:
+        self.config = config
+        self.estimator = estimator
+        self.guard = TimeGuard(rules or TimeRules(), wall_clock)
+        self.converter = FixConverter(config.datum, config.gps.latency_s)
+        self.stats = PipelineStats()
+        self._up_m = 0.0
+
+    def push(self, sample: Sample) -> list[Estimate]:
+        """Feed one sample; returns the estimates it produced (possibly none)."""
+        verdict = self.guard.check(sample)
+        if verdict == "drop":
+            return []
+        if verdict == "reset":
+            self.estimator.reset()
+        item: LocalFix | CanSample
+        if isinstance(sample, GnssFix):
+            item = self._local_fix(sample)
+        else:
+            self.stats.can_samples += 1
+            item = sample
+        frame = self.converter.frame
+        if frame is None:
+            return []
+        out = [to_estimate(s, frame, self._up_m) for s in self.estimator.push(item)]
+        self._count(out)
+        return out
+
+    def _local_fix(self, fix: GnssFix) -> LocalFix:
+        self.stats.fixes += 1
+        local = self.converter.convert(fix)
+        if local.valid:
+            self.stats.valid_fixes += 1
+            self._up_m = local.up_m
+            if self.stats.first_fix_t is None:
+                self.stats.first_fix_t = local.t
+                log.info("first fix at t=%.3f: estimating", local.t)
+        return local
+
+    def _count(self, estimates: list[Estimate]) -> None:
+        if estimates:
+            self.stats.estimates += len(estimates)
+            self.stats.last_estimate = estimates[-1]
