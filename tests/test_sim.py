@@ -74,6 +74,7 @@ def test_settings_are_normalised_and_resolve_the_error_scale() -> None:
         ({"multipath_per_min": -1.0}, "multipath_per_min"),
         ({"multipath_min_m": 10.0, "multipath_max_m": 5.0}, "multipath_max_m"),
         ({"outages": ((10.0,),)}, "outages"),
+        ({"outages": (10.0, 5.0)}, "outages"),
         ({"outages": ((10.0, 0.0),)}, "outages"),
         ({"outages": ((500.0, 5.0),)}, "outages"),
         ({"outages": ((-1.0, 5.0),)}, "outages"),
@@ -457,7 +458,9 @@ def test_course_is_held_at_standstill(urban: object) -> None:
 )
 def test_gps_error_models(model: str, scale: float) -> None:
     gps_error_m = scale if model == "gaussian" else None
-    drive = simulate(SimSettings(seed=7, duration_s=600.0, gps_error=model, gps_error_m=gps_error_m, truth_rate_hz=10.0))
+    drive = simulate(
+        SimSettings(seed=7, duration_s=600.0, gps_error=model, gps_error_m=gps_error_m, truth_rate_hz=10.0)
+    )
     e = drive.gps[0].error_east
     fixes = drive.fixes()
     assert all(f.sigma_lat_m == pytest.approx(scale / (math.sqrt(3) if model == "rtk" else 1), abs=1e-3) for f in fixes)
@@ -471,7 +474,7 @@ def test_gps_error_models(model: str, scale: float) -> None:
     else:
         assert np.abs(e).max() <= 0.03
         assert {f.quality for f in fixes} == {4}
-        assert all(line.endswith(("R*" + line[-2:])) for line in drive.nmea_lines if "RMC" in line)
+        assert all(line.endswith("R*" + line[-2:]) for line in drive.nmea_lines if "RMC" in line)
 
 
 def test_multipath_jumps() -> None:
@@ -556,9 +559,24 @@ def test_cli_bad_syntax_exits_with_usage(tmp_path: Path, argv: list[str]) -> Non
     assert err.value.code == 2
 
 
+def test_cli_out_that_cannot_be_written(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory", encoding="utf-8")
+    assert main(["simulate", "--out", str(blocker / "drive"), "--duration", "5"]) == 1
+    assert "cannot write" in capsys.readouterr().err
+
+
 def test_cli_errors_of_a_missing_drive(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["simulate", "--errors", str(tmp_path)]) == 1
     assert "truth.csv" in capsys.readouterr().err
+    assert main(["simulate", "--out", str(tmp_path), "--duration", "5", "--truth-rate", "10"]) == 0
+    (tmp_path / "drive.nmea").write_bytes(b"\x00garbage\n$GPGGA,bad*00\n")
+    (tmp_path / "drive.log").unlink()
+    assert main(["simulate", "--errors", str(tmp_path)]) == 1
+    assert "drive.log" in capsys.readouterr().err
+    (tmp_path / "drive.log").write_text("(1.0) can0 nonsense\n", encoding="ascii")
+    assert main(["simulate", "--errors", str(tmp_path)]) == 0  # nothing decodable: empty rows, no crash
+    assert "CAN speed - true speed" in capsys.readouterr().out
 
 
 def test_bundled_drive_is_shipped_and_regenerates_byte_for_byte(tmp_path: Path) -> None:

@@ -84,7 +84,10 @@ def run(args: argparse.Namespace) -> int:
         return _errors(args.errors)
     settings = settings_from_args(args)
     drive = simulate(settings)
-    paths = write_drive(drive, args.out)
+    try:
+        paths = write_drive(drive, args.out)
+    except OSError as e:
+        raise ConfigError(f"simulate: --out {args.out}: cannot write: {e.strerror or e}") from e
     epochs = drive.gps[0]
     print(
         f"wrote {args.out}: {settings.scenario} seed {settings.seed}, {settings.duration_s:g} s, "

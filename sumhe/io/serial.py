@@ -1,20 +1,20 @@
 """The live GNSS receiver on a serial port (pyserial), as :class:`~sumhe.io.source.ThreadedSource` s.
 
 :class:`SerialLineSource` yields every line as received (:class:`NmeaLine`, for ``sumhe record``);
-:class:`SerialNmeaSource` yields :class:`~sumhe.messages.GnssFix` es decoded by
-:class:`~sumhe.io.nmea.NmeaDecoder`, each stamped with the ``time.time()`` at which its first line arrived.
+:class:`SerialNmeaSource` yields :class:`~sumhe.messages.GnssFix` es decoded by :class:`~sumhe.io.nmea.NmeaDecoder`,
+each stamped with the source clock (``time.time()`` unless another is given) when its first line arrived.
 
-The reader reads whatever bytes are waiting, splits them at CR or LF and stamps each completed line with
-the arrival time of the chunk that completed it. A read that waits ``idle_s`` (default 50 ms) without a byte
-is an *idle gap*: receivers send an epoch's sentences as one burst, so the gap closes the epoch being
-assembled and its fix is emitted ``idle_s`` after its last line rather than when the next epoch starts.
-Where bursts follow each other with no idle gap (high rates), the epochs end on a time change, the decoder
-learns the receiver's last sentence of a cycle and from then on emits each epoch on that sentence. (Emitting
-as soon as GGA and RMC are in would drop what many receivers send after them: GST sigmas on the u-blox F9P
-and the Quectel L70, HDT heading on the Saab R4.) A line longer than ``MAX_LINE`` bytes (binary noise) is cut there.
+The reader reads whatever bytes are waiting, splits them at CR or LF and stamps each completed line with the arrival
+time of the chunk that completed it. A read that waits ``idle_s`` (default 50 ms) without a byte is an *idle gap*:
+receivers send an epoch's sentences as one burst, so the gap closes the epoch being assembled and its fix is emitted
+``idle_s`` after its last line rather than when the next epoch starts. Where bursts follow each other with no idle
+gap (high rates), the epochs end on a time change, the decoder learns the receiver's last sentence of a cycle and
+from then on emits each epoch on that sentence. (Emitting as soon as GGA and RMC are in would drop what many
+receivers send after them: GST sigmas on the u-blox F9P and the Quectel L70, HDT heading on the Saab R4.) A line
+longer than ``MAX_LINE`` bytes (binary noise) is cut there.
 
-A read error or end of file (device unplugged, pseudo-terminal closed) makes the base class close the port
-and reopen it with capped back-off, so the source resumes when the device comes back at the same path.
+A read error or end of file (device unplugged, pseudo-terminal closed) makes the base class close the port and
+reopen it with capped back-off, so the source resumes when the device comes back at the same path.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import re
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TypeVar
 
@@ -48,7 +49,7 @@ _LINE_END = re.compile(rb"[\r\n]+")
 
 @dataclass(frozen=True, slots=True)
 class NmeaLine:
-    """One line as received: ``t`` is its receive time (s, ``time.time()``), ``raw`` its bytes without CR/LF."""
+    """One line as received: ``t`` is its receive time (s, the source clock), ``raw`` its bytes without CR/LF."""
 
     t: float
     raw: bytes
@@ -57,12 +58,15 @@ class NmeaLine:
 class SerialLines:
     """A serial port read as lines stamped with their arrival time (blocking; used by the reader thread)."""
 
-    def __init__(self, port: str, baudrate: int, idle_s: float = IDLE_S) -> None:
+    def __init__(
+        self, port: str, baudrate: int, idle_s: float = IDLE_S, clock: Callable[[], float] = time.time
+    ) -> None:
         if idle_s <= 0:
             raise ValueError("idle_s: must be positive")
         self.port = port
         self.baudrate = baudrate
         self.idle_s = idle_s
+        self.clock = clock
         self._serial: serial.Serial | None = None
         self._pending = b""
 
@@ -84,7 +88,7 @@ class SerialLines:
         if self._serial is None:
             raise serial.SerialException(f"{self.port}: not open")
         data = self._serial.read(max(1, self._serial.in_waiting))
-        t = time.time()
+        t = self.clock()
         if not data:
             rest, self._pending = self._pending.strip(b"\r\n"), b""
             return ([NmeaLine(t, rest)] if rest else []), True
@@ -104,12 +108,12 @@ class SerialLines:
 class _SerialSource(ThreadedSource[T]):
     """Shared open/close of the two serial sources; subclasses read."""
 
-    def __init__(self, settings: GpsSettings, idle_s: float = IDLE_S) -> None:
+    def __init__(self, settings: GpsSettings, idle_s: float = IDLE_S, clock: Callable[[], float] = time.time) -> None:
         if not settings.port:
             raise ConfigError("gps.port: no serial port configured")
         super().__init__(settings.receive_timeout_s, settings.queue_size, settings.reconnect_max_s)
         self.name = f"gps {settings.port}"
-        self.port = SerialLines(settings.port, settings.baudrate, idle_s)
+        self.port = SerialLines(settings.port, settings.baudrate, idle_s, clock)
 
     def _open(self) -> None:
         self.port.open()
@@ -134,8 +138,9 @@ class SerialNmeaSource(_SerialSource[GnssFix]):
         idle_s: float = IDLE_S,
         decoder: NmeaDecoder | None = None,
         report_every_s: float = REPORT_EVERY_S,
+        clock: Callable[[], float] = time.time,
     ) -> None:
-        super().__init__(settings, idle_s)
+        super().__init__(settings, idle_s, clock)
         self.decoder = NmeaDecoder() if decoder is None else decoder
         self.report_every_s = report_every_s
         self._reported_bad = 0

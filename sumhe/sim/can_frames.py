@@ -247,7 +247,6 @@ def simulate_can(settings: SimSettings, trajectory: Trajectory, sensors: Sensors
         if m.cycle_time and m.name in MESSAGE_MODELS
     ]
     bus_t = np.concatenate([e.bus_t for e in encoded])
-    frame_ids = np.concatenate([np.full(len(e.bus_t), e.frame_id) for e in encoded])
     payloads = [p for e in encoded for p in e.payloads]
     host = host_times(settings, bus_t, rng)
     order = np.lexsort((bus_t, host))
@@ -255,25 +254,19 @@ def simulate_can(settings: SimSettings, trajectory: Trajectory, sensors: Sensors
     steps = np.arange(len(us))
     us = np.maximum.accumulate(us - steps) + steps
     keep = rng.random(len(us)) >= settings.can_drop_rate
-    frames = [
-        can.Message(
-            timestamp=int(u) / 1e6,
-            arbitration_id=int(frame_ids[i]),
-            is_extended_id=False,
-            data=payloads[i],
-            channel=CHANNEL,
-        )
-        for u, i, k in zip(us.tolist(), order.tolist(), keep.tolist(), strict=True)
-        if k
-    ]
-    t_rows, q_rows, v_rows = [], [], []
     offsets = np.cumsum([0] + [len(e.bus_t) for e in encoded])
     owner = np.searchsorted(offsets, order, side="right") - 1
-    for u, i, e_idx, k in zip(us.tolist(), order.tolist(), owner.tolist(), keep.tolist(), strict=True):
+    frames: list[can.Message] = []
+    t_rows: list[float] = []
+    q_rows: list[str] = []
+    v_rows: list[float] = []
+    for u, i, e_idx in zip(us[keep].tolist(), order[keep].tolist(), owner[keep].tolist(), strict=True):
         e = encoded[e_idx]
-        if k and e.quantities:
-            row = e.values[i - offsets[e_idx]]
-            t_rows.extend([u / 1e6] * len(e.quantities))
-            q_rows.extend(e.quantities)
-            v_rows.extend(row.tolist())
+        t = u / 1e6
+        frames.append(
+            can.Message(timestamp=t, arbitration_id=e.frame_id, is_extended_id=False, data=payloads[i], channel=CHANNEL)
+        )
+        t_rows.extend([t] * len(e.quantities))
+        q_rows.extend(e.quantities)
+        v_rows.extend(e.values[i - offsets[e_idx]].tolist())
     return CanLog(frames, np.array(t_rows, dtype=float), np.array(q_rows, dtype=str), np.array(v_rows, dtype=float))

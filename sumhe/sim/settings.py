@@ -41,7 +41,7 @@ class SimSettings:
     ``gps_error_m`` per axis: what real receivers do) or ``rtk`` (uniform, default +-3 cm, GGA quality 4).
     ``multipath_per_min`` jumps of ``multipath_min_m``-``multipath_max_m`` lasting 1-10 s are added on top.
     ``outages`` are (start_s, length_s) half-open intervals of fix time with no valid fix, either silent or
-    sent as "no fix" sentences (GGA quality 0, RMC status V). Two antennas sit on the lengthwise axis,
+    sent as "no fix" sentences (GGA quality 0, RMC status V, GST and HDT empty). Two antennas sit on the lengthwise axis,
     antenna 2 ``antenna_distance_m`` behind antenna 1 (the reference point, the rear-axle centre).
 
     CAN: speed reported as truth * ``speed_scale`` + noise, yaw rate as truth + bias + noise, both taken
@@ -100,7 +100,7 @@ class SimSettings:
         _within(self, "gps_rate_hz", 1.0, 20.0)
         if abs(100.0 / self.gps_rate_hz - round(100.0 / self.gps_rate_hz)) > 1e-9:
             raise ValueError(
-                f"gps_rate_hz: the period must be whole centiseconds (1, 2, 5, 10, 20 Hz), got {self.gps_rate_hz!r}"
+                f"gps_rate_hz: the period must be whole centiseconds (e.g. 1, 5, 10, 20 Hz), got {self.gps_rate_hz!r}"
             )
         _within(self, "gps_walk_tau_s", 1.0, 3600.0)
         _within(self, "multipath_per_min", 0.0, 60.0)
@@ -126,7 +126,7 @@ class SimSettings:
         if self.yaw_rate_bias_dps is not None:
             _within(self, "yaw_rate_bias_dps", -5.0, 5.0)
         for outage in self.outages:
-            if len(outage) != 2:
+            if not isinstance(outage, tuple | list) or len(outage) != 2:
                 raise ValueError(f"outages: each outage is (start_s, length_s), got {outage!r}")
             start, length = outage
             if not (_is_number(start) and _is_number(length) and 0.0 <= start < self.duration_s and length > 0):
