@@ -38,7 +38,7 @@ class GnssFix:
 
     ``t`` is the receive time (s, service clock) when the line carried one, else the fix's UTC time as
     Unix seconds. ``valid`` is False for fixes with no position (GGA quality 0, RMC status V); such a fix
-    is never used as a position.
+    is never used as a position. ``antenna`` is 1, or 2 for the rear antenna of a two-antenna setup (su7).
     """
 
     t: float
@@ -57,6 +57,7 @@ class GnssFix:
     sigma_lon_m: float | None = None
     sigma_alt_m: float | None = None
     talker: str = ""
+    antenna: int = 1
 
 
 @dataclass(frozen=True, slots=True)

@@ -479,7 +479,8 @@ def test_gps_error_models(model: str, scale: float) -> None:
 
 def test_multipath_jumps() -> None:
     settings = SimSettings(seed=8, duration_s=120.0, gps_error="uniform", multipath_per_min=5.0, truth_rate_hz=10.0)
-    e = np.hypot(simulate(settings).gps[0].error_east, simulate(settings).gps[0].error_north)
+    jumpy = simulate(settings).gps[0]
+    e = np.hypot(jumpy.error_east, jumpy.error_north)
     assert e.max() > 5.0 - 1.5
     assert e.max() <= 50.0 * 3 + 1.5
     clean = simulate(dataclasses.replace(settings, multipath_per_min=0.0)).gps[0]

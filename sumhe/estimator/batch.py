@@ -203,7 +203,6 @@ def estimate_batch(
     settings: EstimatorSettings | None = None,
     *,
     frame: LocalFrame | None = None,
-    gps_latency_s: float = 0.0,
     extent: bool = False,
 ) -> SuResult:
     """Batch SU estimate of a window of samples (see the module docstring for the stages).
@@ -214,7 +213,7 @@ def estimate_batch(
     t_start = time.perf_counter()
     settings = settings or EstimatorSettings()
     model = model_for(settings)
-    grid = build_grid(samples, model, settings, frame, gps_latency_s)
+    grid = build_grid(samples, model, settings, frame)
     bounds = noise_bounds(model, grid, settings)
     nlp = build_nlp(
         settings.model, settings.yaw_rate_bias, settings.speed_scale, grid.n_steps, settings.ipopt_max_iter,
@@ -281,14 +280,13 @@ def estimate_lp(
     settings: EstimatorSettings | None = None,
     *,
     frame: LocalFrame | None = None,
-    gps_latency_s: float = 0.0,
 ) -> SuResult:
     """The linear SU estimate alone (000 (21)-(22) as 001's LP): positions from the LP, azimuth from its
     input phi-hat, speed and yaw rate from CAN; q and r only for the position states and outputs."""
     t_start = time.perf_counter()
     settings = settings or EstimatorSettings()
     model = model_for(settings)
-    grid = build_grid(samples, model, settings, frame, gps_latency_s)
+    grid = build_grid(samples, model, settings, frame)
     bounds = noise_bounds(model, grid, settings)
     origin = np.mean(grid.y[grid.gps, :2], axis=0)
     lp = solve_lp(grid, model, bounds, settings, origin)

@@ -1,6 +1,6 @@
 """From time-ordered samples to the estimator's time grid: outputs, availability and error allowances.
 
-The grid's steps are the GNSS epochs (fix times minus the receiver latency); gaps longer than 1.5 nominal
+The grid's steps are the GNSS epochs (:func:`fix_time`); gaps longer than 1.5 nominal
 periods (an outage) are filled with evenly spaced steps that carry only CAN outputs, and the grid reaches
 the first and last sample. CAN speed and yaw rate are averaged over each step's half-intervals (linear
 interpolation when no sample falls inside, nothing when the nearest sample is farther than
@@ -29,6 +29,8 @@ log = logging.getLogger(__name__)
 
 GGA_RTK_FIXED = 4
 GGA_RTK_FLOAT = 5
+MAX_CLOCK_OFFSET_S = 5.0
+CAN_USED = ("speed", "yaw_rate")
 
 
 @dataclass(frozen=True)
@@ -83,6 +85,21 @@ def check_samples(samples: Sequence[Sample]) -> None:
                 value = getattr(s, name)
                 if value is None or not math.isfinite(value):
                     raise EstimatorInputError(f"sample {i}: valid fix with {name} = {value!r}")
+
+
+def fix_time(fix: GnssFix, settings: EstimatorSettings) -> float:
+    """The time (s, service clock) a fix's position refers to.
+
+    With ``gps_time = "utc"`` the fix's UTC time of fix, when it has one within ``MAX_CLOCK_OFFSET_S`` of
+    its receive time (a service clock on UTC: live with NTP, replayed logs); otherwise, and with
+    ``"receive"``, the receive time minus ``gps_latency_s``. Receive times carry the receiver's latency and
+    serial jitter (tens of ms: decimetres at road speed).
+    """
+    if settings.gps_time == "utc" and fix.time_utc is not None:
+        utc = fix.time_utc.timestamp()
+        if abs(fix.t - utc) <= MAX_CLOCK_OFFSET_S:
+            return utc
+    return fix.t - settings.gps_latency_s
 
 
 def gps_sigma_m(fix: GnssFix, settings: EstimatorSettings) -> tuple[float, float]:
@@ -144,25 +161,27 @@ def build_grid(
     model: SuModel,
     settings: EstimatorSettings,
     frame: LocalFrame | None = None,
-    gps_latency_s: float = 0.0,
 ) -> Grid:
     """Check the samples and put them on the step grid of ``model``; EstimatorInputError if unusable.
 
-    ``frame`` defaults to a local frame at the first valid fix. ``gps_latency_s`` is subtracted from the
-    fixes' receive times. For ``su7``, fixes whose talker is ``settings.antenna2_talker`` are antenna 2.
+    ``frame`` defaults to a local frame at the first valid fix. Fixes of antenna 2 are used by ``su7``
+    only; CAN times are moved back by ``settings.can_delay_s``.
     """
     check_samples(samples)
     fixes = [s for s in samples if isinstance(s, GnssFix)]
-    ant2 = [f for f in fixes if model.antennas == 2 and f.talker == settings.antenna2_talker]
-    ant1 = [f for f in fixes if not (model.antennas == 2 and f.talker == settings.antenna2_talker)]
+    ant1 = [f for f in fixes if f.antenna != 2]
+    ant2 = [f for f in fixes if f.antenna == 2 and model.antennas == 2]
     valid1 = [f for f in ant1 if f.valid]
     if len(valid1) < 2:
         raise EstimatorInputError(f"need at least 2 valid GNSS positions in the window, got {len(valid1)}")
     if frame is None:
         first = valid1[0]
         frame = LocalFrame(float(first.lat_deg), float(first.lon_deg))  # type: ignore[arg-type]
-    t_all = np.array([s.t - (gps_latency_s if isinstance(s, GnssFix) else 0.0) for s in samples])
-    epochs = np.array([f.t - gps_latency_s for f in ant1])
+    cans = [s for s in samples if isinstance(s, CanSample)]
+    t_can = {q: np.array([s.t - settings.can_delay_s for s in cans if s.quantity == q]) for q in CAN_USED}
+    v_can = {q: np.array([s.value for s in cans if s.quantity == q]) for q in CAN_USED}
+    epochs = np.array([fix_time(f, settings) for f in ant1])
+    t_all = np.concatenate([epochs, *t_can.values()])
     d_ep = np.diff(np.unique(epochs))
     period = float(np.median(d_ep)) if len(d_ep) else settings.step_s
     t = step_times(epochs, float(t_all.min()), float(t_all.max()), period)
@@ -174,7 +193,7 @@ def build_grid(
     for group, col in ((valid1, 0), ([f for f in ant2 if f.valid], 2)):
         if not group:
             continue
-        tf = np.array([f.t - gps_latency_s for f in group])
+        tf = np.array([fix_time(f, settings) for f in group])
         k = _nearest(t, tf, 0.5 * period)
         ok = k >= 0
         enu = frame.to_enu([f.lat_deg for f in group], [f.lon_deg for f in group])
@@ -183,16 +202,8 @@ def build_grid(
             y[k[ok], col + c] = enu[ok, c]
             avail[k[ok], col + c] = True
             allow[k[ok], col + c] = k_sig * np.maximum(sig[ok, c], settings.gps_resolution_m)
-    can_speed, can_yaw = (
-        can_on_grid(
-            np.array([s.t for s in samples if isinstance(s, CanSample) and s.quantity == q]),
-            np.array([s.value for s in samples if isinstance(s, CanSample) and s.quantity == q]),
-            t,
-            settings.can_max_gap_s,
-        )
-        for q in ("speed", "yaw_rate")
-    )
-    _angle_output(model, settings, t, y, avail, allow, valid1, can_speed, can_yaw, period, gps_latency_s)
+    can_speed, can_yaw = (can_on_grid(t_can[q], v_can[q], t, settings.can_max_gap_s) for q in CAN_USED)
+    _angle_output(model, settings, t, y, avail, allow, valid1, can_speed, can_yaw, period)
     has_bias = "yaw_rate_bias" in model.states
     has_scale = "speed_scale" in model.states
     i_v, i_w = n_out - 2, n_out - 1
@@ -232,7 +243,6 @@ def _angle_output(
     can_speed: NDArray[np.float64],
     can_yaw: NDArray[np.float64],
     period: float,
-    latency: float,
 ) -> None:
     """Fill the azimuth output in place: xi of the antenna pair (su7) or the receiver's heading/course (su5).
 
@@ -249,7 +259,7 @@ def _angle_output(
         avail[both, j] = True
         allow[both, j] = (allow[both, 0] + allow[both, 2]) * math.sqrt(2) / settings.antenna_distance_m + turn[both]
         return
-    k = _nearest(t, np.array([f.t - latency for f in fixes]), 0.5 * period)
+    k = _nearest(t, np.array([fix_time(f, settings) for f in fixes]), 0.5 * period)
     for f, kk in zip(fixes, k, strict=True):
         if kk < 0:
             continue

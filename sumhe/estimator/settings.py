@@ -12,6 +12,7 @@ from dataclasses import dataclass
 OBJECTIVES = ("linear", "log", "caps")
 CENTRES = ("lsq", "none")
 MODELS = ("su5", "su7")
+GPS_TIMES = ("utc", "receive")
 
 
 @dataclass(frozen=True, slots=True)
@@ -56,10 +57,13 @@ class EstimatorSettings:
     max_accel_mps2: float = 10.0
     max_yaw_rate_rps: float = 1.5
     max_yaw_accel_rps2: float = 3.0
-    # two antennas (su7): distance d and tolerance alpha of (23); fixes from antenna 2 carry this talker
+    # two antennas (su7): distance d and tolerance alpha of (23)
     antenna_distance_m: float = 1.0
     antenna_tolerance_m2: float = 0.05
-    antenna2_talker: str = "A2"
+    # time base: GNSS epochs at the fix's UTC time ("utc") or at receive time minus latency ("receive")
+    gps_time: str = "utc"
+    gps_latency_s: float = 0.0
+    can_delay_s: float = 0.0
     # grid and solvers
     step_s: float = 0.1
     ipopt_max_iter: int = 300
@@ -72,6 +76,7 @@ class EstimatorSettings:
         _one_of(self, "model", MODELS)
         _one_of(self, "objective", OBJECTIVES)
         _one_of(self, "centre", CENTRES)
+        _one_of(self, "gps_time", GPS_TIMES)
         for name in (
             "r_cap_sigmas",
             "gps_sigma_rtk_m",
@@ -102,7 +107,7 @@ class EstimatorSettings:
             value = getattr(self, name)
             if not value > 0 or value == float("inf"):
                 raise ValueError(f"{name}: must be a positive finite number, got {value!r}")
-        for name in ("centre_margin", "course_min_speed_mps", "max_reverse_speed_mps"):
+        for name in ("centre_margin", "course_min_speed_mps", "max_reverse_speed_mps", "gps_latency_s", "can_delay_s"):
             value = getattr(self, name)
             if not 0 <= value < float("inf"):
                 raise ValueError(f"{name}: must be >= 0 and finite, got {value!r}")

@@ -90,7 +90,11 @@ def _can_rows(truth: Truth, path: Path) -> list[ErrorRow]:
         error_row("CAN speed / true scale - true speed", "m/s", speed / at_speed.speed_scale - at_speed.speed),
         error_row("CAN speed / true speed - 1 (moving)", "%", 100.0 * (speed[moving] / at_speed.speed[moving] - 1.0)),
         error_row("CAN yaw rate - true yaw rate", "deg/s", np.degrees(yaw - at_yaw.yaw_rate)),
-        error_row("CAN yaw rate - true bias - true", "deg/s", np.degrees(yaw - at_yaw.yaw_rate_bias - at_yaw.yaw_rate)),
+        error_row(
+            "CAN yaw rate - true yaw rate - true bias",
+            "deg/s",
+            np.degrees(yaw - at_yaw.yaw_rate_bias - at_yaw.yaw_rate),
+        ),
         error_row("CAN ESP_YAW_RATE period - cycle", "ms", 1000.0 * (period - cycle)),
     ]
 
@@ -99,7 +103,7 @@ def _gps_rows(truth: Truth, path: Path, antenna: int) -> list[ErrorRow]:
     fixes = list(iter_fixes(path))
     valid = [f for f in fixes if f.valid and f.time_utc is not None]
     label = f"GPS{antenna}"
-    rows = [error_row(f"{label} epochs without a valid fix", "", np.zeros(len(fixes) - len(valid)))]
+    rows = [ErrorRow(f"{label} epochs without a valid fix", "", len(fixes) - len(valid), *[math.nan] * 4)]
     if not valid:
         return rows
     t_fix = np.array([_fix_time(f) for f in valid])
@@ -145,5 +149,6 @@ def format_table(rows: Iterable[ErrorRow], title: str) -> str:
     """A fixed-width text table of the rows under ``title``."""
     lines = [title, f"{'error':<42} {'unit':>5} {'n':>7} {'mean':>9} {'std':>9} {'p95|e|':>9} {'max|e|':>9}"]
     for r in rows:
-        lines.append(f"{r.name:<42} {r.unit:>5} {r.n:>7d} {r.mean:>9.4f} {r.std:>9.4f} {r.p95:>9.4f} {r.max:>9.4f}")
+        stats = " ".join("        -" if math.isnan(v) else f"{v:>9.4f}" for v in (r.mean, r.std, r.p95, r.max))
+        lines.append(f"{r.name:<42} {r.unit:>5} {r.n:>7d} {stats}")
     return "\n".join(lines)

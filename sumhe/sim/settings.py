@@ -41,8 +41,8 @@ class SimSettings:
     ``gps_error_m`` per axis: what real receivers do) or ``rtk`` (uniform, default +-3 cm, GGA quality 4).
     ``multipath_per_min`` jumps of ``multipath_min_m``-``multipath_max_m`` lasting 1-10 s are added on top.
     ``outages`` are (start_s, length_s) half-open intervals of fix time with no valid fix, either silent or
-    sent as "no fix" sentences (GGA quality 0, RMC status V, GST and HDT empty). Two antennas sit on the lengthwise axis,
-    antenna 2 ``antenna_distance_m`` behind antenna 1 (the reference point, the rear-axle centre).
+    sent as "no fix" sentences (GGA quality 0, RMC status V, GST and HDT empty). Two antennas sit on the
+    lengthwise axis, antenna 2 ``antenna_distance_m`` behind antenna 1 (the reference point, the rear-axle centre).
 
     CAN: speed reported as truth * ``speed_scale`` + noise, yaw rate as truth + bias + noise, both taken
     ``can_sensor_delay_s`` before the frame goes out; host timestamps with USB-adapter jitter and bursts.

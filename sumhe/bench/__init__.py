@@ -1,0 +1,1 @@
+"""Benchmarks: the paper's protocol on simulated drives and the estimators side by side."""
