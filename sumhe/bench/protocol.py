@@ -8,10 +8,10 @@ vehicle does during the outage (stop, sharp turn, bend, straight). Methods, side
 
 * ``nlp``: our SU formulation (the estimator's settings; :mod:`sumhe.estimator.batch`);
 * ``nlp-nobias``: the same without the CAN yaw-rate bias and speed scale states;
-* ``nlp-log``, ``nlp-caps``, ``nlp-nocentre``: one formulation choice changed (stage-1 objective ``log`` or
-  ``caps``; reporting the stage-1 point instead of the centre);
+* ``nlp-log``, ``nlp-caps``, ``nlp-nocentre``, ``nlp-euler``: one formulation choice changed (stage-1
+  objective ``log`` or ``caps``; the stage-1 point instead of the centre; the paper's Euler steps);
 * ``paper``: the paper's formulation taken literally: objective (15), no floors but the token one, r uncapped,
-  no centre stage, no bias/scale states;
+  no centre stage, no bias/scale states, Euler steps (19);
 * ``lp``: the linear SU start point alone (000 (21)-(22) as 001's LP);
 * ``dr``: dead reckoning from the last fix before the outage with CAN speed and yaw rate.
 
@@ -41,15 +41,17 @@ from sumhe.sim.drive import Drive
 
 log = logging.getLogger(__name__)
 
-METHODS = ("nlp", "nlp-nobias", "nlp-log", "nlp-caps", "nlp-nocentre", "paper", "lp", "dr")
+METHODS = ("nlp", "nlp-nobias", "nlp-euler", "nlp-log", "nlp-caps", "nlp-nocentre", "paper", "lp", "dr")
 DEFAULT_METHODS = ("nlp", "nlp-nobias", "paper", "lp", "dr")
 PAPER_R_CAP_SIGMAS = 1e4
 
 
 @dataclass(frozen=True, slots=True)
 class ProtocolSettings:
-    """One protocol run: the drive (``scenario``, ``seed``, ``duration_s``, ``gps_error``), the window
-    (epochs before, in and after the outage) and how many placements; ``bar_m`` is the error bar (m)."""
+    """One protocol run: the drive (``scenario``, ``seed``, ``duration_s``, ``gps_error``, ``antennas``), the
+    window (epochs before, in and after the outage) and how many placements; ``bar_m`` is the error bar (m).
+    With ``calibrated_can_delay`` the estimators get the simulated CAN sensor delay as ``can_delay_s`` (a
+    calibration a real installation measures once)."""
 
     scenario: str = "offroad"
     seed: int = 1
@@ -62,6 +64,7 @@ class ProtocolSettings:
     bar_m: float = 0.5
     methods: tuple[str, ...] = DEFAULT_METHODS
     antennas: int = 1
+    calibrated_can_delay: bool = True
 
     def __post_init__(self) -> None:
         for name in ("placements", "before", "outage_epochs", "after"):
@@ -121,6 +124,7 @@ def method_settings(method: str, base: EstimatorSettings) -> EstimatorSettings:
         "nlp-log": {"objective": "log"},
         "nlp-caps": {"objective": "caps"},
         "nlp-nocentre": {"centre": "none"},
+        "nlp-euler": {"discretisation": "euler"},
         "paper": {
             "objective": "log",
             "centre": "none",
@@ -128,6 +132,7 @@ def method_settings(method: str, base: EstimatorSettings) -> EstimatorSettings:
             "r_cap_sigmas": PAPER_R_CAP_SIGMAS,
             "yaw_rate_bias": False,
             "speed_scale": False,
+            "discretisation": "euler",
         },
     }
     return dataclasses.replace(base, **changes[method])  # type: ignore[arg-type]
@@ -160,7 +165,7 @@ def make_windows(drive: Drive, ps: ProtocolSettings, est: EstimatorSettings) -> 
         keep = [k for k in sel if not ps.before <= k - k0 < ps.before + ps.outage_epochs]
         epoch_t = np.array([fix_time(fixes[k], est) for k in sel])
         gnss: list[Sample] = [fixes[k] for k in keep] + [second[k] for k in keep if second]
-        lo, hi = np.searchsorted(can_t, [epoch_t[0] - 0.05, epoch_t[-1] + 0.05])
+        lo, hi = np.searchsorted(can_t, [epoch_t[0] + est.can_delay_s - 0.04, epoch_t[-1] + est.can_delay_s + 0.04])
         samples = sorted(gnss + can[lo:hi], key=lambda s: s.t)
         outage = np.zeros(ps.window, dtype=bool)
         outage[ps.before : ps.before + ps.outage_epochs] = True
@@ -249,7 +254,11 @@ def run_protocol(ps: ProtocolSettings, est: EstimatorSettings | None = None) -> 
         scenario=ps.scenario, seed=ps.seed, duration_s=ps.duration_s, gps_error=ps.gps_error, antennas=ps.antennas
     )
     drive = simulate(sim)
-    est = dataclasses.replace(est, model="su7" if ps.antennas == 2 else est.model)
+    est = dataclasses.replace(
+        est,
+        model="su7" if ps.antennas == 2 else est.model,
+        can_delay_s=sim.can_sensor_delay_s if ps.calibrated_can_delay else est.can_delay_s,
+    )
     windows = make_windows(drive, ps, est)
     runs = []
     for w in windows:

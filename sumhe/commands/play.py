@@ -18,10 +18,11 @@ from pathlib import Path
 
 import can
 
-from sumhe.config import load_config
+from sumhe.config import load_config, parse_host_port
 from sumhe.errors import ConfigError
 from sumhe.io.can import read_log
-from sumhe.service.player import Player, Pty, read_nmea_log
+from sumhe.service.player import Player, Pty, TcpNmeaServer, read_nmea_log
+from sumhe.sim import bundled_drive_dir
 
 log = logging.getLogger(__name__)
 
@@ -35,10 +36,15 @@ def _span(text: str) -> tuple[float, float]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("drive", help="a drive directory (drive.log + drive.nmea) or a CAN log")
+    parser.add_argument(
+        "drive", nargs="?", help="a drive directory (drive.log + drive.nmea) or a CAN log (default: the bundled drive)"
+    )
     parser.add_argument("--nmea", metavar="NMEALOG", help="NMEA log (default: drive.nmea in the drive directory)")
     parser.add_argument("--config", metavar="FILE", required=True, help="TOML config; its [can] bus is played onto")
     parser.add_argument("--pty", metavar="PATH", default="/tmp/sumhe-gps", help="symlink to the pty (NMEA)")
+    parser.add_argument(
+        "--nmea-tcp", metavar="HOST:PORT", help="serve the NMEA over TCP instead of a pty (gps.port = socket://...)"
+    )
     parser.add_argument("--speed", type=float, default=1.0, help="replay speed factor (1 = real time)")
     parser.add_argument("--no-can", action="store_true", help="play the NMEA only")
     parser.add_argument("--reopen-pty-at", type=float, metavar="S", help="unplug and replug the pty S s in")
@@ -46,7 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _drive_files(args: argparse.Namespace) -> tuple[Path, Path | None]:
-    drive = Path(args.drive)
+    drive = Path(args.drive) if args.drive else bundled_drive_dir()
     if drive.is_dir():
         nmea = Path(args.nmea) if args.nmea else drive / "drive.nmea"
         return drive / "drive.log", nmea if nmea.exists() else None
@@ -73,7 +79,12 @@ def run(args: argparse.Namespace) -> int:
         if config.can.interface == "virtual":
             kwargs["preserve_timestamps"] = True
         bus = can.Bus(**kwargs)
-    pty = Pty(Path(args.pty)) if lines else None
+    if not lines:
+        pty = None
+    elif args.nmea_tcp:
+        pty = TcpNmeaServer(*parse_host_port(args.nmea_tcp))
+    else:
+        pty = Pty(Path(args.pty))
     player = Player(frames, lines, bus, pty, speed=args.speed)
     timers = []
     if args.reopen_pty_at is not None:
@@ -82,7 +93,8 @@ def run(args: argparse.Namespace) -> int:
         start, length = args.can_silence
         timers.append(_at(player, start, player.paused_can.set))
         timers.append(_at(player, start + length, player.paused_can.clear))
-    print(f"playing {len(frames)} CAN frames and {len(lines)} NMEA lines; pty at {args.pty}", file=sys.stderr)
+    where = f"tcp {args.nmea_tcp}" if args.nmea_tcp else f"pty at {args.pty}"
+    print(f"playing {len(frames)} CAN frames and {len(lines)} NMEA lines; NMEA on {where}", file=sys.stderr)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: player.request_stop())
     try:
@@ -94,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
             bus.shutdown()
         if pty is not None:
             pty.close()
+        if isinstance(pty, Pty):
             pty.unlink()
     print(f"played {player.sent_frames} frames, {player.sent_lines} lines", file=sys.stderr)
     return 0

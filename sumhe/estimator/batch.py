@@ -99,13 +99,13 @@ class SuResult:
 
 def model_for(settings: EstimatorSettings) -> SuModel:
     """The SU model the settings select (``model``, ``yaw_rate_bias``, ``speed_scale``)."""
-    return su_model(settings.model, settings.yaw_rate_bias, settings.speed_scale)
+    return su_model(settings.model, settings.yaw_rate_bias, settings.speed_scale, settings.discretisation)
 
 
 def state_residuals(model: SuModel, x: NDArray[np.float64], h: NDArray[np.float64]) -> NDArray[np.float64]:
     """State noise ``w_t = x_t - g(x_{t-1})`` (N-1 x m_dynamic) of a trajectory ``x`` (N x m); angles wrapped."""
     md = model.n_dynamic
-    w = x[1:, :md] - np.array(model.step(x[:-1].T, h)[:md]).T
+    w = x[1:, :md] - np.array(model.transition(x[:-1].T, x[1:].T, h)[:md]).T
     for i in model.angle_states:
         w[:, i] = wrap_angle(w[:, i])
     return w
@@ -216,7 +216,12 @@ def estimate_batch(
     grid = build_grid(samples, model, settings, frame)
     bounds = noise_bounds(model, grid, settings)
     nlp = build_nlp(
-        settings.model, settings.yaw_rate_bias, settings.speed_scale, grid.n_steps, settings.ipopt_max_iter,
+        settings.model,
+        settings.yaw_rate_bias,
+        settings.speed_scale,
+        settings.discretisation,
+        grid.n_steps,
+        settings.ipopt_max_iter,
         settings.ipopt_tol,
     )
     win = _Window(nlp, model, grid, bounds, settings)

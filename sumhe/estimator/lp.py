@@ -3,7 +3,8 @@
 State: the antenna positions only; input: the velocity ``v_t (sin phi_t, cos phi_t)`` from CAN speed and an
 azimuth ``phi_t`` that is measured where GNSS has one (the antenna pair's xi for su7; the receiver's
 heading/course, else the direction of the step to the next fix, for su5) and dead-reckoned with the CAN yaw
-rate elsewhere, ``phi_t = phi_{t-1} - h omega_{t-1}`` (backwards before the first measured one).
+rate elsewhere, ``phi_t = phi_{t-1} - h omega_{t-1}`` (backwards before the first measured one). With the
+``trapezoid`` discretisation the step's mean yaw rate, speed and azimuth replace the values at t-1.
 
 The LP, over ``z = [p_0 .. p_{N-1}, q, r]``::
 
@@ -59,8 +60,9 @@ class LpSolution:
     time_s: float
 
 
-def azimuth_inputs(grid: Grid, model: SuModel, speed: NDArray, yaw_rate: NDArray) -> NDArray[np.float64]:
-    """phi-hat of (21), unwrapped (rad): measured where GNSS gives one, dead-reckoned with the yaw rate else.
+def azimuth_inputs(grid: Grid, model: SuModel, yaw_rate: NDArray, trapezoid: bool) -> NDArray[np.float64]:
+    """phi-hat of (21), unwrapped (rad): measured where GNSS gives one, dead-reckoned with the yaw rate else
+    (Euler as in (21), or with the step's mean yaw rate when ``trapezoid``).
 
     For su5 without heading/course at a fix, the direction to the next fix is used when that step is longer
     than five times the two fixes' error allowances.
@@ -76,18 +78,15 @@ def azimuth_inputs(grid: Grid, model: SuModel, speed: NDArray, yaw_rate: NDArray
         use = ok & ~known[:-1]
         phi[:-1][use] = np.arctan2(d[use, 0], d[use, 1])
         known[:-1] |= use
-    h = grid.h
+    turn = grid.h * (0.5 * (yaw_rate[:-1] + yaw_rate[1:]) if trapezoid else yaw_rate[:-1])
     if not known.any():
-        return np.concatenate([[0.0], -np.cumsum(h * yaw_rate[:-1])])
+        return np.concatenate([[0.0], -np.cumsum(turn)])
     first = int(np.argmax(known))
     for k in range(first - 1, -1, -1):
-        phi[k] = phi[k + 1] + h[k] * yaw_rate[k]
+        phi[k] = phi[k + 1] + turn[k]
     for k in range(first + 1, N):
-        if known[k]:
-            prev = phi[k - 1] - h[k - 1] * yaw_rate[k - 1]
-            phi[k] = prev + np.angle(np.exp(1j * (phi[k] - prev)))
-        else:
-            phi[k] = phi[k - 1] - h[k - 1] * yaw_rate[k - 1]
+        prev = phi[k - 1] - turn[k - 1]
+        phi[k] = prev + np.angle(np.exp(1j * (phi[k] - prev))) if known[k] else prev
     return phi
 
 
@@ -161,8 +160,13 @@ def solve_lp(
     t_start = time.perf_counter()
     n_pos = 2 * model.antennas
     speed, yaw_rate = can_inputs(grid)
-    phi = azimuth_inputs(grid, model, speed, yaw_rate)
-    u = np.column_stack([speed * np.sin(phi), speed * np.cos(phi)])
+    trapezoid = settings.discretisation == "trapezoid"
+    phi = azimuth_inputs(grid, model, yaw_rate, trapezoid)
+    if trapezoid:
+        v_step, phi_step = 0.5 * (speed[:-1] + speed[1:]), 0.5 * (phi[:-1] + phi[1:])
+    else:
+        v_step, phi_step = speed[:-1], phi[:-1]
+    u = np.column_stack([v_step * np.sin(phi_step), v_step * np.cos(phi_step)])
     shift = np.tile(origin, model.antennas)
     centred = Grid(
         t=grid.t,

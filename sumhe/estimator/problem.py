@@ -108,13 +108,13 @@ class SuNlp:
         """``x_t - g(x_{t-1}) -/+ q S_t`` for every step (2 rows per dynamic state) and the squared normalised
         residuals. The constant states (bias, scale) are one variable each and have no rows."""
         m, md = self.model.n_states, self.model.n_dynamic
-        xp, xn, h, s = ca.SX.sym("xp", m), ca.SX.sym("xn", md), ca.SX.sym("h"), ca.SX.sym("s", md)
+        xp, xn, h, s = ca.SX.sym("xp", m), ca.SX.sym("xn", m), ca.SX.sym("h"), ca.SX.sym("s", md)
         qq = ca.SX.sym("q", md)
-        res = xn - ca.vertcat(*self.model.step(xp, h, ca)[:md])
+        res = xn[:md] - ca.vertcat(*self.model.transition(xp, xn, h, ca)[:md])
         res = ca.vertcat(*[wrap_angle(res[i], ca) if i in self.model.angle_states else res[i] for i in range(md)])
         bound = qq * s
         step = ca.Function("state_step", [xp, xn, h, qq, s], [ca.vertcat(res - bound, res + bound), ca.sumsqr(res / bound)])
-        rows, lsq = step.map(self.n_steps - 1)(X[:, :-1], X[:md, 1:], H, ca.repmat(q, 1, self.n_steps - 1), S)
+        rows, lsq = step.map(self.n_steps - 1)(X[:, :-1], X[:, 1:], H, ca.repmat(q, 1, self.n_steps - 1), S)
         return ca.vec(rows), ca.sum2(lsq)
 
     def _output_rows(self, X: ca.SX, r: ca.SX, Y: ca.SX, A: ca.SX, C: ca.SX) -> tuple[ca.SX, ca.SX]:
@@ -205,7 +205,13 @@ class SuNlp:
 
 @functools.lru_cache(maxsize=16)
 def build_nlp(
-    model_name: str, yaw_rate_bias: bool, speed_scale: bool, n_steps: int, max_iter: int, tol: float
+    model_name: str,
+    yaw_rate_bias: bool,
+    speed_scale: bool,
+    discretisation: str,
+    n_steps: int,
+    max_iter: int,
+    tol: float,
 ) -> SuNlp:
     """The NLP for a model and window size, built on first use and cached (never rebuilt per window)."""
-    return SuNlp(su_model(model_name, yaw_rate_bias, speed_scale), n_steps, max_iter, tol)
+    return SuNlp(su_model(model_name, yaw_rate_bias, speed_scale, discretisation), n_steps, max_iter, tol)

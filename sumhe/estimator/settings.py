@@ -13,6 +13,7 @@ OBJECTIVES = ("linear", "log", "caps")
 CENTRES = ("lsq", "none")
 MODELS = ("su5", "su7")
 GPS_TIMES = ("utc", "receive")
+DISCRETISATIONS = ("trapezoid", "euler")
 
 
 @dataclass(frozen=True, slots=True)
@@ -27,6 +28,7 @@ class EstimatorSettings:
     # optional states beyond the paper: CAN yaw-rate bias and CAN speed scale factor
     yaw_rate_bias: bool = True
     speed_scale: bool = True
+    discretisation: str = "trapezoid"
     # formulation: stage-1 objective over (q, r), which point of the feasible set is reported
     objective: str = "linear"
     centre: str = "lsq"
@@ -77,6 +79,7 @@ class EstimatorSettings:
         _one_of(self, "objective", OBJECTIVES)
         _one_of(self, "centre", CENTRES)
         _one_of(self, "gps_time", GPS_TIMES)
+        _one_of(self, "discretisation", DISCRETISATIONS)
         for name in (
             "r_cap_sigmas",
             "gps_sigma_rtk_m",

@@ -77,7 +77,7 @@ class SerialLines:
     def open(self) -> None:
         """Open the port (raises ``serial.SerialException`` when it is not there)."""
         self.close()
-        self._serial = serial.Serial(self.port, self.baudrate, timeout=self.idle_s)
+        self._serial = serial.serial_for_url(self.port, self.baudrate, timeout=self.idle_s)
         self._pending = b""
 
     def read(self) -> tuple[list[NmeaLine], bool]:

@@ -8,6 +8,8 @@ sources) -> the estimator, run off the event loop in a worker thread -> sinks (U
   only the newest is solved, the older ones are skipped and counted (``skipped_epochs``).
 * The reorder buffer holds each sample ``hold_s`` after it arrived (default: the receiver latency + 50 ms, since
   a fix is stamped ``latency`` before it arrives) and releases samples in time order.
+* Time: every timestamp is on one service clock (``time.time()`` live; a scaled clock for faster-than-real-time
+  demos), which also judges stale and future-dated samples.
 * Health: a status line every ``output.status_interval_s`` (log, and JSON to ``output.status_udp`` if set).
 * Lifecycle: SIGINT/SIGTERM set the stop event; tasks unwind and buses, ports and sockets close in ``finally``.
 """
@@ -108,11 +110,13 @@ class Service:
         sink: Callable[[Estimate], None] | None = None,
         hold_s: float | None = None,
         rules: TimeRules | None = None,
+        clock: Callable[[], float] = time.time,
     ) -> None:
         self.config = config
         self.estimator = estimator
         self.sources = sources
-        self.pipeline = Pipeline(config, estimator, rules, wall_clock=time.time)
+        self.clock = clock
+        self.pipeline = Pipeline(config, estimator, rules, wall_clock=clock)
         self.stats = ServiceStats()
         self.reorder = Reorder(config.gps.latency_s + REORDER_MARGIN_S if hold_s is None else hold_s)
         self._udp = UdpSink(config.output) if config.output.udp else None
@@ -196,7 +200,7 @@ class Service:
     def _send(self, est: Estimate) -> None:
         if est.solve_ms > 0:
             self.stats.solve_ms.append(est.solve_ms)
-        self.stats.latency_ms.append((time.time() - est.t) * 1000.0)
+        self.stats.latency_ms.append((self.clock() - est.t) * 1000.0)
         if self._udp is not None:
             self._udp.send(est)
         if self._extra_sink is not None:

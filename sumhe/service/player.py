@@ -21,6 +21,7 @@ import heapq
 import logging
 import os
 import re
+import socket
 import threading
 import time
 import tty
@@ -90,6 +91,52 @@ class Pty:
             self.link.unlink()
 
 
+class TcpNmeaServer:
+    """NMEA over TCP (like a networked receiver or ser2net): every line goes to every connected client.
+
+    A service reads it with ``gps.port = "socket://HOST:PORT"`` (pyserial's URL handler).
+    """
+
+    def __init__(self, host: str, port: int) -> None:
+        self._server = socket.create_server((host, port), reuse_port=False)
+        self._server.settimeout(0.2)
+        self.address = self._server.getsockname()[:2]
+        self._clients: list[socket.socket] = []
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._accept, name="sumhe-nmea-tcp", daemon=True)
+        self._thread.start()
+
+    def _accept(self) -> None:
+        while not self._stop.is_set():
+            try:
+                conn, _ = self._server.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            with self._lock:
+                self._clients.append(conn)
+
+    def write(self, data: bytes) -> None:
+        with self._lock:
+            for conn in list(self._clients):
+                try:
+                    conn.sendall(data)
+                except OSError:
+                    self._clients.remove(conn)
+                    conn.close()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._server.close()
+        self._thread.join(1.0)
+        with self._lock:
+            for conn in self._clients:
+                conn.close()
+            self._clients.clear()
+
+
 class Player:
     """Plays CAN frames and NMEA lines in time order in a thread; ``stop()`` ends it early."""
 
@@ -98,7 +145,7 @@ class Player:
         frames: Iterable[can.Message],
         lines: Iterable[TimedLine],
         bus: can.BusABC | None,
-        pty: Pty | None,
+        pty: Pty | TcpNmeaServer | None,
         speed: float = 1.0,
         clock: Callable[[], float] = time.time,
     ) -> None:
@@ -179,6 +226,6 @@ class Player:
 
     def reopen_pty(self) -> None:
         """Close the pseudo-terminal and open a new one at the same link (a receiver unplugged and back)."""
-        if self.pty is not None:
+        if isinstance(self.pty, Pty):
             self.pty.close()
             self.pty.open()

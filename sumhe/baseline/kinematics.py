@@ -1,0 +1,233 @@
+"""The motion and measurement models every recursive baseline shares, with their Jacobians (numpy).
+
+State (the single-antenna SU model of paper 000 with the optional CAN sensor states of issue 7), in this order:
+east, north (m), azimuth phi (rad, clockwise from north), speed v (m/s), yaw rate omega (rad/s, anticlockwise
+positive), then the CAN yaw-rate bias b (rad/s; CAN yaw rate = omega + b) and the CAN speed scale k
+(CAN speed = k v) when the :class:`Layout` carries them.
+
+Continuous model: ``east' = v sin phi``, ``north' = v cos phi``, ``phi' = -omega``; v, omega, b and k are random
+walks. One step of ``dt`` seconds uses the midpoint azimuth ``phi - omega dt / 2`` (exact on a straight line,
+second order on a circle); ``dt`` may be negative, which is how a fix older than the state (receiver latency) is
+compared with it. Every function takes a state of shape ``(n,)`` or a stack of states ``(n, M)`` (sigma points,
+particles) unless it says otherwise.
+
+Measurements: a GNSS position (east, north) and azimuth (GPS course over ground or HDT heading) at ``lag``
+seconds before the state's time, and the CAN rows ``k v`` (speed) and ``omega + b`` (yaw rate), plus the
+standstill row ``omega = 0`` (a car at rest does not turn).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from statistics import NormalDist
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sumhe.estimator.settings import EstimatorSettings
+from sumhe.model.su import wrap_angle
+
+FloatArray = NDArray[np.float64]
+
+E, N, PHI, V, OMEGA = range(5)
+POSITION = "position"
+AZIMUTH = "azimuth"
+FIX_ROWS = {POSITION: (E, N), AZIMUTH: (PHI,)}
+"""State rows a GNSS measurement of each kind observes."""
+CAN_SPEED, CAN_YAW_RATE, STANDSTILL = "speed", "yaw_rate", "standstill"
+
+
+@dataclass(frozen=True, slots=True)
+class Layout:
+    """Which optional states follow the five kinematic ones: CAN yaw-rate bias ``b`` and CAN speed scale ``k``."""
+
+    bias: bool = True
+    scale: bool = True
+
+    @classmethod
+    def from_settings(cls, settings: EstimatorSettings) -> Layout:
+        return cls(bias=settings.yaw_rate_bias, scale=settings.speed_scale)
+
+    @property
+    def n(self) -> int:
+        """Number of states."""
+        return 5 + int(self.bias) + int(self.scale)
+
+    @property
+    def b(self) -> int | None:
+        """Row of the yaw-rate bias, or None."""
+        return 5 if self.bias else None
+
+    @property
+    def k(self) -> int | None:
+        """Row of the speed scale, or None."""
+        return 5 + int(self.bias) if self.scale else None
+
+
+@dataclass(frozen=True, slots=True)
+class Noise:
+    """Noise levels of the models, SI units; ``*_rw`` are random-walk densities (unit per sqrt(s)).
+
+    Process: the position, azimuth, speed, yaw rate, bias and scale states each take white noise of the given
+    density (``Q = diag(density^2) dt``). Measurements: CAN speed and yaw rate sigmas (per CAN-rate update),
+    the standstill pseudo-measurement ``omega = 0`` (0 turns it off), the GNSS position sigma as a multiple of
+    the fix's own sigma, a floor on the course sigma. Gate: the chi-square probability of the innovation gate
+    (1 turns the gate off) and how long rejected fixes must agree before the filter re-acquires them.
+    Prior: sigmas of speed and yaw rate at the first fix.
+    """
+
+    pos_rw: float = 0.05
+    heading_rw: float = 0.002
+    speed_rw: float = 1.0
+    yaw_rate_rw: float = 0.3
+    bias_rw: float = 5e-5
+    scale_rw: float = 1e-5
+    can_speed_mps: float = 0.05
+    can_yaw_rate_rps: float = 0.003
+    standstill_rps: float = 0.001
+    gps_scale: float = 1.0
+    course_rad: float = 0.005
+    gate_prob: float = 0.9999
+    reacquire_s: float = 1.0
+    speed0_mps: float = 1.0
+    yaw_rate0_rps: float = 0.1
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"{f.name}: must be a finite number >= 0, got {value!r}")
+        for name in ("can_speed_mps", "can_yaw_rate_rps", "gps_scale"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name}: must be positive, got {getattr(self, name)!r}")
+        if not 0 < self.gate_prob <= 1:
+            raise ValueError(f"gate_prob: must be within (0, 1], got {self.gate_prob!r}")
+
+
+def chi2_threshold(prob: float, dof: int) -> float:
+    """The ``prob`` quantile of the chi-square distribution with 1 or 2 degrees of freedom (inf for prob 1)."""
+    if prob >= 1.0:
+        return math.inf
+    if dof == 1:
+        return NormalDist().inv_cdf(0.5 + 0.5 * prob) ** 2
+    if dof == 2:
+        return -2.0 * math.log1p(-prob)
+    raise ValueError(f"dof: 1 or 2, got {dof!r}")
+
+
+def step(x: FloatArray, dt: float) -> FloatArray:
+    """The state(s) ``dt`` seconds later (midpoint rule; extra states carried unchanged)."""
+    out = np.array(x, dtype=float, copy=True)
+    phi_mid = x[PHI] - 0.5 * dt * x[OMEGA]
+    out[E] = x[E] + dt * x[V] * np.sin(phi_mid)
+    out[N] = x[N] + dt * x[V] * np.cos(phi_mid)
+    out[PHI] = x[PHI] - dt * x[OMEGA]
+    return out
+
+
+def step_jacobian(x: FloatArray, dt: float) -> FloatArray:
+    """d step(x, dt) / dx for one state ``x`` of shape ``(n,)``."""
+    F = np.eye(len(x))
+    phi_mid = x[PHI] - 0.5 * dt * x[OMEGA]
+    s, c = math.sin(phi_mid), math.cos(phi_mid)
+    vdt = x[V] * dt
+    F[E, PHI], F[E, V], F[E, OMEGA] = vdt * c, dt * s, -0.5 * dt * vdt * c
+    F[N, PHI], F[N, V], F[N, OMEGA] = -vdt * s, dt * c, 0.5 * dt * vdt * s
+    F[PHI, OMEGA] = -dt
+    return F
+
+
+def process_noise(dt: float, noise: Noise, layout: Layout) -> FloatArray:
+    """Q of one step of ``dt`` seconds: independent random walks of every state (n x n)."""
+    dens = [noise.pos_rw, noise.pos_rw, noise.heading_rw, noise.speed_rw, noise.yaw_rate_rw]
+    dens += [noise.bias_rw] * int(layout.bias) + [noise.scale_rw] * int(layout.scale)
+    return np.diag(np.square(dens) * abs(dt))
+
+
+def speed_scale(x: FloatArray, layout: Layout) -> FloatArray | float:
+    """k of the state(s), 1 without a scale state."""
+    return x[layout.k] if layout.k is not None else 1.0
+
+
+def yaw_rate_bias(x: FloatArray, layout: Layout) -> FloatArray | float:
+    """b of the state(s), 0 without a bias state."""
+    return x[layout.b] if layout.b is not None else 0.0
+
+
+def can_model(x: FloatArray, rows: tuple[str, ...], layout: Layout) -> FloatArray:
+    """The CAN rows (``speed``: k v, ``yaw_rate``: omega + b, ``standstill``: omega) of the state(s)."""
+    values = {
+        CAN_SPEED: lambda: speed_scale(x, layout) * x[V],
+        CAN_YAW_RATE: lambda: x[OMEGA] + yaw_rate_bias(x, layout),
+        STANDSTILL: lambda: x[OMEGA],
+    }
+    return np.array([values[r]() for r in rows], dtype=float)
+
+
+def can_jacobian(x: FloatArray, rows: tuple[str, ...], layout: Layout) -> FloatArray:
+    """d can_model / dx for one state (len(rows) x n)."""
+    H = np.zeros((len(rows), len(x)))
+    for i, r in enumerate(rows):
+        if r == CAN_SPEED:
+            H[i, V] = speed_scale(x, layout)
+            if layout.k is not None:
+                H[i, layout.k] = x[V]
+        else:
+            H[i, OMEGA] = 1.0
+            if r == CAN_YAW_RATE and layout.b is not None:
+                H[i, layout.b] = 1.0
+    return H
+
+
+def can_sigmas(rows: tuple[str, ...], noise: Noise) -> FloatArray:
+    """Measurement sigmas of the CAN rows."""
+    sigma = {CAN_SPEED: noise.can_speed_mps, CAN_YAW_RATE: noise.can_yaw_rate_rps, STANDSTILL: noise.standstill_rps}
+    return np.array([sigma[r] for r in rows])
+
+
+def fix_model(x: FloatArray, kind: str, lag: float) -> FloatArray:
+    """What a GNSS measurement of ``kind`` taken ``lag`` s before the state's time sees (rows of FIX_ROWS)."""
+    xb = step(x, -lag) if lag else x
+    return np.asarray(xb[list(FIX_ROWS[kind])], dtype=float)
+
+
+def fix_jacobian(x: FloatArray, kind: str, lag: float) -> FloatArray:
+    """d fix_model / dx for one state."""
+    rows = list(FIX_ROWS[kind])
+    if not lag:
+        return np.eye(len(x))[rows]
+    return step_jacobian(x, -lag)[rows]
+
+
+def residual(kind: str, z: FloatArray, zhat: FloatArray) -> FloatArray:
+    """``z - zhat`` with azimuth differences wrapped to (-pi, pi] (broadcasts over stacked ``zhat``)."""
+    d = np.asarray(z, dtype=float) - zhat
+    return wrap_angle(d) if kind == AZIMUTH else d
+
+
+def wrap_state(x: FloatArray) -> FloatArray:
+    """The state(s) with the azimuth wrapped to (-pi, pi] (in place, and returned)."""
+    x[PHI] = wrap_angle(x[PHI])
+    return x
+
+
+def state_difference(x: FloatArray, ref: FloatArray) -> FloatArray:
+    """``x - ref`` with the azimuth difference wrapped (broadcasts: ``x`` may be a stack ``(n, M)``)."""
+    d = x - (ref[:, None] if x.ndim == 2 and ref.ndim == 1 else ref)
+    d[PHI] = wrap_angle(d[PHI])
+    return d
+
+
+def weighted_mean(x: FloatArray, w: FloatArray) -> FloatArray:
+    """Mean of stacked states ``(n, M)`` with weights ``w`` (sum 1); the azimuth as a circular mean."""
+    m = x @ w
+    m[PHI] = math.atan2(float(np.sin(x[PHI]) @ w), float(np.cos(x[PHI]) @ w))
+    return m
+
+
+def measurement_mean(kind: str, z: FloatArray, w: FloatArray) -> FloatArray:
+    """Weighted mean of stacked measurements ``(rows, M)`` of ``kind``; an azimuth as a circular mean."""
+    if kind == AZIMUTH:
+        return np.array([math.atan2(float(np.sin(z[0]) @ w), float(np.cos(z[0]) @ w))])
+    return np.asarray(z @ w, dtype=float)
