@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "candump": ("sumhe.commands.candump", "decode a CAN log with the configured DBC mapping (JSON lines)"),
     "record": ("sumhe.commands.record", "record live CAN frames and NMEA lines for later replay"),
     "simulate": ("sumhe.commands.simulate", "simulate a drive (CAN log, NMEA, truth) or measure a drive's errors"),
+    "demo": ("sumhe.commands.demo", "the bundled drive through the full live path, no hardware needed"),
     "run": ("sumhe.commands.run", "the daemon: CAN bus + serial GNSS in, positions over UDP out"),
     "play": ("sumhe.commands.play", "play a recorded drive onto a CAN bus and a pseudo-terminal (real time)"),
     "replay": ("sumhe.commands.replay", "run an estimator on a recorded CAN log + NMEA log (JSON lines out)"),
