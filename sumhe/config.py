@@ -74,20 +74,28 @@ class CanSettings:
 
 @dataclass(frozen=True, slots=True)
 class GpsSettings:
-    """The GNSS receiver: a serial ``port`` (live) or a ``file`` of NMEA lines (replay)."""
+    """The GNSS receiver: a serial ``port`` (a device, or a pyserial URL such as ``socket://host:port``).
+
+    ``time`` says which time a fix's position refers to on the service clock: ``"utc"``, the fix's own UTC time
+    of fix when it lies within ``max_clock_offset_s`` of its receive time (a service clock on UTC: NTP live,
+    recorded logs), else ``receive time - latency_s``; ``"receive"``, always ``receive time - latency_s``.
+    """
 
     port: str | None = "/dev/ttyUSB0"
     baudrate: int = 115200
-    file: str | None = None
+    time: str = "utc"
     latency_s: float = 0.0
+    max_clock_offset_s: float = 1.0
     receive_timeout_s: float = 2.0
     queue_size: int = 200
     reconnect_max_s: float = 5.0
 
     def __post_init__(self) -> None:
-        _positive(self, "baudrate", "receive_timeout_s", "queue_size", "reconnect_max_s")
-        if self.latency_s < 0:
-            raise ValueError("latency_s: must be >= 0")
+        _positive(self, "baudrate", "receive_timeout_s", "queue_size", "reconnect_max_s", "max_clock_offset_s")
+        if self.time not in ("utc", "receive"):
+            raise ValueError("time: must be 'utc' or 'receive'")
+        if not 0.0 <= self.latency_s <= 5.0:
+            raise ValueError("latency_s: must be within [0, 5] s")
 
 
 @dataclass(frozen=True, slots=True)

@@ -67,9 +67,11 @@ def test_reorder_releases_in_time_order_after_the_hold():
     r = Reorder(hold_s=0.1)
     r.put(can(T0 + 0.2), now=0.0)
     r.put(fix(T0 + 0.1), now=0.05)  # stamped earlier, arrived later (receiver latency)
-    assert r.release(now=0.09) == []
+    assert r.release(now=0.09) == ([], 0.0)
     assert r.next_due() == pytest.approx(0.15)  # the earliest-stamped sample gates the rest
-    assert [s.t for s in r.release(now=0.2)] == [T0 + 0.1, T0 + 0.2]
+    released, lag = r.release(now=0.2)
+    assert [s.t for s in released] == [T0 + 0.1, T0 + 0.2]
+    assert lag == pytest.approx(0.1)  # the first was due at 0.1
 
 
 def test_newest_epoch_only_skips_older_epochs_but_keeps_can():

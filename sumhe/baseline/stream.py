@@ -42,15 +42,15 @@ import numpy as np
 
 from sumhe.baseline.kinematics import (
     AZIMUTH,
-    E,
-    N,
     OMEGA,
     PHI,
     POSITION,
-    V,
+    E,
     FloatArray,
     Layout,
+    N,
     Noise,
+    V,
     chi2_threshold,
     step,
 )
@@ -73,6 +73,7 @@ REACQUIRE_SPREAD_SIGMAS = 4.0
 REACQUIRE_MIN_FIXES = 3
 
 Decision = Literal["ok", "rejected", "reacquire"]
+STATUS_COUNTERS: dict[str, str] = {"ok": "gps_ok", "rejected": "gps_rejected", "outage": "outage_epochs"}
 
 
 @dataclass(frozen=True, slots=True)
@@ -252,9 +253,7 @@ class RecursiveEstimator(ABC):
             return []
         if q not in ("speed", "yaw_rate"):
             return []
-        limit = (
-            self.settings.max_speed_mps if q == "speed" else 2.0 * self.settings.max_yaw_rate_rps
-        )
+        limit = self.settings.max_speed_mps if q == "speed" else 2.0 * self.settings.max_yaw_rate_rps
         if not (math.isfinite(value) and abs(value) <= limit):
             self._count("bad_samples", "CAN %s = %r beyond the vehicle limits dropped", q, value)
             return []
@@ -312,7 +311,7 @@ class RecursiveEstimator(ABC):
             status = self._fix_updates(fix, self._t_state - t)
         else:
             status = "outage"
-        self._counts["gps_" + status if status != "outage" else "outage_epochs"] += 1
+        self._counts[STATUS_COUNTERS[status]] += 1
         self._status = status
         out.append(self._report(t, status))
         return out
@@ -427,7 +426,8 @@ class RecursiveEstimator(ABC):
             self._init_heading(phi, sigma_phi)
             self._heading_known = True
             return status
-        if self._gated_update(AZIMUTH, np.array([phi]), np.array([[sigma_phi**2]]), lag, self._az_gate, fix.t, sigma_phi) == "rejected":
+        R = np.array([[sigma_phi**2]])
+        if self._gated_update(AZIMUTH, np.array([phi]), R, lag, self._az_gate, fix.t, sigma_phi) == "rejected":
             self._count("azimuth_rejected", "GNSS course/heading rejected by the gate")
         return status
 
@@ -440,7 +440,9 @@ class RecursiveEstimator(ABC):
         if decision == "rejected":
             return "rejected"
         if decision == "reacquire":
-            self._count("reacquired", "re-acquired GNSS %s after %.1f s of agreeing rejected fixes", kind, gate.reacquire_s)
+            self._count(
+                "reacquired", "re-acquired GNSS %s after %.1f s of agreeing rejected fixes", kind, gate.reacquire_s
+            )
             self._inflate(kind, pending.nu, R)
             pending = self._innovation(kind, z, R, lag)
         pending.commit()

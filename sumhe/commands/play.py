@@ -97,6 +97,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"playing {len(frames)} CAN frames and {len(lines)} NMEA lines; NMEA on {where}", file=sys.stderr)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: player.request_stop())
+    player.on_start = lambda: print(
+        f"clock offset {player.start_t - player.t0:.6f} s (service time = drive time + offset)",
+        file=sys.stderr,
+        flush=True,
+    )
     try:
         player.run()
     finally:

@@ -2,7 +2,7 @@
 
 The service, the replay and the benchmark feed samples in time order and collect estimates; they never branch
 on which estimator runs. Positions are in the local east/north frame (a :class:`FixConverter` turns
-:class:`~sumhe.messages.GnssFix` into :class:`LocalFix` with the datum policy and the receiver latency; a
+:class:`~sumhe.messages.GnssFix` into :class:`LocalFix` with the datum policy; a
 :class:`StateEstimate` becomes a geodetic :class:`~sumhe.messages.Estimate` with :func:`to_estimate`).
 
 Contract of :meth:`Estimator.push`:
@@ -34,7 +34,7 @@ HDOP_UERE_M = 1.5
 
 @dataclass(frozen=True, slots=True)
 class LocalFix:
-    """A GNSS epoch in the local frame. ``t`` is the fix time on the service clock (receive time - latency).
+    """A GNSS epoch in the local frame. ``t`` is the time of the measurement on the service clock.
 
     ``sigma_m`` is the receiver's 1-sigma horizontal accuracy (GST, else HDOP x UERE, else None).
     ``course_rad``/``heading_rad`` clockwise from north.
@@ -99,10 +99,10 @@ def fix_sigma_m(fix: GnssFix) -> float | None:
 
 
 class FixConverter:
-    """GnssFix -> LocalFix: applies the receiver latency and the datum policy (first valid fix, or fixed)."""
+    """GnssFix (``t`` already its measurement time, see :mod:`sumhe.io.fixtime`) -> LocalFix in the local frame,
+    with the datum policy (first valid fix, or fixed)."""
 
-    def __init__(self, datum: DatumSettings, latency_s: float = 0.0) -> None:
-        self.latency_s = latency_s
+    def __init__(self, datum: DatumSettings) -> None:
         self.frame: LocalFrame | None = None
         if datum.mode == "fixed":
             assert datum.lat is not None and datum.lon is not None  # validated by DatumSettings
@@ -110,7 +110,7 @@ class FixConverter:
 
     def convert(self, fix: GnssFix) -> LocalFix:
         """The fix in the local frame; the first valid fix sets the datum when none is fixed."""
-        t = fix.t - self.latency_s
+        t = fix.t
         has_position = fix.valid and fix.lat_deg is not None and fix.lon_deg is not None
         if not has_position:
             return LocalFix(t=t, valid=False, quality=fix.quality, fix=fix)

@@ -129,7 +129,7 @@ def _lp_matrices(
             for sign, (lo_v, hi_v) in ((-1.0, (-np.inf, hu)), (1.0, (hu, np.inf))):
                 rows_a += [row, row, row]
                 cols_a += [cur, prev, iq + i]
-                vals_a += [1.0, -1.0, sign * s[t - 1]]
+                vals_a += [1.0, -1.0, sign * s[t - 1] * bounds.q_hi[i]]
                 lo.append(lo_v)
                 hi.append(hi_v)
                 row += 1
@@ -140,7 +140,7 @@ def _lp_matrices(
             for sign, (lo_v, hi_v) in ((-1.0, (-np.inf, y)), (1.0, (y, np.inf))):
                 rows_a += [row, row]
                 cols_a += [k * n_pos + i, ir + i]
-                vals_a += [1.0, sign * c]
+                vals_a += [1.0, sign * c * bounds.r_hi[i]]
                 lo.append(lo_v)
                 hi.append(hi_v)
                 row += 1
@@ -183,11 +183,11 @@ def solve_lp(
     eps = settings.lp_regularisation
     P = sp.triu(eps * (D.T @ D), format="csc")
     c = np.zeros(nz)
-    c[nx:] = 1.0
+    c[nx:] = np.r_[bounds.q_hi[:n_pos], bounds.r_hi[:n_pos]]
     c -= eps * (D.T @ target)
     box = sp.csc_matrix((np.ones(2 * n_pos), (np.arange(2 * n_pos), np.arange(nx, nz))), shape=(2 * n_pos, nz))
     A_all = sp.vstack([A, box], format="csc")
-    qbar, rbar = bounds.q_hi[:n_pos].copy(), bounds.r_hi[:n_pos].copy()
+    widen = 1.0
     iterations = 0
     for attempt in range(settings.lp_max_retries + 1):
         solver = osqp.OSQP()
@@ -196,7 +196,7 @@ def solve_lp(
             c,
             A_all,
             np.r_[lo, np.zeros(2 * n_pos)],
-            np.r_[hi, qbar, rbar],
+            np.r_[hi, widen * np.ones(2 * n_pos)],
             verbose=False,
             eps_abs=1e-7,
             eps_rel=1e-7,
@@ -212,8 +212,8 @@ def solve_lp(
             log.debug("LP solved after %d retries, %d iterations", attempt, iterations)
             return LpSolution(
                 p=p,
-                q=z[nx : nx + n_pos],
-                r=z[nx + n_pos :],
+                q=z[nx : nx + n_pos] * bounds.q_hi[:n_pos],
+                r=z[nx + n_pos :] * bounds.r_hi[:n_pos],
                 phi=phi,
                 speed=speed,
                 yaw_rate=yaw_rate,
@@ -225,6 +225,5 @@ def solve_lp(
         if status not in INFEASIBLE:
             raise SolverError(f"linear SU program: OSQP ended with {status.name}")
         log.info("LP infeasible (attempt %d): widening qbar, rbar by %.1f", attempt + 1, settings.lp_widen_factor)
-        qbar *= settings.lp_widen_factor
-        rbar *= settings.lp_widen_factor
+        widen *= settings.lp_widen_factor
     raise SolverError(f"linear SU program infeasible after {settings.lp_max_retries} widenings of qbar, rbar")

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from sumhe.config import Config
 from sumhe.io.can import CanDecoder, read_log
+from sumhe.io.fixtime import stamp_fix
 from sumhe.io.nmea import iter_fixes
 from sumhe.messages import GnssFix, Sample
 
@@ -34,13 +35,18 @@ def shift_fixes(fixes: Iterable[GnssFix], offset_s: float) -> Iterator[GnssFix]:
 
 
 def log_samples(config: Config, can_log: Path | None, nmea_log: Path | None, offset_s: float = 0.0) -> Iterator[Sample]:
-    """All decoded samples of a recorded drive, time-ordered (either log may be absent)."""
+    """All decoded samples of a recorded drive, time-ordered (either log may be absent).
+
+    The NMEA receive times are moved by ``offset_s`` onto the CAN clock, then each fix is stamped with its
+    measurement time (:func:`~sumhe.io.fixtime.stamp_fix`) before merging, so the stream is in measurement order.
+    """
     streams: list[Iterable[Sample]] = []
     if can_log is not None:
         decoder = CanDecoder.from_config(config)
         streams.append(s for msg in read_log(can_log) for s in decoder.decode(msg))
     if nmea_log is not None:
-        streams.append(shift_fixes(iter_fixes(nmea_log), offset_s))
+        fixes = shift_fixes(iter_fixes(nmea_log), offset_s)
+        streams.append(stamp_fix(fix, config.gps) for fix in fixes)
     return merge_by_time(*streams)
 
 

@@ -4,8 +4,9 @@ sources (CAN bus, serial GNSS; or any async iterators of samples) -> a short reo
 sources) -> the estimator, run off the event loop in a worker thread -> sinks (UDP JSON / NMEA) and a status line.
 
 * Readers never stall: sources run in their own threads; the estimator runs in ``asyncio.to_thread``.
-* No backlog: samples released while a solve runs are taken as one batch; if the batch holds several GNSS epochs,
-  only the newest is solved, the older ones are skipped and counted (``skipped_epochs``).
+* No backlog: samples released while a solve runs are taken as one batch; when the batch comes out later than
+  one hold time (the estimator fell behind) and holds several GNSS epochs, only the newest is solved, the older
+  ones are skipped and counted (``skipped_epochs``).
 * The reorder buffer holds each sample ``hold_s`` after it arrived (default: the receiver latency + 50 ms, since
   a fix is stamped ``latency`` before it arrives) and releases samples in time order.
 * Time: every timestamp is on one service clock (``time.time()`` live; a scaled clock for faster-than-real-time
@@ -33,6 +34,7 @@ import numpy as np
 
 from sumhe.config import Config, describe
 from sumhe.estimator.base import Estimator
+from sumhe.io.fixtime import stamp_fix
 from sumhe.io.source import SourceTimeout
 from sumhe.io.udp import UdpSender, UdpSink
 from sumhe.messages import Estimate, GnssFix, Sample
@@ -71,12 +73,16 @@ class Reorder:
         heapq.heappush(self._heap, (sample.t, next(self._seq), now + self.hold_s, sample))
         self.event.set()
 
-    def release(self, now: float) -> list[Sample]:
-        """Samples due by ``now``, in time order (a sample waits for any earlier-stamped one still held)."""
+    def release(self, now: float) -> tuple[list[Sample], float]:
+        """Samples due by ``now``, in time order (a sample waits for any earlier-stamped one still held), and how
+        late (s) the earliest-due of them is released: more than ``hold_s`` means the consumer fell behind."""
         out: list[Sample] = []
+        first_due = now
         while self._heap and self._heap[0][2] <= now:
-            out.append(heapq.heappop(self._heap)[3])
-        return out
+            _, _, due, sample = heapq.heappop(self._heap)
+            first_due = min(first_due, due)
+            out.append(sample)
+        return out, now - first_due
 
     def next_due(self) -> float | None:
         """When the earliest-stamped sample is due (it gates all later-stamped ones)."""
@@ -166,6 +172,8 @@ class Service:
                 log.info("%s: source ended", name)
                 return
             self.stats.received[name] += 1
+            if isinstance(sample, GnssFix):
+                sample = stamp_fix(sample, self.config.gps)
             self.reorder.put(sample, loop.time())
 
     async def _estimate(self) -> None:
@@ -182,7 +190,10 @@ class Service:
                 with contextlib.suppress(asyncio.TimeoutError):
                     await asyncio.wait_for(self.reorder.event.wait(), delay)
                 continue
-            batch, skipped = newest_epoch_only(self.reorder.release(loop.time()))
+            batch, lag = self.reorder.release(loop.time())
+            skipped = 0
+            if lag > self.reorder.hold_s:  # the estimator fell behind: solve the newest epoch only
+                batch, skipped = newest_epoch_only(batch)
             if skipped:
                 self.stats.skipped_epochs += skipped
                 log.warning("estimator behind: %d GNSS epochs skipped (%d so far)", skipped, self.stats.skipped_epochs)

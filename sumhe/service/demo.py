@@ -130,10 +130,10 @@ async def run_live(
         latency = sim.gps_latency_s + sim.gps_latency_jitter_s / 2.0
         config = demo_config(f"sumhe-demo-{os.getpid()}", link, udp_port, latency, estimator)
         t0 = min(frames[0].timestamp, lines[0].t)
-        wall0 = time.time()
+        wall0 = [time.time()]
 
         def clock() -> float:
-            return t0 + (time.time() - wall0) * speed
+            return t0 + (time.time() - wall0[0]) * speed
 
         pty = Pty(link)
         bus = can.Bus(interface="virtual", channel=config.can.channel, preserve_timestamps=True)
@@ -151,6 +151,7 @@ async def run_live(
         for src in sources.values():
             await src.start()
         await asyncio.sleep(0.3)  # let the sources open before the first frame
+        wall0[0] = time.time()  # the service clock reads t0 when the drive starts
         player.start()
         task = asyncio.create_task(service.run(stop))
         try:

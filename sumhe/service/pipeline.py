@@ -149,7 +149,7 @@ class Pipeline:
         self.config = config
         self.estimator = estimator
         self.guard = TimeGuard(rules or TimeRules(), wall_clock)
-        self.converter = FixConverter(config.datum, config.gps.latency_s)
+        self.converter = FixConverter(config.datum)
         self.stats = PipelineStats()
         self._up_m = 0.0
 

@@ -165,6 +165,7 @@ class Player:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.start_t = 0.0
+        self.on_start: Callable[[], None] | None = None
 
     def _events(self) -> Iterator[tuple[float, can.Message | TimedLine]]:
         frames = ((f.timestamp, f) for f in self.frames)
@@ -175,6 +176,8 @@ class Player:
         """Play everything (blocking)."""
         wall0 = time.monotonic()
         self.start_t = self.clock()
+        if self.on_start is not None:
+            self.on_start()
         for t, event in self._events():
             delay = wall0 + (t - self.t0) / self.speed - time.monotonic()
             if delay > 0 and self._stop.wait(delay):

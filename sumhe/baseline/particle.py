@@ -1,0 +1,129 @@
+"""Bootstrap particle filter on the shared model (``pf``), vectorised over particles, seeded.
+
+Each particle is a full state of :mod:`.kinematics`. CAN speed and yaw rate drive the particles as inputs
+(odometry, as the INS drives the particles in paper 004): per particle ``v = CAN speed / k`` and
+``omega = CAN yaw rate - b`` (0 at standstill), then the midpoint step, then random-walk noise on position,
+azimuth, bias and scale with the densities of :class:`~sumhe.baseline.kinematics.Noise` (its speed, yaw-rate
+and CAN measurement noises are not used). GNSS position and course weight the particles with Gaussian
+likelihoods; systematic resampling when the effective sample size falls below half the particles. The gate
+works on the particle cloud's mean and covariance; a re-acquisition shifts the cloud onto the fix.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from sumhe.baseline import kinematics as kin
+from sumhe.baseline.kinematics import OMEGA, PHI, FloatArray, Noise, V
+from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
+from sumhe.baseline.tuning import PF_PARTICLES, tuned_noise
+from sumhe.config import Config
+from sumhe.estimator.settings import EstimatorSettings
+from sumhe.model.su import wrap_angle
+
+RESAMPLE_ESS = 0.5
+"""Resample when the effective sample size is below this share of the particles."""
+
+
+def systematic_resample(weights: FloatArray, rng: np.random.Generator) -> FloatArray:
+    """Indices of the particles kept by systematic resampling (one uniform draw; weights sum to 1)."""
+    m = len(weights)
+    positions = (rng.random() + np.arange(m)) / m
+    cumulative = np.cumsum(weights)
+    cumulative[-1] = 1.0
+    return np.searchsorted(cumulative, positions)
+
+
+class ParticleFilter(RecursiveEstimator):
+    """Bootstrap particle filter with ``particles`` particles; the same ``seed`` gives the same estimates."""
+
+    name = "pf"
+
+    def __init__(
+        self,
+        settings: EstimatorSettings | None = None,
+        noise: Noise | None = None,
+        particles: int = PF_PARTICLES,
+        seed: int = 0,
+    ) -> None:
+        if isinstance(particles, bool) or not isinstance(particles, int) or particles < 10:
+            raise ValueError(f"particles: must be an integer >= 10, got {particles!r}")
+        self.particles = particles
+        self.seed = seed
+        super().__init__(settings or EstimatorSettings(), noise or tuned_noise(self.name))
+
+    @classmethod
+    def from_config(cls, config: Config) -> ParticleFilter:
+        return cls(config.estimator)
+
+    def _reset_filter(self) -> None:
+        self.rng = np.random.default_rng(self.seed)
+        self.X = np.zeros((self.layout.n, self.particles))
+        self.w = np.full(self.particles, 1.0 / self.particles)
+        n = self.layout.n
+        dens = np.zeros(n)
+        dens[[kin.E, kin.N]] = self.noise.pos_rw
+        dens[PHI] = self.noise.heading_rw
+        if self.layout.b is not None:
+            dens[self.layout.b] = self.noise.bias_rw
+        if self.layout.k is not None:
+            dens[self.layout.k] = self.noise.scale_rw
+        self._density = dens
+
+    def _start(self, x0: FloatArray, P0: FloatArray) -> None:
+        self.X = x0[:, None] + np.linalg.cholesky(P0) @ self.rng.standard_normal((len(x0), self.particles))
+        if not self._heading_known:
+            self.X[PHI] = self.rng.uniform(-math.pi, math.pi, self.particles)
+        self.w = np.full(self.particles, 1.0 / self.particles)
+
+    def _set_inputs(self, inputs: Inputs) -> None:
+        """Speed and yaw rate of every particle from the CAN inputs and its own scale and bias."""
+        speed = inputs.speed if inputs.speed is not None else 0.0
+        self.X[V] = speed / kin.speed_scale(self.X, self.layout)
+        if inputs.standstill or inputs.yaw_rate is None:
+            self.X[OMEGA] = 0.0
+        else:
+            self.X[OMEGA] = inputs.yaw_rate - kin.yaw_rate_bias(self.X, self.layout)
+
+    def _predict(self, dt: float, inputs: Inputs) -> None:
+        self._set_inputs(inputs)
+        self.X = kin.step(self.X, dt)
+        self.X += (self._density * math.sqrt(dt))[:, None] * self.rng.standard_normal(self.X.shape)
+        kin.wrap_state(self.X)
+
+    def _can_update(self, inputs: Inputs) -> None:
+        self._set_inputs(inputs)
+
+    def _innovation(self, kind: str, z: FloatArray, R: FloatArray, lag: float) -> Pending:
+        Z = kin.fix_model(self.X, kind, lag)
+        zhat = kin.measurement_mean(kind, Z, self.w)
+        D = kin.residual(kind, Z, zhat[:, None])
+        S = (D * self.w) @ D.T + R
+        nu = kin.residual(kind, z, zhat)
+
+        def commit() -> None:
+            r = kin.residual(kind, z[:, None], Z)
+            loglik = -0.5 * np.sum(r * np.linalg.solve(R, r), axis=0)
+            logw = np.log(np.maximum(self.w, 1e-300)) + loglik
+            w = np.exp(logw - logw.max())
+            self.w = w / w.sum()
+            if 1.0 / float(self.w @ self.w) < RESAMPLE_ESS * self.particles:
+                keep = systematic_resample(self.w, self.rng)
+                self.X = self.X[:, keep]
+                self.w = np.full(self.particles, 1.0 / self.particles)
+
+        return Pending(nu, S, commit)
+
+    def _inflate(self, kind: str, nu: FloatArray, R: FloatArray) -> None:
+        rows = list(kin.FIX_ROWS[kind])
+        spread = np.linalg.cholesky(R) @ self.rng.standard_normal((len(rows), self.particles))
+        self.X[rows] += nu[:, None] + spread
+        kin.wrap_state(self.X)
+
+    def _init_heading(self, phi: float, sigma: float) -> None:
+        self.X[PHI] = wrap_angle(phi + sigma * self.rng.standard_normal(self.particles))
+
+    def _mean(self) -> FloatArray:
+        return kin.weighted_mean(self.X, self.w)

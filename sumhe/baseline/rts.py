@@ -1,0 +1,134 @@
+"""Rauch-Tung-Striebel smoother: the EKF forward pass plus a backward pass over a sliding window.
+
+Live, ``rts`` reports exactly what the EKF reports (the filtered newest state: a smoother cannot see the future).
+For replays, :meth:`Rts.smoothed` runs the backward pass over the window kept (the last ``history_s`` seconds,
+every predict step) and returns one smoothed estimate per estimate ``push`` returned in that window: the
+forward-backward Kalman smoothing paper 001 compares its SU estimator with. Backward pass (mean only)::
+
+    C_k = P_k|k F_k' (P_k+1|k)^-1
+    x_k|N = x_k|k + C_k (x_k+1|N - x_k+1|k)
+
+with ``F_k`` the Jacobian at ``x_k|k``, recomputed. A re-acquisition or a heading set-up resets the filter's
+prior; the smoother does not carry information back across such a step. A restart of the filter (numerical
+failure, data gap, :meth:`reset`) empties the window.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from sumhe.baseline import kinematics as kin
+from sumhe.baseline.ekf import Ekf
+from sumhe.baseline.kinematics import OMEGA, PHI, E, FloatArray, N, Noise, V
+from sumhe.baseline.stream import Inputs
+from sumhe.config import Config
+from sumhe.estimator.base import StateEstimate
+from sumhe.estimator.settings import EstimatorSettings
+
+HISTORY_S = 300.0
+"""Default length of the smoothing window (s): ~1 kB per CAN speed sample, ~15 MB at 50 Hz."""
+
+
+@dataclass(slots=True)
+class _Step:
+    """One predict step: the prior at ``t`` (``dt`` after the previous step) and, once closed, the posterior."""
+
+    index: int
+    t: float
+    dt: float
+    x_prior: FloatArray
+    P_prior: FloatArray
+    x_post: FloatArray | None = None
+    P_post: FloatArray | None = None
+    restart: bool = False
+
+
+class Rts(Ekf):
+    """EKF with a Rauch-Tung-Striebel backward pass over the last ``history_s`` seconds (``rts``)."""
+
+    name = "rts"
+
+    def __init__(
+        self, settings: EstimatorSettings | None = None, noise: Noise | None = None, history_s: float = HISTORY_S
+    ) -> None:
+        if not (math.isfinite(history_s) and history_s > 0):
+            raise ValueError(f"history_s: must be a positive number, got {history_s!r}")
+        self.history_s = history_s
+        super().__init__(settings, noise)
+
+    @classmethod
+    def from_config(cls, config: Config) -> Rts:
+        return cls(config.estimator)
+
+    def smoothed(self) -> list[StateEstimate]:
+        """The estimates ``push`` returned within the window, smoothed with every sample seen since."""
+        if not self._steps:
+            return []
+        steps = list(self._steps)
+        xs: list[FloatArray] = [self.x] * len(steps)
+        for i in range(len(steps) - 2, -1, -1):
+            cur, nxt = steps[i], steps[i + 1]
+            assert cur.x_post is not None and cur.P_post is not None  # closed by the next step
+            if nxt.restart:
+                xs[i] = cur.x_post
+                continue
+            F = kin.step_jacobian(cur.x_post, nxt.dt)
+            C = cur.P_post @ F.T @ np.linalg.pinv(nxt.P_prior, hermitian=True)
+            xs[i] = kin.wrap_state(cur.x_post + C @ kin.state_difference(xs[i + 1], nxt.x_prior))
+        first = steps[0].index
+        out = []
+        for index, est in self._reports:
+            step = steps[index - first]
+            x = xs[index - first]
+            if est.t != step.t:
+                x = kin.step(x, est.t - step.t)
+            out.append(
+                dataclasses.replace(
+                    est,
+                    east_m=float(x[E]),
+                    north_m=float(x[N]),
+                    azimuth_rad=float(x[PHI] % (2.0 * math.pi)),
+                    speed_mps=float(x[V]),
+                    yaw_rate_rps=float(x[OMEGA]),
+                )
+            )
+        return out
+
+    def _reset_filter(self) -> None:
+        super()._reset_filter()
+        self._steps: deque[_Step] = deque()
+        self._reports: deque[tuple[int, StateEstimate]] = deque()
+
+    def _start(self, x0: FloatArray, P0: FloatArray) -> None:
+        super()._start(x0, P0)
+        self._steps.append(_Step(0, self._t_state, 0.0, self.x.copy(), self.P.copy(), restart=True))
+
+    def _predict(self, dt: float, inputs: Inputs) -> None:
+        last = self._steps[-1]
+        last.x_post, last.P_post = self.x.copy(), self.P.copy()
+        super()._predict(dt, inputs)
+        t = self._t_state + dt
+        self._steps.append(_Step(last.index + 1, t, dt, self.x.copy(), self.P.copy()))
+        while self._steps[0].t < t - self.history_s:
+            self._steps.popleft()
+        while self._reports and self._reports[0][0] < self._steps[0].index:
+            self._reports.popleft()
+
+    def _inflate(self, kind: str, nu: FloatArray, R: FloatArray) -> None:
+        super()._inflate(kind, nu, R)
+        self._steps[-1].restart = True
+
+    def _init_heading(self, phi: float, sigma: float) -> None:
+        super()._init_heading(phi, sigma)
+        self._steps[-1].restart = True
+
+    def _on_report(self, estimate: StateEstimate) -> None:
+        self._reports.append((self._steps[-1].index, estimate))
+
+    def _window(self) -> int:
+        return len(self._steps)

@@ -1,0 +1,359 @@
+"""Tuned noise levels of the baselines, and the search and evaluation on simulated drives that produced them.
+
+The constants at the top are the estimators' defaults. They come from ``python -m sumhe.baseline.tuning search``
+(a coordinate-wise grid search on *training* drives, seeds 100-105: never the test seeds 1-99) minimising
+
+    J = mean over drives of the mean position error at outage epochs
+      + mean over drives of the mean position error at epochs with a fix used,
+
+and ``python -m sumhe.baseline.tuning evaluate`` reports the accuracy on *test* drives. Each drive is a
+simulated drive (:mod:`sumhe.sim`, GPS error model ``walk``) with a 10 s and a 30 s outage placed at random
+(from the seed); the fixes go through :class:`~sumhe.estimator.base.FixConverter` with the datum of the drive
+and the receiver latency measured from the NMEA (median receive time - time of fix), and every sample is pushed
+as the service would. See ``docs/baselines.md`` for the procedure and the results.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import heapq
+import logging
+import math
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from sumhe.baseline.kinematics import Noise
+
+if TYPE_CHECKING:
+    from sumhe.baseline.stream import RecursiveEstimator
+    from sumhe.estimator.base import LocalFix, StateEstimate
+    from sumhe.messages import CanSample
+    from sumhe.sim import Drive
+
+log = logging.getLogger(__name__)
+
+TUNED_NOISE: dict[str, Noise] = {}
+"""Tuned :class:`Noise` of each estimator (``rts`` runs the EKF's); the IMM's two models are ``imm-straight``
+and ``imm-turn``."""
+IMM_SOJOURN_S = (10.0, 3.0)
+"""Mean time (s) the IMM stays in the straight and in the turning model."""
+PF_PARTICLES = 500
+
+
+def tuned_noise(name: str) -> Noise:
+    """The tuned noise levels of estimator ``name`` (the EKF's for ``rts``; defaults when not tuned)."""
+    return TUNED_NOISE.get("ekf" if name == "rts" else name, Noise())
+
+
+# ---- drives -----------------------------------------------------------------------------------------------------
+
+SCENARIOS = ("urban", "highway", "offroad")
+TRAINING_SEEDS = range(100, 106)
+TEST_SEEDS = range(1, 7)
+OUTAGE_LENGTHS_S = (10.0, 30.0)
+WARM_UP_S = 20.0
+"""Estimates of the first seconds of a drive (the filters converging) are left out of the figures."""
+
+
+@dataclass(frozen=True, eq=False)
+class Case:
+    """One drive as the estimators see it: the time-ordered samples (fixes already local), and its truth."""
+
+    drive: Drive
+    samples: list[LocalFix | CanSample]
+
+    @property
+    def name(self) -> str:
+        s = self.drive.settings
+        return f"{s.scenario}-{s.seed}"
+
+
+def make_case(seed: int, duration_s: float = 150.0, gps_error: str = "walk") -> Case:
+    """The drive of ``seed``: scenario by seed, a 10 s and a 30 s outage at places drawn from the seed."""
+    from sumhe.config import DatumSettings, GpsSettings
+    from sumhe.estimator.base import FixConverter
+    from sumhe.io.fixtime import stamp_fix
+    from sumhe.sim import SimSettings, simulate
+
+    rng = np.random.default_rng(seed)
+    short = rng.uniform(WARM_UP_S + 5.0, 0.4 * duration_s - 10.0)
+    long = rng.uniform(0.45 * duration_s, duration_s - 35.0)
+    settings = SimSettings(
+        scenario=SCENARIOS[seed % len(SCENARIOS)],
+        seed=seed,
+        duration_s=duration_s,
+        gps_error=gps_error,
+        outages=((round(short, 1), OUTAGE_LENGTHS_S[0]), (round(long, 1), OUTAGE_LENGTHS_S[1])),
+    )
+    drive = simulate(settings)
+    fixes = drive.fixes()
+    latency = float(np.median([f.t - f.time_utc.timestamp() for f in fixes if f.time_utc is not None]))
+    datum = DatumSettings(
+        mode="fixed", lat=settings.datum_lat_deg, lon=settings.datum_lon_deg, alt=settings.datum_alt_m
+    )
+    converter = FixConverter(datum)
+    gps = GpsSettings(port=None, latency_s=latency)
+    local = [(f.t, converter.convert(f)) for f in (stamp_fix(fix, gps) for fix in fixes)]
+    can = [(c.t, c) for c in drive.can_samples() if c.quantity in ("speed", "yaw_rate")]
+    return Case(drive, [s for _, s in heapq.merge(local, can, key=lambda pair: pair[0])])
+
+
+# ---- running and scoring ----------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Run:
+    """One estimator over one case: every estimate, which of them are GNSS epochs, the time per pushed sample."""
+
+    estimates: list[StateEstimate]
+    is_epoch: list[bool]
+    ms_per_sample: float
+
+    @property
+    def epochs(self) -> list[StateEstimate]:
+        """The estimates at GNSS epochs (fixes and outage epochs), without the CAN-rate ones."""
+        return self.select(self.estimates)
+
+    def select(self, estimates: Sequence[StateEstimate]) -> list[StateEstimate]:
+        """The epochs of a list parallel to ``estimates`` (e.g. the RTS smoother's)."""
+        return [e for e, keep in zip(estimates, self.is_epoch, strict=True) if keep]
+
+
+def run_case(estimator: RecursiveEstimator, case: Case) -> Run:
+    """Push every sample of ``case``; an estimate is a CAN-rate one when a CAN sample returned it at its time."""
+    from sumhe.estimator.base import LocalFix
+
+    estimates: list[StateEstimate] = []
+    is_epoch: list[bool] = []
+    t0 = time.perf_counter()
+    for sample in case.samples:
+        out = estimator.push(sample)
+        estimates.extend(out)
+        is_epoch.extend(isinstance(sample, LocalFix) or e.t != sample.t for e in out)
+    return Run(estimates, is_epoch, 1000.0 * (time.perf_counter() - t0) / len(case.samples))
+
+
+@dataclass(frozen=True)
+class Errors:
+    """Horizontal position errors (m) of one run, by kind: outage epochs per outage length, epochs with GPS."""
+
+    outage: dict[float, np.ndarray]
+    gps: np.ndarray
+
+
+def position_errors(case: Case, epochs: Sequence[StateEstimate]) -> Errors:
+    """Errors against the truth at each epoch's time (after the warm-up)."""
+    s = case.drive.settings
+    t = np.array([e.t for e in epochs])
+    truth = case.drive.truth.at(t)
+    err = np.hypot(
+        np.array([e.east_m for e in epochs]) - truth.east, np.array([e.north_m for e in epochs]) - truth.north
+    )
+    rel = t - s.start_unix_s
+    late = rel >= WARM_UP_S
+    ok = np.array([e.gps == "ok" for e in epochs]) & late
+    outage = {}
+    for start, length in s.outages:
+        inside = (rel >= start) & (rel < start + length) & np.array([e.gps == "outage" for e in epochs])
+        outage[length] = np.concatenate([outage.get(length, np.empty(0)), err[inside]])
+    return Errors(outage, err[ok])
+
+
+def objective(errors: Sequence[Errors]) -> float:
+    """J of the module docstring."""
+    outage = np.mean([np.mean(np.concatenate(list(e.outage.values()))) for e in errors])
+    return float(outage + np.mean([np.mean(e.gps) for e in errors]))
+
+
+# ---- the search -------------------------------------------------------------------------------------------------
+
+SEARCH_FACTORS = (0.25, 0.5, 2.0, 4.0)
+"""Each sweep tries every parameter at these multiples of its current value."""
+
+SEARCH_PARAMETERS: dict[str, tuple[str, ...]] = {
+    "ekf": (
+        "pos_rw",
+        "heading_rw",
+        "speed_rw",
+        "yaw_rate_rw",
+        "bias_rw",
+        "gps_scale",
+        "course_rad",
+        "can_yaw_rate_rps",
+    ),
+    "ukf": ("pos_rw", "heading_rw", "yaw_rate_rw", "gps_scale"),
+    "pf": ("pos_rw", "heading_rw", "bias_rw", "scale_rw", "gps_scale", "course_rad"),
+    "imm": ("turn.yaw_rate_rw", "turn.heading_rw", "turn.pos_rw", "straight.yaw_rate_rw", "sojourn_turn_s"),
+}
+"""What the search tunes per estimator (``ukf`` starts from the EKF's values; ``imm`` from the EKF's for both
+models)."""
+
+
+def start_values(name: str) -> dict[str, Any]:
+    """Where the search of ``name`` starts: the current defaults (for the IMM, its two models and sojourn times)."""
+    if name == "imm":
+        return {
+            "straight": tuned_noise("imm-straight") if "imm-straight" in TUNED_NOISE else tuned_noise("ekf"),
+            "turn": tuned_noise("imm-turn") if "imm-turn" in TUNED_NOISE else tuned_noise("ekf"),
+            "sojourn_straight_s": IMM_SOJOURN_S[0],
+            "sojourn_turn_s": IMM_SOJOURN_S[1],
+        }
+    return {"noise": TUNED_NOISE.get(name, tuned_noise("ekf"))}
+
+
+def with_value(values: dict[str, Any], param: str, value: float) -> dict[str, Any]:
+    """``values`` with one parameter (``field``, ``model.field`` or a top-level key) set."""
+    out = dict(values)
+    if "." in param:
+        model, field = param.split(".")
+        out[model] = dataclasses.replace(out[model], **{field: value})
+    elif param in out:
+        out[param] = value
+    else:
+        out["noise"] = dataclasses.replace(out["noise"], **{param: value})
+    return out
+
+
+def get_value(values: dict[str, Any], param: str) -> float:
+    if "." in param:
+        model, field = param.split(".")
+        return float(getattr(values[model], field))
+    if param in values:
+        return float(values[param])
+    return float(getattr(values["noise"], param))
+
+
+def build(name: str, values: dict[str, Any] | None = None) -> RecursiveEstimator:
+    """Estimator ``name`` with the given search values (defaults when None)."""
+    from sumhe.baseline.dead_reckoning import DeadReckoning
+    from sumhe.baseline.ekf import Ekf
+    from sumhe.baseline.imm import Imm
+    from sumhe.baseline.particle import ParticleFilter
+    from sumhe.baseline.rts import Rts
+    from sumhe.baseline.ukf import Ukf
+
+    if values is None:
+        values = start_values(name)
+    if name == "imm":
+        models = (values["straight"], values["turn"])
+        return Imm(models=models, sojourn_s=(values["sojourn_straight_s"], values["sojourn_turn_s"]))
+    classes: dict[str, Callable[..., RecursiveEstimator]] = {
+        "dead-reckoning": DeadReckoning,
+        "ekf": Ekf,
+        "rts": Rts,
+        "ukf": Ukf,
+        "pf": ParticleFilter,
+    }
+    return classes[name](noise=values["noise"])
+
+
+def score(name: str, values: dict[str, Any], cases: Sequence[Case]) -> float:
+    return objective([position_errors(c, run_case(build(name, values), c).epochs) for c in cases])
+
+
+def search(name: str, cases: Sequence[Case], sweeps: int, write: Callable[[str], None]) -> dict[str, Any]:
+    """Coordinate-wise grid search of ``SEARCH_PARAMETERS[name]`` from the current defaults."""
+    values = start_values(name)
+    best = score(name, values, cases)
+    write(f"{name}: start J = {best:.4f} m")
+    for sweep in range(sweeps):
+        improved = False
+        for param in SEARCH_PARAMETERS[name]:
+            current = get_value(values, param)
+            for factor in SEARCH_FACTORS:
+                candidate = with_value(values, param, current * factor)
+                try:
+                    j = score(name, candidate, cases)
+                except ValueError as e:
+                    write(f"  {param} = {current * factor:.4g}: invalid ({e})")
+                    continue
+                if j < best - 1e-4:
+                    best, values, improved = j, candidate, True
+                    write(f"  sweep {sweep + 1}: {param} = {current * factor:.4g} -> J = {j:.4f} m")
+        if not improved:
+            break
+    write(f"{name}: best J = {best:.4f} m")
+    return values
+
+
+# ---- the evaluation ---------------------------------------------------------------------------------------------
+
+
+def summary(errors: np.ndarray) -> tuple[float, float, float]:
+    """Mean, 95th percentile and maximum (NaN when empty)."""
+    if errors.size == 0:
+        return math.nan, math.nan, math.nan
+    return float(errors.mean()), float(np.percentile(errors, 95)), float(errors.max())
+
+
+def evaluate(names: Sequence[str], cases: Sequence[Case], write: Callable[[str], None]) -> None:
+    """A table of position errors per estimator over ``cases`` (the RTS also smoothed)."""
+    head = "".join(f" | {f'outage {int(L)} s':^20}" for L in OUTAGE_LENGTHS_S)
+    write(f"{'estimator':<15}{head} | {'with GPS':^20} | ms/sample")
+    write(f"{'':<15}" + " | mean   p95    max   " * (len(OUTAGE_LENGTHS_S) + 1) + " |")
+    for name in names:
+        rows: dict[str, list[Errors]] = {name: []}
+        ms = []
+        for case in cases:
+            estimator = build(name)
+            run = run_case(estimator, case)
+            ms.append(run.ms_per_sample)
+            rows[name].append(position_errors(case, run.epochs))
+            if name == "rts":
+                smoothed = run.select(estimator.smoothed())  # type: ignore[attr-defined]
+                rows.setdefault("rts-smoothed", []).append(position_errors(case, smoothed))
+        for label, errs in rows.items():
+            cells = [summary(np.concatenate([e.outage[L] for e in errs])) for L in OUTAGE_LENGTHS_S]
+            cells.append(summary(np.concatenate([e.gps for e in errs])))
+            text = "".join(" | " + " ".join(f"{v:6.2f}" for v in c) for c in cells)
+            write(f"{label:<15}{text} | {np.mean(ms):.3f}")
+
+
+def _seeds(text: str) -> list[int]:
+    """``"100-105"`` or ``"1,3,5"`` -> seeds."""
+    out: list[int] = []
+    for part in text.split(","):
+        lo, sep, hi = part.partition("-")
+        out.extend(range(int(lo), int(hi) + 1) if sep else [int(lo)])
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m sumhe.baseline.tuning {search,evaluate} ...``."""
+    parser = argparse.ArgumentParser(prog="python -m sumhe.baseline.tuning", description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    p_search = sub.add_parser("search", help="grid-search one estimator's noise on training drives")
+    p_search.add_argument("estimator", choices=sorted(SEARCH_PARAMETERS))
+    p_search.add_argument("--sweeps", type=int, default=2)
+    p_eval = sub.add_parser("evaluate", help="position errors of the estimators on test drives")
+    p_eval.add_argument("--estimators", default="dead-reckoning,ekf,rts,ukf,pf,imm")
+    for p, seeds in ((p_search, TRAINING_SEEDS), (p_eval, TEST_SEEDS)):
+        p.add_argument("--seeds", default=f"{seeds.start}-{seeds.stop - 1}", help="e.g. 100-105 or 1,2,7")
+        p.add_argument("--duration", type=float, default=150.0, help="drive length (s)")
+        p.add_argument("--gps-error", default="walk", help="GPS error model of the simulator")
+    args = parser.parse_args(argv)
+    seeds = _seeds(args.seeds)
+    if args.command == "search" and set(seeds) & set(range(1, 100)):
+        parser.error("the search must not see the test seeds 1-99")
+    cases = [make_case(s, args.duration, args.gps_error) for s in seeds]
+
+    def write(line: str) -> None:
+        print(line, flush=True)
+
+    if args.command == "search":
+        values = search(args.estimator, cases, args.sweeps, write)
+        for key, value in values.items():
+            write(f"{key} = {value!r}")
+    else:
+        evaluate(args.estimators.split(","), cases, write)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

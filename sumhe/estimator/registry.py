@@ -1,0 +1,65 @@
+"""Estimators by name: a registry with lazy imports (python-can's ``BACKENDS``), extended by entry points.
+
+The service, the replay and the benchmark build whichever estimator the config names with
+:func:`make_estimator` and never branch on which one runs. An entry is ``name: (module, class)``; the class
+provides ``from_config(config) -> Estimator`` (see :class:`sumhe.estimator.base.Estimator`). Only the module of
+the estimator asked for is imported. Other packages add estimators through the ``sumhe.estimators`` entry-point
+group (``name = "package.module:Class"``); built-in names win.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+from importlib.metadata import entry_points
+from typing import Any
+
+from sumhe.config import Config
+from sumhe.errors import ConfigError
+from sumhe.estimator.base import Estimator
+
+log = logging.getLogger(__name__)
+
+ENTRY_POINT_GROUP = "sumhe.estimators"
+
+ESTIMATORS: dict[str, tuple[str, str]] = {
+    "dead-reckoning": ("sumhe.baseline.dead_reckoning", "DeadReckoning"),
+    "ekf": ("sumhe.baseline.ekf", "Ekf"),
+    "rts": ("sumhe.baseline.rts", "Rts"),
+    "ukf": ("sumhe.baseline.ukf", "Ukf"),
+    "pf": ("sumhe.baseline.particle", "ParticleFilter"),
+    "imm": ("sumhe.baseline.imm", "Imm"),
+}
+"""Built-in estimators: name -> (module, class). Adding one is one line here."""
+
+
+def _plugins() -> dict[str, str]:
+    """Estimators of other packages: name -> ``module:Class``."""
+    return {ep.name: ep.value for ep in entry_points(group=ENTRY_POINT_GROUP) if ep.name not in ESTIMATORS}
+
+
+def estimator_names() -> tuple[str, ...]:
+    """Every estimator name known (built-in first, then entry points)."""
+    return (*ESTIMATORS, *sorted(_plugins()))
+
+
+def estimator_class(name: str) -> Any:
+    """The class registered under ``name`` (imported now); ConfigError listing the known names if none is."""
+    if name in ESTIMATORS:
+        module_name, class_name = ESTIMATORS[name]
+    else:
+        target = _plugins().get(name)
+        if target is None:
+            raise ConfigError(f"estimator.name: unknown estimator {name!r} (known: {', '.join(estimator_names())})")
+        module_name, _, class_name = target.partition(":")
+    try:
+        return getattr(importlib.import_module(module_name), class_name)
+    except (ImportError, AttributeError) as e:
+        raise ConfigError(f"estimator.name: cannot load estimator {name!r} from {module_name}: {e}") from e
+
+
+def make_estimator(name: str, config: Config) -> Estimator:
+    """Build the estimator ``name`` from the config (its ``[estimator]`` settings)."""
+    estimator: Estimator = estimator_class(name).from_config(config)
+    log.debug("estimator %s built from %s", name, config.source)
+    return estimator
