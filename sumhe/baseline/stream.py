@@ -12,13 +12,15 @@ only the maths, as hooks on its own state:
 * ``_init_heading(phi, sigma)``: the first azimuth measurement sets the azimuth outright;
 * ``_mean()``: the state estimate now (layout of :mod:`.kinematics`, speed and yaw rate filled in).
 
-Timing: the filter's state lives at ``t_state``, the newest CAN speed sample (or fix, if newer). A fix older
+Timing: the filter's state lives at ``t_state``, the newest CAN speed sample (or fix, if newer); CAN samples
+are taken as measured ``settings.can_delay_s`` before their timestamp (the sensor delay, a calibration), and
+their estimates are reported at the timestamp. A fix older
 than the state (the receiver's latency: fix time = receive time - latency, and CAN data of the meantime came
 first) is compared with the state through the model run back by the lag. Each epoch's estimate is reported at
 the epoch's own time (the state moved there by the model), so an epoch's estimate may be up to the latency
 older than the CAN-rate estimate before it. GNSS silence is measured on the fix clock: the newest sample time
 minus the typical delay of fixes behind CAN data (median of the last fixes), compared with 1.5 nominal periods
-(median of the last intervals between epochs, ``settings.step_s`` until two epochs were seen).
+(from the last intervals between epochs, ``settings.step_s`` until two epochs were seen).
 
 Bad input never raises: non-finite values, unknown sample types, CAN values beyond the vehicle limits, valid fixes
 without a usable position (taken as "no fix"), samples going back in time, fixes older than
@@ -64,7 +66,7 @@ MAX_FIX_LAG_S = 1.0
 """Fixes older than this behind the newest CAN data are dropped (counted ``late_fixes``)."""
 MAX_DATA_GAP_S = 10.0
 """No sample at all for this long (a clock jump, a paused replay) restarts the filter from the next fix."""
-PERIOD_HISTORY = 16
+PERIOD_HISTORY = 32
 MAX_PERIOD_S = 5.0
 HEADING_UNKNOWN_RAD = math.pi / math.sqrt(3.0)
 """Prior sigma of the azimuth when the first fix has none (the sigma of a uniform angle)."""
@@ -198,8 +200,13 @@ class RecursiveEstimator(ABC):
 
     @property
     def period_s(self) -> float:
-        """The nominal GNSS period (s): median of the recent intervals between epochs."""
-        return float(np.median(self._intervals)) if self._intervals else self.settings.step_s
+        """The nominal GNSS period (s): mean of the recent intervals between epochs within 50 % of their median
+        (the mean of consecutive intervals cancels the latency jitter; the median test leaves gaps out)."""
+        if not self._intervals:
+            return self.settings.step_s
+        d = np.asarray(self._intervals)
+        median = float(np.median(d))
+        return float(np.mean(d[np.abs(d - median) <= 0.5 * median]))
 
     # ---- hooks ------------------------------------------------------------------------------------------------
 
@@ -258,18 +265,19 @@ class RecursiveEstimator(ABC):
             self._count("bad_samples", "CAN %s = %r beyond the vehicle limits dropped", q, value)
             return []
         self._t_can = t
-        self._check_gap(t)
+        tm = t - self.settings.can_delay_s
+        self._check_gap(tm)
         if q == "yaw_rate":
-            self._yaw = (t, value)
+            self._yaw = (tm, value)
             self._yaw_sum += value
             self._yaw_n += 1
             return []
-        self._speed = (t, value)
+        self._speed = (tm, value)
         if not self._started:
             return []
-        out = self._missed_epochs(t - self._delay_s())
-        inputs = self._inputs(t)
-        self._advance(t, inputs)
+        out = self._missed_epochs(tm - self._delay_s())
+        inputs = self._inputs(tm)
+        self._advance(tm, inputs)
         self._can_update(inputs)
         self._yaw_sum, self._yaw_n = 0.0, 0
         self._counts["can_updates"] += 1

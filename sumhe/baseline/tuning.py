@@ -33,6 +33,7 @@ from sumhe.baseline.kinematics import Noise
 if TYPE_CHECKING:
     from sumhe.baseline.stream import RecursiveEstimator
     from sumhe.estimator.base import LocalFix, StateEstimate
+    from sumhe.estimator.settings import EstimatorSettings
     from sumhe.messages import CanSample
     from sumhe.sim import Drive
 
@@ -47,8 +48,11 @@ PF_PARTICLES = 500
 
 
 def tuned_noise(name: str) -> Noise:
-    """The tuned noise levels of estimator ``name`` (the EKF's for ``rts``; defaults when not tuned)."""
-    return TUNED_NOISE.get("ekf" if name == "rts" else name, Noise())
+    """The tuned noise levels of estimator ``name``; an estimator not tuned (``rts``) takes the EKF's."""
+    for key in (name, "ekf"):
+        if key in TUNED_NOISE:
+            return TUNED_NOISE[key]
+    return Noise()
 
 
 # ---- drives -----------------------------------------------------------------------------------------------------
@@ -75,7 +79,11 @@ class Case:
 
 
 def make_case(seed: int, duration_s: float = 150.0, gps_error: str = "walk") -> Case:
-    """The drive of ``seed``: scenario by seed, a 10 s and a 30 s outage at places drawn from the seed."""
+    """The drive of ``seed``: scenario by seed, a 10 s and a 30 s outage at places drawn from the seed.
+
+    Fixes are stamped with their UTC time of fix and merged in measurement order, as a replay does
+    (:func:`sumhe.io.replay.log_samples`).
+    """
     from sumhe.config import DatumSettings, GpsSettings
     from sumhe.estimator.base import FixConverter
     from sumhe.io.fixtime import stamp_fix
@@ -84,24 +92,25 @@ def make_case(seed: int, duration_s: float = 150.0, gps_error: str = "walk") -> 
     rng = np.random.default_rng(seed)
     short = rng.uniform(WARM_UP_S + 5.0, 0.4 * duration_s - 10.0)
     long = rng.uniform(0.45 * duration_s, duration_s - 35.0)
-    settings = SimSettings(
+    s = SimSettings(
         scenario=SCENARIOS[seed % len(SCENARIOS)],
         seed=seed,
         duration_s=duration_s,
         gps_error=gps_error,
         outages=((round(short, 1), OUTAGE_LENGTHS_S[0]), (round(long, 1), OUTAGE_LENGTHS_S[1])),
     )
-    drive = simulate(settings)
-    fixes = drive.fixes()
-    latency = float(np.median([f.t - f.time_utc.timestamp() for f in fixes if f.time_utc is not None]))
-    datum = DatumSettings(
-        mode="fixed", lat=settings.datum_lat_deg, lon=settings.datum_lon_deg, alt=settings.datum_alt_m
-    )
-    converter = FixConverter(datum)
-    gps = GpsSettings(port=None, latency_s=latency)
-    local = [(f.t, converter.convert(f)) for f in (stamp_fix(fix, gps) for fix in fixes)]
-    can = [(c.t, c) for c in drive.can_samples() if c.quantity in ("speed", "yaw_rate")]
-    return Case(drive, [s for _, s in heapq.merge(local, can, key=lambda pair: pair[0])])
+    drive = simulate(s)
+    converter = FixConverter(DatumSettings("fixed", s.datum_lat_deg, s.datum_lon_deg, s.datum_alt_m))
+    local = [converter.convert(stamp_fix(f, GpsSettings())) for f in drive.fixes()]
+    can = [c for c in drive.can_samples() if c.quantity in ("speed", "yaw_rate")]
+    return Case(drive, list(heapq.merge(local, can, key=lambda sample: sample.t)))
+
+
+def case_settings(case: Case) -> EstimatorSettings:
+    """The estimator settings for a case: defaults with the CAN sensor delay calibrated (as the protocol does)."""
+    from sumhe.estimator.settings import EstimatorSettings
+
+    return EstimatorSettings(can_delay_s=case.drive.settings.can_sensor_delay_s)
 
 
 # ---- running and scoring ----------------------------------------------------------------------------------------
@@ -177,34 +186,24 @@ SEARCH_FACTORS = (0.25, 0.5, 2.0, 4.0)
 """Each sweep tries every parameter at these multiples of its current value."""
 
 SEARCH_PARAMETERS: dict[str, tuple[str, ...]] = {
-    "ekf": (
-        "pos_rw",
-        "heading_rw",
-        "speed_rw",
-        "yaw_rate_rw",
-        "bias_rw",
-        "gps_scale",
-        "course_rad",
-        "can_yaw_rate_rps",
-    ),
+    "ekf": ("pos_rw", "heading_rw", "speed_rw", "yaw_rate_rw", "bias_rw", "gps_scale", "course_rad"),
     "ukf": ("pos_rw", "heading_rw", "yaw_rate_rw", "gps_scale"),
     "pf": ("pos_rw", "heading_rw", "bias_rw", "scale_rw", "gps_scale", "course_rad"),
     "imm": ("turn.yaw_rate_rw", "turn.heading_rw", "turn.pos_rw", "straight.yaw_rate_rw", "sojourn_turn_s"),
 }
-"""What the search tunes per estimator (``ukf`` starts from the EKF's values; ``imm`` from the EKF's for both
-models)."""
+"""What the search tunes per estimator (an estimator not tuned yet starts from the EKF's values)."""
 
 
 def start_values(name: str) -> dict[str, Any]:
     """Where the search of ``name`` starts: the current defaults (for the IMM, its two models and sojourn times)."""
     if name == "imm":
         return {
-            "straight": tuned_noise("imm-straight") if "imm-straight" in TUNED_NOISE else tuned_noise("ekf"),
-            "turn": tuned_noise("imm-turn") if "imm-turn" in TUNED_NOISE else tuned_noise("ekf"),
+            "straight": tuned_noise("imm-straight"),
+            "turn": tuned_noise("imm-turn"),
             "sojourn_straight_s": IMM_SOJOURN_S[0],
             "sojourn_turn_s": IMM_SOJOURN_S[1],
         }
-    return {"noise": TUNED_NOISE.get(name, tuned_noise("ekf"))}
+    return {"noise": Noise() if name == "dead-reckoning" else tuned_noise(name)}
 
 
 def with_value(values: dict[str, Any], param: str, value: float) -> dict[str, Any]:
@@ -229,8 +228,8 @@ def get_value(values: dict[str, Any], param: str) -> float:
     return float(getattr(values["noise"], param))
 
 
-def build(name: str, values: dict[str, Any] | None = None) -> RecursiveEstimator:
-    """Estimator ``name`` with the given search values (defaults when None)."""
+def build(name: str, settings: EstimatorSettings, values: dict[str, Any] | None = None) -> RecursiveEstimator:
+    """Estimator ``name`` with the given settings and search values (the tuned defaults when None)."""
     from sumhe.baseline.dead_reckoning import DeadReckoning
     from sumhe.baseline.ekf import Ekf
     from sumhe.baseline.imm import Imm
@@ -242,7 +241,7 @@ def build(name: str, values: dict[str, Any] | None = None) -> RecursiveEstimator
         values = start_values(name)
     if name == "imm":
         models = (values["straight"], values["turn"])
-        return Imm(models=models, sojourn_s=(values["sojourn_straight_s"], values["sojourn_turn_s"]))
+        return Imm(settings, models=models, sojourn_s=(values["sojourn_straight_s"], values["sojourn_turn_s"]))
     classes: dict[str, Callable[..., RecursiveEstimator]] = {
         "dead-reckoning": DeadReckoning,
         "ekf": Ekf,
@@ -250,11 +249,11 @@ def build(name: str, values: dict[str, Any] | None = None) -> RecursiveEstimator
         "ukf": Ukf,
         "pf": ParticleFilter,
     }
-    return classes[name](noise=values["noise"])
+    return classes[name](settings, noise=values["noise"])
 
 
 def score(name: str, values: dict[str, Any], cases: Sequence[Case]) -> float:
-    return objective([position_errors(c, run_case(build(name, values), c).epochs) for c in cases])
+    return objective([position_errors(c, run_case(build(name, case_settings(c), values), c).epochs) for c in cases])
 
 
 def search(name: str, cases: Sequence[Case], sweeps: int, write: Callable[[str], None]) -> dict[str, Any]:
@@ -301,7 +300,7 @@ def evaluate(names: Sequence[str], cases: Sequence[Case], write: Callable[[str],
         rows: dict[str, list[Errors]] = {name: []}
         ms = []
         for case in cases:
-            estimator = build(name)
+            estimator = build(name, case_settings(case))
             run = run_case(estimator, case)
             ms.append(run.ms_per_sample)
             rows[name].append(position_errors(case, run.epochs))

@@ -280,13 +280,13 @@ def summarise(runs: Sequence[Run], bar_m: float) -> list[dict[str, object]]:
                 "method": m,
                 "n": len(rs),
                 "max_median_m": float(np.median(mx)),
-                "max_p95_m": float(np.percentile(mx, 95)),
+                "max_p95_m": float(np.percentile(mx, 95, method="higher")),
                 "max_worst_m": float(mx.max()),
                 "mean_m": float(np.mean([r.mean_m for r in rs])),
                 "under_bar": float(np.mean(mx < bar_m)),
                 "failed": sum(not r.success for r in rs),
                 "ipopt_mean_s": float(ip.mean()),
-                "ipopt_p95_s": float(np.percentile(ip, 95)),
+                "ipopt_p95_s": float(np.percentile(ip, 95, method="higher")),
             }
         )
     return out

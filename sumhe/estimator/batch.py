@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from sumhe.estimator.bounds import NoiseBounds, noise_bounds
+from sumhe.estimator.bounds import NoiseBounds, noise_bounds, widen_caps
 from sumhe.estimator.grid import Grid, build_grid
 from sumhe.estimator.lp import LpSolution, solve_lp
 from sumhe.estimator.problem import NlpSolution, SuNlp, build_nlp
@@ -49,6 +49,7 @@ log = logging.getLogger(__name__)
 
 WEIGHTS = {"log": (1.0, 0.0, 0.0), "linear": (0.0, 1.0, 0.0)}
 CENTRE_WEIGHTS = (0.0, 0.0, 1.0)
+INFEASIBLE = ("Infeasible_Problem_Detected", "Restoration_Failed")
 NO_WEIGHTS = (0.0, 0.0, 0.0)
 
 
@@ -77,6 +78,7 @@ class SuResult:
     lp_time_s: float
     iterations: int
     lp_retries: int
+    widenings: int
     gps: NDArray[np.bool_]
     frame: LocalFrame
     bounds: NoiseBounds
@@ -226,23 +228,15 @@ def estimate_batch(
     )
     win = _Window(nlp, model, grid, bounds, settings)
     lp = solve_lp(grid, model, bounds, settings, win.origin)
-    x = start_states(lp, model, win.origin)
-    q, r = _start_noise(model, grid, bounds, x, win.y)
-    status, success = "Solve_Succeeded", True
-    if settings.objective != "caps":
-        sol = win.solve(x, (q, bounds.q_lo, bounds.q_hi), (r, bounds.r_lo, bounds.r_hi), WEIGHTS[settings.objective])
-        status, success = sol.status, sol.success
-        if sol.success:
-            x, q, r = sol.x, sol.q, sol.r
-    else:
-        q, r = bounds.q_hi.copy(), bounds.r_hi.copy()
-    widen = 1.0 + settings.centre_margin if settings.objective != "caps" else 1.0
-    q2, r2 = q * widen, r * widen
-    if success and settings.centre == "lsq":
-        sol = win.solve(x, (q2, q2, q2), (r2, r2, r2), CENTRE_WEIGHTS)
-        status, success = sol.status, sol.success
-        if sol.success:
-            x = sol.x
+    x0 = start_states(lp, model, win.origin)
+    for widenings in range(settings.max_widenings + 1):
+        stages = _stages(win, x0)
+        if stages.success or stages.status not in INFEASIBLE or widenings == settings.max_widenings:
+            break
+        log.info("SU NLP %s: widening the caps of q and r by %g", stages.status, settings.widen_factor)
+        win.bounds = widen_caps(win.bounds, settings.widen_factor)
+    x, q, r, q2, r2 = stages.x, stages.q, stages.r, stages.q_centre, stages.r_centre
+    status, success = stages.status, stages.success
     box = _extent(win, x, q2, r2) if extent and success else None
     x = x.copy()
     x[:, : 2 * model.antennas] += np.tile(win.origin, model.antennas)
@@ -261,11 +255,50 @@ def estimate_batch(
         lp_time_s=lp.time_s,
         iterations=win.iterations,
         lp_retries=lp.retries,
+        widenings=widenings,
         gps=grid.gps,
         frame=grid.frame,
-        bounds=bounds,
+        bounds=win.bounds,
         extent=box,
     )
+
+
+@dataclass(frozen=True)
+class _Stages:
+    """What the stages of one attempt produced: the reported states, the MAP (q, r), the (q, r) of the
+    centre stage, and the status of the last solve that ran."""
+
+    x: NDArray[np.float64]
+    q: NDArray[np.float64]
+    r: NDArray[np.float64]
+    q_centre: NDArray[np.float64]
+    r_centre: NDArray[np.float64]
+    status: str
+    success: bool
+
+
+def _stages(win: _Window, x0: NDArray[np.float64]) -> _Stages:
+    """Stage 1 (MAP of q, r, unless ``objective = "caps"``) and stage 2 (the centre) from the start ``x0``.
+
+    A failed stage reports the last good point: stage 1's, else the start point."""
+    s, b = win.settings, win.bounds
+    x, status, success = x0, "Solve_Succeeded", True
+    if s.objective == "caps":
+        q, r = b.q_hi, b.r_hi
+        q2, r2 = q, r
+    else:
+        q0, r0 = _start_noise(win.model, win.grid, b, x0, win.y)
+        sol = win.solve(x0, (q0, b.q_lo, b.q_hi), (r0, b.r_lo, b.r_hi), WEIGHTS[s.objective])
+        if not sol.success:
+            return _Stages(x0, q0, r0, q0, r0, sol.status, False)
+        x, q, r = sol.x, sol.q, sol.r
+        q2, r2 = q * (1.0 + s.centre_margin), r * (1.0 + s.centre_margin)
+    if s.centre == "lsq" or s.objective == "caps":
+        sol = win.solve(x, (q2, q2, q2), (r2, r2, r2), CENTRE_WEIGHTS)
+        status, success = sol.status, sol.success
+        if sol.success:
+            x = sol.x
+    return _Stages(x, q, r, q2, r2, status, success)
 
 
 def _extent(win: _Window, x: NDArray, q: NDArray, r: NDArray) -> tuple[float, float, float, float] | None:
@@ -315,6 +348,7 @@ def estimate_lp(
         lp_time_s=lp.time_s,
         iterations=lp.iterations,
         lp_retries=lp.retries,
+        widenings=0,
         gps=grid.gps,
         frame=grid.frame,
         bounds=bounds,

@@ -21,6 +21,7 @@ State-noise bounds scale with the step length as ``(h_t / h_ref) ** q_power``.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,6 +45,11 @@ class NoiseBounds:
     q_scale: NDArray[np.float64]
     r_scale: NDArray[np.float64]
     h_ref: float
+
+
+def widen_caps(bounds: NoiseBounds, factor: float) -> NoiseBounds:
+    """The bounds with the caps of q and r multiplied by ``factor`` (algorithm 3.3 of 001, step 7)."""
+    return dataclasses.replace(bounds, q_hi=bounds.q_hi * factor, r_hi=bounds.r_hi * factor)
 
 
 def fill_gaps(values: NDArray[np.float64], t: NDArray[np.float64], default: float = 0.0) -> NDArray[np.float64]:

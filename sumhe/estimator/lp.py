@@ -18,7 +18,7 @@ an optimal face is optimal, to an arbitrary one. We add ``P = eps * D'D``, ``eps
 where ``D z`` are the state residuals ``p_t - p_{t-1} - h u``: among (nearly) optimal points OSQP then
 returns the one with the smallest squared process noise (the smoothest), and the LP value moves by a
 negligible ``O(eps)``. If OSQP reports primal infeasibility, algorithm 3.3 of 001 applies: ``qbar`` and
-``rbar`` are widened by ``lp_widen_factor`` and the LP is solved again, at most ``lp_max_retries`` times.
+``rbar`` are widened by ``widen_factor`` and the LP is solved again, at most ``max_widenings`` times.
 """
 
 from __future__ import annotations
@@ -42,6 +42,11 @@ log = logging.getLogger(__name__)
 
 INFEASIBLE = (osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE, osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE_INACCURATE)
 SOLVED = (osqp.SolverStatus.OSQP_SOLVED, osqp.SolverStatus.OSQP_SOLVED_INACCURATE)
+LP_TOL = 1e-5
+LP_MAX_ITER = 50000
+LP_MAX_ITER_PRIM_RES = 1e-3
+"""An iterate at the iteration limit is still a usable start point when its constraint violation is below
+this (m): the NLP starts from it and does not need it to be optimal."""
 
 
 @dataclass(frozen=True)
@@ -129,7 +134,7 @@ def _lp_matrices(
             for sign, (lo_v, hi_v) in ((-1.0, (-np.inf, hu)), (1.0, (hu, np.inf))):
                 rows_a += [row, row, row]
                 cols_a += [cur, prev, iq + i]
-                vals_a += [1.0, -1.0, sign * s[t - 1] * bounds.q_hi[i]]
+                vals_a += [1.0, -1.0, sign * s[t - 1]]
                 lo.append(lo_v)
                 hi.append(hi_v)
                 row += 1
@@ -140,7 +145,7 @@ def _lp_matrices(
             for sign, (lo_v, hi_v) in ((-1.0, (-np.inf, y)), (1.0, (y, np.inf))):
                 rows_a += [row, row]
                 cols_a += [k * n_pos + i, ir + i]
-                vals_a += [1.0, sign * c * bounds.r_hi[i]]
+                vals_a += [1.0, sign * c]
                 lo.append(lo_v)
                 hi.append(hi_v)
                 row += 1
@@ -183,37 +188,38 @@ def solve_lp(
     eps = settings.lp_regularisation
     P = sp.triu(eps * (D.T @ D), format="csc")
     c = np.zeros(nz)
-    c[nx:] = np.r_[bounds.q_hi[:n_pos], bounds.r_hi[:n_pos]]
+    c[nx:] = 1.0
     c -= eps * (D.T @ target)
     box = sp.csc_matrix((np.ones(2 * n_pos), (np.arange(2 * n_pos), np.arange(nx, nz))), shape=(2 * n_pos, nz))
     A_all = sp.vstack([A, box], format="csc")
-    widen = 1.0
+    qbar, rbar = bounds.q_hi[:n_pos].copy(), bounds.r_hi[:n_pos].copy()
     iterations = 0
-    for attempt in range(settings.lp_max_retries + 1):
+    for attempt in range(settings.max_widenings + 1):
         solver = osqp.OSQP()
         solver.setup(
             P,
             c,
             A_all,
             np.r_[lo, np.zeros(2 * n_pos)],
-            np.r_[hi, widen * np.ones(2 * n_pos)],
+            np.r_[hi, qbar, rbar],
             verbose=False,
-            eps_abs=1e-7,
-            eps_rel=1e-7,
-            max_iter=20000,
+            eps_abs=LP_TOL,
+            eps_rel=LP_TOL,
+            max_iter=LP_MAX_ITER,
             polishing=True,
         )
         res = solver.solve(raise_error=False)
         iterations += int(res.info.iter)
         status = osqp.SolverStatus(res.info.status_val)
-        if status in SOLVED:
+        usable = status == osqp.SolverStatus.OSQP_MAX_ITER_REACHED and res.info.prim_res <= LP_MAX_ITER_PRIM_RES
+        if status in SOLVED or usable:
             z = res.x
             p = z[:nx].reshape(-1, n_pos) + shift
             log.debug("LP solved after %d retries, %d iterations", attempt, iterations)
             return LpSolution(
                 p=p,
-                q=z[nx : nx + n_pos] * bounds.q_hi[:n_pos],
-                r=z[nx + n_pos :] * bounds.r_hi[:n_pos],
+                q=z[nx : nx + n_pos],
+                r=z[nx + n_pos :],
                 phi=phi,
                 speed=speed,
                 yaw_rate=yaw_rate,
@@ -224,6 +230,7 @@ def solve_lp(
             )
         if status not in INFEASIBLE:
             raise SolverError(f"linear SU program: OSQP ended with {status.name}")
-        log.info("LP infeasible (attempt %d): widening qbar, rbar by %.1f", attempt + 1, settings.lp_widen_factor)
-        widen *= settings.lp_widen_factor
-    raise SolverError(f"linear SU program infeasible after {settings.lp_max_retries} widenings of qbar, rbar")
+        log.info("LP infeasible (attempt %d): widening qbar, rbar by %.1f", attempt + 1, settings.widen_factor)
+        qbar *= settings.widen_factor
+        rbar *= settings.widen_factor
+    raise SolverError(f"linear SU program infeasible after {settings.max_widenings} widenings of qbar, rbar")

@@ -70,9 +70,27 @@ class EstimatorSettings:
     step_s: float = 0.1
     ipopt_max_iter: int = 300
     ipopt_tol: float = 1e-8
-    lp_regularisation: float = 1e-3
-    lp_widen_factor: float = 2.0
-    lp_max_retries: int = 8
+    lp_regularisation: float = 1e-2
+    # algorithm 3.3 of 001: widen the caps of q and r by this factor while a problem is infeasible
+    widen_factor: float = 2.0
+    max_widenings: int = 8
+    # moving-horizon estimator (docs/mhe.md): solver, window policy (steps), QP, noise bounds, arrival box, gate
+    mhe_solver: str = "sqp"
+    mhe_steps: int = 50
+    mhe_steps_before: int = 20
+    mhe_steps_after: int = 10
+    mhe_max_steps: int = 300
+    mhe_shrink_steps: int = 2
+    mhe_max_merge: int = 4
+    mhe_bucket_steps: int = 25
+    mhe_sqp_iterations: int = 1
+    mhe_qp_max_iter: int = 200
+    mhe_qp_tol: float = 1e-5
+    mhe_noise: str = "floors"
+    mhe_arrival_theta: float = 0.1
+    mhe_gate_m: float = 2.0
+    mhe_gate_drift: float = 0.05
+    mhe_max_retries: int = 2
 
     def __post_init__(self) -> None:
         _one_of(self, "model", MODELS)
@@ -116,13 +134,40 @@ class EstimatorSettings:
                 raise ValueError(f"{name}: must be >= 0 and finite, got {value!r}")
         if self.speed_scale_max >= 1:
             raise ValueError("speed_scale_max: must be below 1 (a relative error)")
-        if not self.lp_widen_factor > 1:
-            raise ValueError(f"lp_widen_factor: must be > 1, got {self.lp_widen_factor!r}")
-        if self.lp_max_retries < 0:
-            raise ValueError(f"lp_max_retries: must be >= 0, got {self.lp_max_retries!r}")
+        if not self.widen_factor > 1:
+            raise ValueError(f"widen_factor: must be > 1, got {self.widen_factor!r}")
+        if self.max_widenings < 0:
+            raise ValueError(f"max_widenings: must be >= 0, got {self.max_widenings!r}")
+        _check_mhe(self)
 
 
 def _one_of(obj: object, name: str, allowed: tuple[str, ...]) -> None:
     value = getattr(obj, name)
     if value not in allowed:
         raise ValueError(f"{name}: must be one of {', '.join(allowed)}, got {value!r}")
+
+
+MHE_SOLVERS = ("sqp", "ipopt", "fatrop")
+MHE_NOISE = ("floors", "caps")
+
+
+def _check_mhe(s: EstimatorSettings) -> None:
+    """Validate the ``mhe_*`` fields (ValueError naming the field)."""
+    _one_of(s, "mhe_solver", MHE_SOLVERS)
+    _one_of(s, "mhe_noise", MHE_NOISE)
+    for name in ("mhe_max_steps", "mhe_max_merge", "mhe_bucket_steps", "mhe_sqp_iterations", "mhe_qp_max_iter"):
+        if getattr(s, name) < 1:
+            raise ValueError(f"{name}: must be >= 1, got {getattr(s, name)!r}")
+    if s.mhe_steps < 2:
+        raise ValueError(f"mhe_steps: need at least 2 steps, got {s.mhe_steps!r}")
+    if s.mhe_max_steps < s.mhe_steps:
+        raise ValueError(f"mhe_max_steps: must be >= mhe_steps ({s.mhe_steps}), got {s.mhe_max_steps!r}")
+    for name in ("mhe_steps_before", "mhe_steps_after", "mhe_shrink_steps", "mhe_max_retries"):
+        if getattr(s, name) < 0:
+            raise ValueError(f"{name}: must be >= 0, got {getattr(s, name)!r}")
+    if s.mhe_steps_before >= s.mhe_steps:
+        raise ValueError(f"mhe_steps_before: must be below mhe_steps ({s.mhe_steps}), got {s.mhe_steps_before!r}")
+    for name in ("mhe_qp_tol", "mhe_arrival_theta", "mhe_gate_m", "mhe_gate_drift"):
+        value = getattr(s, name)
+        if not 0 < value < float("inf"):
+            raise ValueError(f"{name}: must be a positive finite number, got {value!r}")

@@ -1,0 +1,604 @@
+"""The moving-horizon state-uniform estimator (issue 3): the service's default estimator, ``"mhe"``.
+
+At every GNSS epoch (a fix, a "no fix", or an epoch GNSS missed) one step is appended to the window
+(:mod:`sumhe.estimator.window`): its CAN speed and yaw rate (the samples of the step's half-intervals averaged),
+the fix's position and course if the gate lets the fix in, and the step's start state, the previous newest state
+moved on by the model with the newest CAN data. The window is re-solved (:mod:`sumhe.estimator.sqp`) warm-started
+from the previous solution shifted by the steps the window slid; the newest state is the epoch's estimate.
+Between epochs, each CAN speed sample gives an estimate at its own time: the newest solution moved on with the CAN
+samples since, so the position sent is that of the newest CAN sample. ``docs/mhe.md`` describes the choices.
+
+* Noise bounds: output bounds R are the per-epoch error allowances of :mod:`sumhe.estimator.grid` (the r caps of
+  the batch estimator); state bounds Q are ``mhe_noise = "floors"``: the model error the window's CAN data implies
+  (:func:`sumhe.estimator.bounds.q_floors`, widened by ``centre_margin``), or ``"caps"``: the vehicle limits.
+* Arrival box (information leaving the window): when steps are dropped, the first state is held to a box around
+  the previous solution's estimate of it. Its half-widths ``alpha`` are an interval bound carried along:
+  ``alpha <- min(alpha, m_k)`` with ``m_k`` what the dropped step's outputs bound directly (a position by its
+  allowance, the azimuth by the course's, speed and yaw rate by the CAN allowances), then moved one step on,
+  ``alpha <- |dT/dx| alpha + 2 Q_k`` (the set grows by one step of state noise, twice because the box is
+  centred on the estimate, not on the set). The CAN bias and scale get a fixed half-width, ``mhe_arrival_theta``
+  times their limits. Inside the box, ``|(x_0 - c) / alpha|^2`` is added to the objective (the variance of a
+  uniform prior on the box).
+* Gate: a fix whose distance to the prediction exceeds its position allowance + ``mhe_gate_m`` +
+  ``mhe_gate_drift`` x the distance driven since the last fix used is rejected (``gps="rejected"``) and left out of
+  the window, so one multipath jump cannot widen the bounds. The gate widens with the distance driven, so after
+  a long outage the first good fixes are taken; fixes rejected for ``GATE_RESET_S`` without a break restart the
+  estimator at the newest fix.
+* Failures: a failed or infeasible solve is retried with Q, R and the arrival box widened by ``widen_factor``
+  (001 algorithm 3.3), at most ``mhe_max_retries`` times; then the epoch's estimate is the model prediction with
+  ``mode="predict"``. An estimate is never skipped because of the solver.
+
+Modes: ``"init"`` (first fix), ``"mhe"`` (solved), ``"mhe-widened"`` (solved after widening), ``"predict"``
+(solver failed: model prediction), ``"can"`` (between epochs: the newest solution moved on with CAN data).
+Only the single-antenna model ``su5`` is supported in the sample stream.
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+import math
+import time
+from collections import Counter, deque
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+from numpy.typing import NDArray
+
+from sumhe.config import Config
+from sumhe.errors import ConfigError
+from sumhe.estimator.base import LocalFix, StateEstimate
+from sumhe.estimator.batch import model_for, state_box
+from sumhe.estimator.bounds import q_caps, q_floors
+from sumhe.estimator.grid import GGA_RTK_FIXED, GGA_RTK_FLOAT, Grid, gps_sigma_m
+from sumhe.estimator.settings import EstimatorSettings
+from sumhe.estimator.sqp import SolveResult, WindowProblem, WindowSolver, make_solver
+from sumhe.estimator.window import Window, WindowPolicy, plan_window
+from sumhe.geo import LocalFrame
+from sumhe.messages import CanSample, GpsStatus
+from sumhe.model.su import BIAS_STATE, SCALE_STATE
+
+log = logging.getLogger(__name__)
+
+PERIOD_HISTORY = 16
+MAX_PERIOD_S = 5.0
+MAX_DATA_GAP_S = 10.0
+"""No sample at all for this long restarts the estimator at the next valid fix."""
+GATE_RESET_S = 10.0
+"""Valid fixes rejected for this long without a break: the estimate is what is wrong; restart at the newest fix."""
+CAN_KEEP_S = 2.0
+"""CAN samples older than the newest step by more than this are forgotten."""
+STARTUP_ITERATIONS = 3
+"""SQP iterations per epoch until the window first reaches its normal length (the start point is rough)."""
+_FRAME = LocalFrame(0.0, 0.0)
+"""Placeholder frame of the grids handed to :func:`~sumhe.estimator.bounds.q_floors` (which ignores it)."""
+
+
+@dataclass
+class _Samples:
+    """Time-ordered CAN samples of one quantity (s, SI value), trimmed from the front."""
+
+    t: list[float]
+    v: list[float]
+
+    def add(self, t: float, value: float) -> None:
+        self.t.append(t)
+        self.v.append(value)
+
+    def trim(self, t_min: float) -> None:
+        k = bisect.bisect_left(self.t, t_min)
+        if k > 256 or (k and k == len(self.t)):
+            del self.t[:k], self.v[:k]
+
+    def mean(self, t0: float, t1: float) -> float | None:
+        """Mean of the samples in (t0, t1], None if there is none."""
+        i, j = bisect.bisect_right(self.t, t0), bisect.bisect_right(self.t, t1)
+        return sum(self.v[i:j]) / (j - i) if j > i else None
+
+    def at(self, t: float, max_age: float) -> float | None:
+        """The newest sample at or before ``t`` if it is at most ``max_age`` s old, else the next one within it."""
+        i = bisect.bisect_right(self.t, t)
+        if i and t - self.t[i - 1] <= max_age:
+            return self.v[i - 1]
+        if i < len(self.t) and self.t[i] - t <= max_age:
+            return self.v[i]
+        return None
+
+    @property
+    def newest(self) -> float:
+        return self.t[-1] if self.t else -math.inf
+
+
+class MovingHorizonEstimator:
+    """The moving-horizon SU estimator on the :class:`~sumhe.estimator.base.Estimator` protocol (module doc)."""
+
+    name = "mhe"
+
+    def __init__(self, settings: EstimatorSettings | None = None) -> None:
+        s = settings or EstimatorSettings()
+        if s.model != "su5":
+            raise ConfigError(f"estimator.model: the moving-horizon estimator supports su5 only, got {s.model!r}")
+        self.settings = s
+        self.model = model_for(s)
+        self.policy = WindowPolicy.from_settings(s)
+        model = self.model
+        self._m, self._md, self._n = model.n_states, model.n_dynamic, model.n_outputs
+        self._ie, self._in = model.position
+        self._iphi, self._iv, self._iw = model.index("phi"), model.index("v"), model.index("omega")
+        self._ib = model.index(BIAS_STATE) if BIAS_STATE in model.states else None
+        self._ik = model.index(SCALE_STATE) if SCALE_STATE in model.states else None
+        self._jpos = model.gps_outputs[:2]
+        self._jangle = model.angle_outputs[0]
+        self._jspeed, self._jyaw = self._n - 2, self._n - 1
+        lo, hi = state_box(model, 1, s)
+        self._lo, self._hi = lo[0], hi[0]
+        self._theta_half = self.settings.mhe_arrival_theta * (self._hi[self._md :] - self._lo[self._md :]) / 2.0
+        self._window = Window(self.policy.max_steps + 1, self._m, self._n, gps_column=self._jpos[0])
+        self._buckets = self._bucket_sizes()
+        self._solvers: dict[int, WindowSolver] = {}
+        self._jac_step = self._step_jacobian()
+        self._counts: Counter[str] = Counter()
+        self.last_result: SolveResult | None = None
+        self.reset()
+
+    @classmethod
+    def from_config(cls, config: Config) -> MovingHorizonEstimator:
+        """The estimator of ``config.estimator`` (the registry's constructor)."""
+        return cls(config.estimator)
+
+    # ---- the Estimator protocol ---------------------------------------------------------------------------------
+
+    def reset(self) -> None:
+        """Forget the window, the CAN samples and the stream's timing (counters are kept)."""
+        self._started = False
+        self._window.clear()
+        self._speed = _Samples([], [])
+        self._yaw = _Samples([], [])
+        self._t_last = -math.inf
+        self._last_epoch: float | None = None
+        self._last_real_epoch: float | None = None
+        self._intervals: deque[float] = deque(maxlen=PERIOD_HISTORY)
+        self._delays: deque[float] = deque(maxlen=PERIOD_HISTORY)
+        self._alpha = np.full(self._md, np.inf)
+        self._centre = np.zeros(self._m)
+        self._theta_centre: NDArray[np.float64] | None = None
+        self._prop: list[float] = []
+        self._t_prop = -math.inf
+        self._status: GpsStatus = "outage"
+        self._since_fix_m = 0.0
+        self._rejected_since: float | None = None
+        self._used_fixes = 0
+        self._capacity: int | None = None
+        self._push_t0 = time.perf_counter()
+
+    def push(self, sample: LocalFix | CanSample) -> list[StateEstimate]:
+        """Feed one sample (time-ordered); returns the estimates it produced (contract in
+        :mod:`sumhe.estimator.base`). Never raises for bad data: it is counted and dropped."""
+        self._push_t0 = time.perf_counter()
+        if isinstance(sample, LocalFix):
+            return self._push_fix(sample)
+        if isinstance(sample, CanSample):
+            return self._push_can(sample)
+        self._count("bad_samples", "not a LocalFix or CanSample: %s", type(sample).__name__)
+        return []
+
+    def stats(self) -> Mapping[str, float | int | str]:
+        """Counters (epochs, fixes used/rejected, outage epochs, solves, widenings, fallbacks, dropped samples),
+        the window length and the nominal period."""
+        out: dict[str, float | int | str] = {
+            "estimator": self.name,
+            "solver": self.settings.mhe_solver,
+            "window": len(self._window),
+            "period_s": self.period_s,
+        }
+        out.update(self._counts)
+        return out
+
+    @property
+    def period_s(self) -> float:
+        """The nominal GNSS period (s): median of the recent intervals between epochs."""
+        return float(np.median(self._intervals)) if self._intervals else self.settings.step_s
+
+    def smoothed(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The window now: step times (s) and the smoothed states (L x m, the model's state order), for replays."""
+        return self._window.t.copy(), self._window.x.copy()
+
+    def warm_up(self) -> None:
+        """Build the solver of every window size now rather than at first use (each takes milliseconds to
+        seconds, once)."""
+        for size in self._buckets:
+            self._solver(size)
+
+    # ---- stream handling ----------------------------------------------------------------------------------------
+
+    def _push_can(self, sample: CanSample) -> list[StateEstimate]:
+        q, value = sample.quantity, sample.value
+        t = sample.t - self.settings.can_delay_s
+        if not (isinstance(t, float | int) and isinstance(value, float | int) and math.isfinite(t)):
+            self._count("bad_samples", "CAN %s sample with a non-finite time or value", q)
+            return []
+        if q not in ("speed", "yaw_rate"):
+            return []
+        store = self._speed if q == "speed" else self._yaw
+        if t < store.newest:
+            self._count("dropped_backwards", "CAN %s sample %.3f s back in time dropped", q, store.newest - t)
+            return []
+        limit = self.settings.max_speed_mps if q == "speed" else 2.0 * self.settings.max_yaw_rate_rps
+        if not (math.isfinite(value) and abs(value) <= limit):
+            self._count("bad_samples", "CAN %s = %r beyond the vehicle limits dropped", q, value)
+            return []
+        self._check_gap(t)
+        store.add(t, float(value))
+        if not self._started:
+            return []
+        out = self._missed_epochs(t - self._delay_s())
+        if q == "speed" and t > self._t_prop:
+            self._prop = self._advance(self._prop, self._t_prop, t)
+            self._t_prop = t
+            out.append(self._estimate(self._prop, t, self._status, "can"))
+        return out
+
+    def _push_fix(self, fix: LocalFix) -> list[StateEstimate]:
+        t = fix.t
+        if not (isinstance(t, float | int) and math.isfinite(t)):
+            self._count("bad_samples", "GNSS epoch with a non-finite time")
+            return []
+        if self._last_epoch is not None and t <= self._last_epoch:
+            self._count("dropped_backwards", "GNSS epoch %.3f s back in time dropped", self._last_epoch - t)
+            return []
+        usable = self._usable(fix)
+        if self._last_real_epoch is not None and t - self._last_real_epoch <= MAX_PERIOD_S:
+            self._intervals.append(t - self._last_real_epoch)
+        self._last_real_epoch = t
+        newest_can = max(self._speed.newest, self._yaw.newest)
+        if newest_can > t:
+            self._delays.append(newest_can - t)
+        self._check_gap(t)
+        if not self._started:
+            self._last_epoch = t
+            return [self._begin(fix)] if usable else []
+        out = self._missed_epochs(t)
+        out.append(self._epoch(t, fix if usable else None))
+        return out
+
+    def _usable(self, fix: LocalFix) -> bool:
+        if not fix.valid:
+            return False
+        sigma_ok = fix.sigma_m is None or (math.isfinite(fix.sigma_m) and fix.sigma_m > 0)
+        if math.isfinite(fix.east_m) and math.isfinite(fix.north_m) and sigma_ok:
+            return True
+        self._count("bad_fixes", "valid fix without a usable position or sigma taken as no fix")
+        return False
+
+    def _check_gap(self, t: float) -> None:
+        if self._started and t - self._t_last > MAX_DATA_GAP_S:
+            self._count("restarts", "no data for %.1f s: restarting at the next fix", t - self._t_last)
+            speed, yaw = self._speed, self._yaw
+            self.reset()
+            self._speed, self._yaw = speed, yaw
+        self._t_last = max(self._t_last, t)
+
+    def _delay_s(self) -> float:
+        """Typical delay of fixes behind the CAN data (s)."""
+        return float(np.median(self._delays)) if self._delays else 0.0
+
+    def _missed_epochs(self, t_fix_clock: float) -> list[StateEstimate]:
+        """Outage epochs for the epochs GNSS missed up to ``t_fix_clock`` (silence > 1.5 periods)."""
+        out: list[StateEstimate] = []
+        period = self.period_s
+        while self._last_epoch is not None and t_fix_clock - self._last_epoch > 1.5 * period:
+            self._counts["missed_epochs"] += 1
+            out.append(self._epoch(self._last_epoch + period, None))
+        return out
+
+    # ---- epochs ---------------------------------------------------------------------------------------------------
+
+    def _begin(self, fix: LocalFix) -> StateEstimate:
+        """Start at the first valid fix: position from it, azimuth from its course/heading (else 0), speed and
+        yaw rate from CAN, no bias, scale 1."""
+        x = np.zeros(self._m)
+        x[self._ie], x[self._in] = fix.east_m, fix.north_m
+        angle = self._fix_angle(fix, self._can_speed_at(fix.t))
+        x[self._iphi] = angle[0] if angle is not None else 0.0
+        speed, yaw = self._can_speed_at(fix.t), self._yaw.at(fix.t, self.settings.can_max_gap_s)
+        x[self._iv] = speed if speed is not None else 0.0
+        x[self._iw] = yaw if yaw is not None else 0.0
+        if self._ik is not None:
+            x[self._ik] = 1.0
+        if self._theta_centre is not None:
+            x[self._md :] = self._theta_centre
+        y, avail, allow = self._outputs(fix.t, self.settings.step_s, x, fix)
+        self._window.append(fix.t, y, avail, allow, x)
+        self._started = True
+        self._used_fixes = 1
+        self._status = "ok"
+        self._counts["epochs"] += 1
+        self._counts["gps_ok"] += 1
+        self._set_prop(x, fix.t)
+        return self._estimate(list(x), fix.t, "ok", "init")
+
+    def _epoch(self, t: float, fix: LocalFix | None) -> StateEstimate:
+        """One GNSS epoch at ``t`` (``fix`` None: no usable fix): append, plan, solve, report."""
+        win = self._window
+        self._last_epoch = t
+        h_prev = t - win.t[-1]
+        x_pred = np.array(self._advance(list(win.x[-1]), float(win.t[-1]), t))
+        speed = x_pred[self._iv] * (x_pred[self._ik] if self._ik is not None else 1.0)
+        self._since_fix_m += abs(speed) * h_prev
+        status: GpsStatus = "outage"
+        if fix is not None:
+            status = "ok" if self._gate(fix, x_pred) else "rejected"
+            if status == "rejected" and self._rejected_since is not None and t - self._rejected_since > GATE_RESET_S:
+                self._count("gate_resets", "fixes rejected for %.0f s: restarting at the newest fix", GATE_RESET_S)
+                theta = win.x[-1, self._md :].copy()
+                speed_samples, yaw_samples, epoch = self._speed, self._yaw, self._last_real_epoch
+                self.reset()
+                self._speed, self._yaw, self._last_real_epoch = speed_samples, yaw_samples, epoch
+                self._theta_centre = theta
+                self._last_epoch = t
+                return self._begin(fix)
+        y, avail, allow = self._outputs(t, h_prev, x_pred, fix if status == "ok" else None)
+        win.append(t, y, avail, allow, x_pred)
+        self._counts["epochs"] += 1
+        self._counts[{"ok": "gps_ok", "rejected": "gps_rejected", "outage": "outage_epochs"}[status]] += 1
+        self._status = status
+        plan = plan_window(win.gps, win.t, self.period_s, self.policy)
+        if plan.drop:
+            self._arrival(plan.drop)
+        win.apply(plan)
+        shift = None if plan.merge else plan.drop
+        x_new, mode = self._solve(shift)
+        win.x[:] = x_new
+        self._set_prop(x_new[-1], t)
+        return self._estimate(list(x_new[-1]), t, status, mode)
+
+    def _gate(self, fix: LocalFix, x_pred: NDArray[np.float64]) -> bool:
+        """Whether ``fix`` passes the gate (module docstring); updates the gate's bookkeeping."""
+        s = self.settings
+        sig_e, sig_n = self._fix_sigma(fix)
+        radius = s.r_cap_sigmas * max(sig_e, sig_n) + s.mhe_gate_m + s.mhe_gate_drift * self._since_fix_m
+        miss = math.hypot(fix.east_m - x_pred[self._ie], fix.north_m - x_pred[self._in])
+        if miss <= radius or self._used_fixes < max(self.policy.before, 2):
+            self._since_fix_m = 0.0
+            self._rejected_since = None
+            self._used_fixes += 1
+            return True
+        if self._rejected_since is None:
+            self._rejected_since = fix.t
+        log.debug("fix at %.2f rejected: %.1f m from the prediction (gate %.1f m)", fix.t, miss, radius)
+        return False
+
+    def _fix_sigma(self, fix: LocalFix) -> tuple[float, float]:
+        """1-sigma error (east, north) of a fix (m): the receiver's GST, else by quality/HDOP, else the default."""
+        if fix.fix is not None:
+            return gps_sigma_m(fix.fix, self.settings)
+        s = self.settings
+        sigma = fix.sigma_m
+        if sigma is None:
+            sigma = {GGA_RTK_FIXED: s.gps_sigma_rtk_m, GGA_RTK_FLOAT: s.gps_sigma_float_m}.get(fix.quality, s.gps_sigma_m)
+        return sigma, sigma
+
+    def _fix_angle(self, fix: LocalFix, speed: float | None) -> tuple[float, float] | None:
+        """The azimuth a fix measures (rad) and its sigma: heading, else course above the minimum speed."""
+        s = self.settings
+        if s.use_heading and fix.heading_rad is not None and math.isfinite(fix.heading_rad):
+            return fix.heading_rad, s.gps_heading_sigma_rad
+        v = fix.speed_mps if fix.speed_mps is not None and math.isfinite(fix.speed_mps) else speed
+        if fix.course_rad is not None and math.isfinite(fix.course_rad) and v is not None:
+            if v >= s.course_min_speed_mps:
+                return fix.course_rad, s.gps_speed_sigma_mps / max(v, 1e-3)
+        return None
+
+    def _can_speed_at(self, t: float) -> float | None:
+        return self._speed.at(t, self.settings.can_max_gap_s)
+
+    def _outputs(
+        self, t: float, h_prev: float, x: NDArray[np.float64], fix: LocalFix | None
+    ) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]:
+        """Outputs, availability and error allowances of the step at ``t`` (as :mod:`sumhe.estimator.grid`):
+        CAN speed and yaw rate averaged over the step's half-intervals, the fix's position and azimuth."""
+        s, n = self.settings, self._n
+        y, avail, allow = np.zeros(n), np.zeros(n, dtype=bool), np.ones(n)
+        t0, t1 = t - 0.5 * h_prev, t + 0.5 * self.period_s
+        for store, j in ((self._speed, self._jspeed), (self._yaw, self._jyaw)):
+            value = store.mean(t0, t1)
+            if value is None:
+                value = store.at(t, s.can_max_gap_s)
+            if value is not None:
+                y[j], avail[j] = value, True
+        k_sig = s.r_cap_sigmas
+        allow[self._jspeed] = 0.5 * s.can_speed_resolution_mps + k_sig * s.can_speed_sigma_mps
+        allow[self._jyaw] = 0.5 * s.can_yaw_rate_resolution_rps + k_sig * s.can_yaw_rate_sigma_rps
+        if self._ik is None:
+            allow[self._jspeed] += s.speed_scale_max * abs(y[self._jspeed])
+        if self._ib is None:
+            allow[self._jyaw] += s.yaw_rate_bias_max_rps
+        if fix is not None:
+            sig = self._fix_sigma(fix)
+            for j, value, sg in zip(self._jpos, (fix.east_m, fix.north_m), sig, strict=True):
+                y[j], avail[j], allow[j] = value, True, k_sig * max(sg, s.gps_resolution_m)
+            speed = y[self._jspeed] if avail[self._jspeed] else None
+            angle = self._fix_angle(fix, speed)
+            if angle is not None:
+                turn = 0.5 * self.period_s * abs(y[self._jyaw])
+                y[self._jangle], avail[self._jangle], allow[self._jangle] = angle[0], True, k_sig * angle[1] + turn
+        return y, avail, allow
+
+    # ---- the solve ------------------------------------------------------------------------------------------------
+
+    def _bucket_sizes(self) -> tuple[int, ...]:
+        p, step = self.policy, self.settings.mhe_bucket_steps
+        return tuple(sorted({*range(p.steps, p.max_steps, step), p.max_steps}))
+
+    def _solver(self, size: int) -> WindowSolver:
+        capacity = self._buckets[bisect.bisect_left(self._buckets, size)]
+        solver = self._solvers.get(capacity)
+        if solver is None:
+            s = self.settings
+            t0 = time.perf_counter()
+            max_iter = s.mhe_qp_max_iter if s.mhe_solver == "sqp" else s.ipopt_max_iter
+            tol = s.mhe_qp_tol if s.mhe_solver == "sqp" else 1e-6
+            solver = make_solver(self.model, capacity, s.mhe_solver, max_iter, tol, s.mhe_sqp_iterations)
+            self._solvers[capacity] = solver
+            self._counts["solver_builds"] += 1
+            log.info("MHE: %s solver for %d steps built in %.0f ms", s.mhe_solver, capacity,
+                     1e3 * (time.perf_counter() - t0))
+        return solver
+
+    def _noise_bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """State bounds Q (L-1 x m_dynamic) and output bounds R (L x n) of the window (module docstring)."""
+        s, win, period = self.settings, self._window, self.period_s
+        h = np.diff(win.t)
+        scale = (h[:, None] / period) ** np.array(self.model.q_power)[None, :]
+        cap = q_caps(self.model, period, s)
+        if s.mhe_noise == "caps":
+            q = cap
+        else:
+            can_speed = np.where(win.avail[:, self._jspeed], win.y[:, self._jspeed], np.nan)
+            can_yaw = np.where(win.avail[:, self._jyaw], win.y[:, self._jyaw], np.nan)
+            grid = Grid(t=win.t, y=win.y, avail=win.avail, allow=win.allow, can_speed=can_speed,
+                        can_yaw_rate=can_yaw, frame=_FRAME)
+            q = np.minimum(q_floors(self.model, grid, scale, cap) * (1.0 + s.centre_margin), cap)
+        return q[None, :] * scale, win.allow.copy()
+
+    def _problem(self, capacity: int, Q: NDArray, R: NDArray, widen: float) -> WindowProblem:
+        win, C, L = self._window, capacity, len(self._window)
+        pad = C - L
+        x = np.vstack([win.x, np.repeat(win.x[-1:], pad, axis=0)])
+        h = np.concatenate([np.diff(win.t), np.full(pad, self.period_s)])
+        Qp = np.vstack([Q * widen, np.ones((pad, self._md))])
+        Rp = np.vstack([R * widen, np.ones((pad, self._n))])
+        y = np.vstack([win.y, np.zeros((pad, self._n))])
+        avail = np.vstack([win.avail, np.zeros((pad, self._n), dtype=bool)])
+        half = np.concatenate([self._alpha * widen, self._theta_half * widen])
+        return WindowProblem(L, x, h, y, avail, Rp, Qp, self._lo, self._hi, self._centre, half)
+
+    def _solve(self, shift: int | None) -> tuple[NDArray[np.float64], str]:
+        """Solve the window with retries (module docstring); the trajectory (L x m) and the mode."""
+        win, s = self._window, self.settings
+        L = len(win)
+        capacity = self._buckets[bisect.bisect_left(self._buckets, L)]
+        solver = self._solver(L)
+        if capacity != self._capacity:
+            shift = None
+        self._capacity = capacity
+        if self._theta_centre is None:
+            self._theta_centre = win.x[0, self._md :].copy()
+        self._centre = np.concatenate([self._centre[: self._md], self._theta_centre])
+        Q, R = self._noise_bounds()
+        iterations = s.mhe_sqp_iterations if L >= self.policy.steps else max(s.mhe_sqp_iterations, STARTUP_ITERATIONS)
+        for attempt in range(s.mhe_max_retries + 1):
+            widen = s.widen_factor**attempt
+            problem = self._problem(capacity, Q, R, widen)
+            try:
+                result = solver.solve(problem, shift if attempt == 0 else None, iterations)
+            except (RuntimeError, ValueError, ArithmeticError) as e:
+                self._count("solver_errors", "MHE solver raised %s", e)
+                continue
+            self.last_result = result
+            self._counts["solves"] += 1
+            self._counts["qp_iterations" if s.mhe_solver == "sqp" else "nlp_iterations"] += result.iterations
+            if result.success:
+                if attempt:
+                    self._counts["widened"] += 1
+                return result.x[:L], "mhe-widened" if attempt else "mhe"
+            self._count("failed_solves", "MHE solve failed (%s)", result.status)
+        self._count("fallbacks", "MHE solve failed %d times: reporting the model prediction", s.mhe_max_retries + 1)
+        return win.x.copy(), "predict"
+
+    def _arrival(self, drop: int) -> None:
+        """Carry the arrival box over the ``drop`` oldest steps leaving the window (module docstring)."""
+        win, md = self._window, self._md
+        alpha = self._alpha
+        Q, _ = self._noise_bounds()
+        for k in range(min(drop, len(win) - 1)):
+            alpha = np.minimum(alpha, self._measured_bounds(k))
+            F = np.abs(self._jac_step(win.x[k], win.x[k + 1], win.t[k + 1] - win.t[k]).full()[:md, :md])
+            with np.errstate(invalid="ignore"):
+                alpha = np.nan_to_num(F @ alpha, nan=np.inf) + 2.0 * Q[k]
+        self._alpha = alpha
+        k = min(drop, len(win) - 1)
+        self._centre = win.x[k].copy()
+        self._theta_centre = win.x[k, md:].copy()
+
+    def _measured_bounds(self, k: int) -> NDArray[np.float64]:
+        """What the outputs of step ``k`` bound directly: half-widths per dynamic state (inf if nothing)."""
+        win = self._window
+        out = np.full(self._md, np.inf)
+        avail, allow, x = win.avail[k], win.allow[k], win.x[k]
+        for j, i in ((self._jpos[0], self._ie), (self._jpos[1], self._in), (self._jangle, self._iphi)):
+            if avail[j]:
+                out[i] = allow[j]
+        if avail[self._jspeed]:
+            scale = abs(x[self._ik]) if self._ik is not None else 1.0
+            spread = abs(x[self._iv]) * self._theta_half[self._ik - self._md] if self._ik is not None else 0.0
+            out[self._iv] = (allow[self._jspeed] + spread) / max(scale, 1e-3)
+        if avail[self._jyaw]:
+            out[self._iw] = allow[self._jyaw] + (self._theta_half[self._ib - self._md] if self._ib is not None else 0.0)
+        return out
+
+    def _step_jacobian(self) -> ca.Function:
+        m = self._m
+        xp, xn, h = ca.SX.sym("xp", m), ca.SX.sym("xn", m), ca.SX.sym("h")
+        T = ca.vertcat(*self.model.transition(xp, xn, h, ca))
+        return ca.Function("dT", [xp, xn, h], [ca.jacobian(T, xp)])
+
+    # ---- propagation and estimates ------------------------------------------------------------------------------
+
+    def _set_prop(self, x: NDArray[np.float64], t: float) -> None:
+        """Restart the CAN-rate propagation at the newest solution and move it to the newest CAN speed sample."""
+        t_to = self._speed.newest
+        self._prop = self._advance(list(x), t, t_to) if t_to > t else list(x)
+        self._t_prop = max(t, t_to)
+        self._speed.trim(t - CAN_KEEP_S)
+        self._yaw.trim(t - CAN_KEEP_S)
+
+    def _advance(self, x: list[float], t0: float, t1: float) -> list[float]:
+        """The state ``x`` at ``t0`` moved to ``t1`` (s) by the model's transition, with the CAN speed and yaw rate
+        of the samples in between (trapezoid from sample to sample; speed divided by the scale, bias removed)."""
+        if not t1 > t0:
+            return x
+        ts = self._speed.t
+        i, j = bisect.bisect_right(ts, t0), bisect.bisect_right(ts, t1)
+        times = [*ts[i:j], t1] if j == i or ts[j - 1] < t1 else ts[i:j]
+        scale = x[self._ik] if self._ik is not None else 1.0
+        bias = x[self._ib] if self._ib is not None else 0.0
+        gap = self.settings.can_max_gap_s
+        ta = t0
+        for k, tb in enumerate(times):
+            v = self._speed.v[i + k] if i + k < j else self._speed.at(tb, gap)
+            w = self._yaw.mean(ta, tb)
+            if w is None:
+                w = self._yaw.at(tb, gap)
+            xn = list(x)
+            if v is not None:
+                xn[self._iv] = v / scale if scale else v
+            if w is not None:
+                xn[self._iw] = w - bias
+            x = self.model.transition(x, xn, tb - ta, math)
+            x[self._iv], x[self._iw] = xn[self._iv], xn[self._iw]
+            ta = tb
+        return x
+
+    def _estimate(self, x: list[float], t: float, status: GpsStatus, mode: str) -> StateEstimate:
+        return StateEstimate(
+            t=t,
+            east_m=float(x[self._ie]),
+            north_m=float(x[self._in]),
+            azimuth_rad=float(x[self._iphi]) % (2.0 * math.pi),
+            speed_mps=float(x[self._iv]),
+            yaw_rate_rps=float(x[self._iw]),
+            gps=status,
+            mode=mode,
+            window=len(self._window),
+            solve_ms=1000.0 * (time.perf_counter() - self._push_t0),
+        )
+
+    def _count(self, key: str, msg: str, *args: object) -> None:
+        """Count an event; log it at the 1st, 10th, 100th, ... occurrence."""
+        self._counts[key] += 1
+        n = self._counts[key]
+        if n == 10 ** int(math.log10(n)):
+            log.warning("%s: " + msg + " (%d so far)", self.name, *args, n)

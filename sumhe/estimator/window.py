@@ -1,0 +1,214 @@
+"""The moving horizon's window: which steps it keeps (the policy) and their data (the bookkeeping).
+
+The window is a time-ordered list of steps (one per GNSS epoch, outage epochs included), oldest first. After each
+new step is appended, :func:`plan_window` decides what to drop; :meth:`Window.apply` does it.
+
+Policy (paper 001 sec. 6: the data must be present at both ends of a window, so its length varies while GNSS is
+missing; ``docs/mhe.md``):
+
+* normally the window holds the newest ``steps`` (N) steps and slides by one step per epoch;
+* while GNSS is out, and until ``after`` (N_A) GNSS epochs have come back, the window keeps at least ``before``
+  (N_B) GNSS epochs from before the newest outage: it stops sliding and grows instead (while the outage is shorter
+  than N - N_B steps the N newest steps already hold them, and nothing changes);
+* at most ``max_steps`` (N_max) steps: beyond, interior steps without GNSS are removed, which merges two steps into
+  one of the summed length (the state noise bounds scale with the step length), the shortest merged step first and
+  the oldest first among equals, so the outage is coarsened from its old end on; a merged step is at most
+  ``max_merge`` nominal periods long. Only when no step can be merged are the oldest steps dropped;
+* when the window may shrink again it drops ``1 + shrink`` of its oldest steps per epoch (it shrinks back
+  progressively, by ``shrink`` steps per epoch, not in one jump).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sumhe.estimator.settings import EstimatorSettings
+
+MERGE_TOL = 1e-6
+
+
+@dataclass(frozen=True, slots=True)
+class WindowPolicy:
+    """N = ``steps``, N_B = ``before``, N_A = ``after``, N_max = ``max_steps`` (all in steps); ``shrink``: extra
+    steps dropped per epoch while shrinking; ``max_merge``: the longest merged step, in nominal periods."""
+
+    steps: int = 50
+    before: int = 20
+    after: int = 10
+    max_steps: int = 300
+    shrink: int = 2
+    max_merge: int = 4
+
+    def __post_init__(self) -> None:
+        if self.steps < 2:
+            raise ValueError(f"steps: need at least 2, got {self.steps!r}")
+        if not 0 <= self.before < self.steps:
+            raise ValueError(f"before: must be within [0, steps), got {self.before!r}")
+        if self.after < 0 or self.shrink < 0:
+            raise ValueError("after, shrink: must be >= 0")
+        if self.max_steps < self.steps:
+            raise ValueError(f"max_steps: must be >= steps ({self.steps}), got {self.max_steps!r}")
+        if self.max_merge < 1:
+            raise ValueError(f"max_merge: must be >= 1, got {self.max_merge!r}")
+
+    @classmethod
+    def from_settings(cls, s: EstimatorSettings) -> WindowPolicy:
+        """The policy of the ``mhe_*`` settings."""
+        return cls(
+            steps=s.mhe_steps,
+            before=s.mhe_steps_before,
+            after=s.mhe_steps_after,
+            max_steps=s.mhe_max_steps,
+            shrink=s.mhe_shrink_steps,
+            max_merge=s.mhe_max_merge,
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class Plan:
+    """What to do with the window after a step was appended: drop the ``drop`` oldest steps, then remove the
+    steps ``merge`` (indices after the drop, ascending) to coarsen it."""
+
+    drop: int = 0
+    merge: tuple[int, ...] = ()
+
+
+def outage_anchor(gps: NDArray[np.bool_], policy: WindowPolicy) -> int | None:
+    """Index of the oldest step the newest outage needs kept (its N_B-th GNSS epoch before it; 0 if fewer are
+    left), or None when there is no outage in the window or GNSS has been back for N_A epochs."""
+    missing = np.flatnonzero(~gps)
+    if len(missing) == 0:
+        return None
+    end = int(missing[-1])
+    if len(gps) - 1 - end >= policy.after:
+        return None
+    gps_before = np.flatnonzero(gps[:end])
+    start = int(gps_before[-1]) + 1 if len(gps_before) else 0
+    if policy.before == 0:
+        return start
+    if len(gps_before) < policy.before:
+        return 0
+    return int(gps_before[-policy.before])
+
+
+def _merge_candidates(gps: NDArray[np.bool_], t: NDArray[np.float64], cap: float) -> NDArray[np.float64]:
+    """Length (s) of the step each interior index would make by its removal; inf where it may not be removed."""
+    span = np.full(len(t), np.inf)
+    if len(t) < 3:
+        return span
+    merged = t[2:] - t[:-2]
+    ok = ~gps[1:-1] & (merged <= cap)
+    span[1:-1] = np.where(ok, merged, np.inf)
+    return span
+
+
+def plan_window(gps: NDArray[np.bool_], t: NDArray[np.float64], period: float, policy: WindowPolicy) -> Plan:
+    """The plan for a window whose steps are at times ``t`` (s) and have GNSS where ``gps`` (newest last).
+
+    ``period`` is the nominal step (s). See the module docstring for the rules.
+    """
+    n = len(gps)
+    keep_from = max(0, n - policy.steps)
+    anchor = outage_anchor(gps, policy)
+    if anchor is not None:
+        keep_from = min(keep_from, anchor)
+    drop = min(keep_from, 1 + policy.shrink)
+    if n - drop <= policy.max_steps:
+        return Plan(drop=drop)
+    gps_kept, t_kept = gps[drop:].copy(), t[drop:].copy()
+    cap = policy.max_merge * period * (1.0 + MERGE_TOL)
+    removed: list[int] = []
+    index = np.arange(len(t_kept))
+    while len(t_kept) > policy.max_steps:
+        span = _merge_candidates(gps_kept, t_kept, cap)
+        # round so that equal spans tie exactly and the oldest wins
+        i = int(np.argmin(np.round(span / period, 6)))
+        if not np.isfinite(span[i]):
+            break
+        removed.append(int(index[i]))
+        gps_kept, t_kept, index = np.delete(gps_kept, i), np.delete(t_kept, i), np.delete(index, i)
+    extra = len(t_kept) - policy.max_steps
+    if extra > 0:
+        # nothing left to merge: drop the oldest steps (the arrival box carries what they knew)
+        first = int(index[extra])
+        return Plan(drop=drop + first, merge=tuple(sorted(i - first for i in removed if i > first)))
+    return Plan(drop=drop, merge=tuple(sorted(removed)))
+
+
+class Window:
+    """The steps of the horizon, oldest first, in preallocated arrays (views of the first ``len`` rows).
+
+    Per step: time ``t`` (s), outputs ``y`` (n; the model's output units), ``avail`` (which outputs are present),
+    ``allow`` (each output's error allowance, its unit) and the trajectory ``x`` (m states: the current estimate,
+    or the prediction for a step not solved yet). ``gps_column`` is the output that says a step has GNSS.
+    """
+
+    def __init__(self, capacity: int, n_states: int, n_outputs: int, gps_column: int = 0) -> None:
+        self.capacity = capacity
+        self.gps_column = gps_column
+        self._t = np.zeros(capacity)
+        self._y = np.zeros((capacity, n_outputs))
+        self._avail = np.zeros((capacity, n_outputs), dtype=bool)
+        self._allow = np.ones((capacity, n_outputs))
+        self._x = np.zeros((capacity, n_states))
+        self.n = 0
+
+    def __len__(self) -> int:
+        return self.n
+
+    @property
+    def t(self) -> NDArray[np.float64]:
+        return self._t[: self.n]
+
+    @property
+    def y(self) -> NDArray[np.float64]:
+        return self._y[: self.n]
+
+    @property
+    def avail(self) -> NDArray[np.bool_]:
+        return self._avail[: self.n]
+
+    @property
+    def allow(self) -> NDArray[np.float64]:
+        return self._allow[: self.n]
+
+    @property
+    def x(self) -> NDArray[np.float64]:
+        return self._x[: self.n]
+
+    @property
+    def gps(self) -> NDArray[np.bool_]:
+        """Steps with a GNSS position."""
+        return self._avail[: self.n, self.gps_column]
+
+    def clear(self) -> None:
+        self.n = 0
+
+    def append(self, t: float, y: NDArray, avail: NDArray, allow: NDArray, x: NDArray) -> None:
+        """Add the newest step; ValueError if the window is full or ``t`` is not after the newest step."""
+        if self.n >= self.capacity:
+            raise ValueError(f"window full ({self.capacity} steps)")
+        if self.n and not t > self._t[self.n - 1]:
+            raise ValueError(f"step at {t!r} s is not after the newest step at {self._t[self.n - 1]!r} s")
+        i = self.n
+        self._t[i], self._y[i], self._avail[i], self._allow[i], self._x[i] = t, y, avail, allow, x
+        self.n += 1
+
+    def apply(self, plan: Plan) -> None:
+        """Drop the oldest ``plan.drop`` steps, then remove the steps ``plan.merge``."""
+        arrays = (self._t, self._y, self._avail, self._allow, self._x)
+        if plan.drop:
+            k = min(plan.drop, self.n)
+            for a in arrays:
+                a[: self.n - k] = a[k : self.n]
+            self.n -= k
+        if plan.merge:
+            keep = np.ones(self.n, dtype=bool)
+            keep[list(plan.merge)] = False
+            n = int(keep.sum())
+            for a in arrays:
+                a[:n] = a[: self.n][keep]
+            self.n = n

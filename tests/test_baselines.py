@@ -1,0 +1,317 @@
+"""The baselines' maths: closed-form Kalman/RTS on a linear case, Jacobians, gate, PF seeding, registry."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from sumhe.baseline import kinematics as kin
+from sumhe.baseline.ekf import Ekf
+from sumhe.baseline.imm import Imm, transition_matrix
+from sumhe.baseline.kinematics import Layout, Noise
+from sumhe.baseline.particle import ParticleFilter, systematic_resample
+from sumhe.baseline.rts import Rts
+from sumhe.baseline.stream import Gate
+from sumhe.baseline.tuning import main as tuning_main
+from sumhe.baseline.ukf import Ukf
+from sumhe.config import load_config
+from sumhe.errors import ConfigError
+from sumhe.estimator.base import LocalFix, StateEstimate
+from sumhe.estimator.registry import ESTIMATORS, estimator_class, estimator_names, make_estimator
+from sumhe.estimator.settings import EstimatorSettings
+from sumhe.messages import CanSample
+
+# ---- the linear case: straight north, heading known exactly, position and speed measured ------------------------
+
+LINEAR_SETTINGS = EstimatorSettings(yaw_rate_bias=False, speed_scale=False, gps_heading_sigma_rad=1e-12)
+LINEAR_NOISE = Noise(
+    pos_rw=0.2,
+    heading_rw=0.0,
+    speed_rw=0.7,
+    yaw_rate_rw=0.0,
+    can_speed_mps=0.05,
+    standstill_rps=0.0,
+    gate_prob=1.0,
+    speed0_mps=2.0,
+    yaw_rate0_rps=0.0,
+)
+SIGMA_FIX = 0.8
+
+
+def linear_stream(seconds: float = 6.0) -> list[LocalFix | CanSample]:
+    """A first fix with HDT heading north, then CAN speed at 50 Hz and fixes at 10 Hz (without heading)."""
+    rng = np.random.default_rng(3)
+    t0 = 100.0
+    samples: list[LocalFix | CanSample] = [
+        LocalFix(t=t0, valid=True, east_m=0.3, north_m=-0.2, sigma_m=SIGMA_FIX, heading_rad=0.0)
+    ]
+    events = [(t0 + 0.02 * k, "can") for k in range(1, int(seconds / 0.02))]
+    events += [(t0 + 0.1 * k + 0.005, "fix") for k in range(1, int(seconds / 0.1))]
+    for t, kind in sorted(events):
+        if kind == "can":
+            samples.append(CanSample(t, "speed", 8.0 + 0.3 * math.sin(t) + rng.normal(0, 0.05)))
+        else:
+            n = 8.0 * (t - t0)
+            samples.append(
+                LocalFix(t=t, valid=True, east_m=rng.normal(0, 1), north_m=n + rng.normal(0, 1), sigma_m=SIGMA_FIX)
+            )
+    return samples
+
+
+def closed_form(samples: list[LocalFix | CanSample]) -> tuple[np.ndarray, np.ndarray]:
+    """Kalman filter and RTS smoother of the state (east, north, speed) with plain matrices: (filtered, smoothed)."""
+    first = samples[0]
+    assert isinstance(first, LocalFix)
+    x = np.array([first.east_m, first.north_m, 0.0])
+    P = np.diag([SIGMA_FIX**2, SIGMA_FIX**2, LINEAR_NOISE.speed0_mps**2])
+    t = first.t
+    xf, Pf, xp, Pp, Fs = [x], [P], [x], [P], [np.eye(3)]
+    for s in samples[1:]:
+        dt = s.t - t
+        t = s.t
+        F = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, dt], [0.0, 0.0, 1.0]])
+        Q = np.diag([LINEAR_NOISE.pos_rw**2, LINEAR_NOISE.pos_rw**2, LINEAR_NOISE.speed_rw**2]) * dt
+        x, P = F @ x, F @ P @ F.T + Q
+        xp.append(x)
+        Pp.append(P)
+        Fs.append(F)
+        if isinstance(s, LocalFix):
+            H, z, R = np.array([[1.0, 0, 0], [0, 1.0, 0]]), np.array([s.east_m, s.north_m]), np.eye(2) * SIGMA_FIX**2
+        else:
+            H, z, R = np.array([[0, 0, 1.0]]), np.array([s.value]), np.array([[LINEAR_NOISE.can_speed_mps**2]])
+        K = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
+        x = x + K @ (z - H @ x)
+        P = (np.eye(3) - K @ H) @ P
+        xf.append(x)
+        Pf.append(P)
+    xs = [xf[-1]]
+    for k in range(len(xf) - 2, -1, -1):
+        C = Pf[k] @ Fs[k + 1].T @ np.linalg.inv(Pp[k + 1])
+        xs.insert(0, xf[k] + C @ (xs[0] - xp[k + 1]))
+    return np.array(xf), np.array(xs)
+
+
+def as_array(estimates: list[StateEstimate]) -> np.ndarray:
+    return np.array([[e.east_m, e.north_m, e.speed_mps] for e in estimates])
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: Ekf(LINEAR_SETTINGS, LINEAR_NOISE),
+        lambda: Rts(LINEAR_SETTINGS, LINEAR_NOISE),
+        lambda: Ukf(LINEAR_SETTINGS, LINEAR_NOISE),
+        lambda: Imm(LINEAR_SETTINGS, models=(LINEAR_NOISE, LINEAR_NOISE)),
+    ],
+    ids=["ekf", "rts", "ukf", "imm-equal-models"],
+)
+def test_filters_match_the_closed_form_kalman_filter(make) -> None:  # type: ignore[no-untyped-def]
+    samples = linear_stream()
+    est = make()
+    out = [e for s in samples for e in est.push(s)]
+    assert len(out) == len(samples)
+    filtered, _ = closed_form(samples)
+    np.testing.assert_allclose(as_array(out), filtered, atol=1e-6)
+    assert all(min(e.azimuth_rad, 2 * math.pi - e.azimuth_rad) < 1e-6 for e in out)
+
+
+def test_rts_matches_the_closed_form_smoother() -> None:
+    samples = linear_stream()
+    rts = Rts(LINEAR_SETTINGS, LINEAR_NOISE)
+    out = [e for s in samples for e in rts.push(s)]
+    filtered, smoothed = closed_form(samples)
+    got = rts.smoothed()
+    assert [e.t for e in got] == [e.t for e in out]
+    np.testing.assert_allclose(as_array(got), smoothed, atol=1e-6)
+    assert np.abs(smoothed - filtered).max() > 0.1  # the backward pass changes something
+
+
+def test_rts_window_keeps_the_last_seconds() -> None:
+    samples = linear_stream(8.0)
+    rts = Rts(LINEAR_SETTINGS, LINEAR_NOISE, history_s=2.0)
+    for s in samples:
+        rts.push(s)
+    got = rts.smoothed()
+    assert got and got[-1].t == samples[-1].t
+    assert samples[-1].t - got[0].t == pytest.approx(2.0, abs=0.05)
+    with pytest.raises(ValueError, match="history_s"):
+        Rts(history_s=0.0)
+
+
+# ---- the model --------------------------------------------------------------------------------------------------
+
+
+def numeric_jacobian(f, x: np.ndarray, eps: float = 1e-6) -> np.ndarray:  # type: ignore[no-untyped-def]
+    cols = []
+    for i in range(len(x)):
+        d = np.zeros_like(x)
+        d[i] = eps
+        cols.append((f(x + d) - f(x - d)) / (2 * eps))
+    return np.column_stack(cols)
+
+
+STATE = np.array([3.0, -2.0, 2.5, 12.0, 0.3, 0.01, 1.02])
+
+
+@pytest.mark.parametrize("dt", [0.02, -0.08, 0.5])
+def test_step_jacobian_is_the_derivative(dt: float) -> None:
+    np.testing.assert_allclose(
+        kin.step_jacobian(STATE, dt), numeric_jacobian(lambda x: kin.step(x, dt), STATE), atol=1e-7
+    )
+
+
+@pytest.mark.parametrize("kind", [kin.POSITION, kin.AZIMUTH])
+@pytest.mark.parametrize("lag", [0.0, 0.1])
+def test_fix_jacobian_is_the_derivative(kind: str, lag: float) -> None:
+    expected = numeric_jacobian(lambda x: kin.fix_model(x, kind, lag), STATE)
+    np.testing.assert_allclose(kin.fix_jacobian(STATE, kind, lag), expected, atol=1e-7)
+
+
+def test_can_jacobian_is_the_derivative() -> None:
+    rows = (kin.CAN_SPEED, kin.CAN_YAW_RATE, kin.STANDSTILL)
+    layout = Layout()
+    expected = numeric_jacobian(lambda x: kin.can_model(x, rows, layout), STATE)
+    np.testing.assert_allclose(kin.can_jacobian(STATE, rows, layout), expected, atol=1e-7)
+    assert kin.can_model(STATE, rows, layout) == pytest.approx([1.02 * 12.0, 0.31, 0.3])
+
+
+def test_step_follows_a_circle() -> None:
+    """Midpoint steps on a left turn of radius 50 m at 10 m/s: a quarter circle ends where geometry says."""
+    x = np.array([0.0, 0.0, 0.0, 10.0, 0.2, 0.0, 1.0])
+    for _ in range(round((math.pi / 2) / 0.2 / 0.01)):
+        x = kin.step(x, 0.01)
+    assert x[kin.PHI] == pytest.approx(-math.pi / 2, abs=1e-3)
+    assert x[kin.E] == pytest.approx(-50.0, abs=0.1) and x[kin.N] == pytest.approx(50.0, abs=0.1)
+
+
+def test_chi2_thresholds() -> None:
+    assert kin.chi2_threshold(0.99, 1) == pytest.approx(6.635, abs=1e-3)
+    assert kin.chi2_threshold(0.99, 2) == pytest.approx(9.210, abs=1e-3)
+    assert kin.chi2_threshold(1.0, 2) == math.inf
+    with pytest.raises(ValueError):
+        kin.chi2_threshold(0.9, 3)
+
+
+@pytest.mark.parametrize(
+    "field,value", [("pos_rw", -1.0), ("gps_scale", 0.0), ("gate_prob", 1.5), ("speed_rw", math.nan)]
+)
+def test_noise_is_validated(field: str, value: float) -> None:
+    with pytest.raises(ValueError, match=field):
+        Noise(**{field: value})
+
+
+# ---- gate -------------------------------------------------------------------------------------------------------
+
+
+def test_gate_rejects_a_jump_and_reacquires_agreeing_fixes() -> None:
+    gate = Gate(threshold=9.0, reacquire_s=1.0)
+    assert gate.check(0.0, np.array([0.5, 0.0]), 1.0, 1.0) == "ok"
+    # a jump that does not last
+    assert gate.check(0.1, np.array([50.0, 0.0]), 2500.0, 1.0) == "rejected"
+    assert gate.check(0.2, np.array([0.2, 0.0]), 0.1, 1.0) == "ok"
+    # fixes that keep disagreeing with the filter but agree with each other: re-acquired after 1 s
+    decisions = [gate.check(1.0 + 0.1 * k, np.array([20.0 + 0.1 * k, 5.0]), 400.0, 1.0) for k in range(12)]
+    assert decisions[:10] == ["rejected"] * 10 and decisions[10] == "reacquire"
+    # scattered outliers never agree
+    rng = np.random.default_rng(0)
+    scattered = [gate.check(5.0 + 0.1 * k, rng.uniform(-50, 50, 2), 400.0, 1.0) for k in range(30)]
+    assert set(scattered) == {"rejected"}
+
+
+def test_late_fixes_are_dropped_and_counted() -> None:
+    """Fixes arriving 1.2 s after their time (behind the CAN data by more than MAX_FIX_LAG_S) are not used."""
+    ekf = Ekf()
+    can = [CanSample(10.0 + 0.02 * k, "speed", 5.0) for k in range(1, 70)]
+    for sample in can[:60]:
+        assert ekf.push(sample) == []
+    assert len(ekf.push(LocalFix(t=10.0, valid=True, east_m=0.0, north_m=0.0, sigma_m=1.0))) == 1
+    for sample in can[60:65]:
+        ekf.push(sample)
+    assert ekf.push(LocalFix(t=10.1, valid=True, east_m=0.0, north_m=0.5, sigma_m=1.0)) == []
+    assert ekf.stats()["late_fixes"] == 1
+
+
+# ---- particle filter --------------------------------------------------------------------------------------------
+
+
+def pf_run(seed: int) -> np.ndarray:
+    pf = ParticleFilter(particles=200, seed=seed)
+    samples = linear_stream(3.0)
+    return as_array([e for s in samples for e in pf.push(s)])
+
+
+def test_particle_filter_is_deterministic_for_a_seed() -> None:
+    a, b, c = pf_run(1), pf_run(1), pf_run(2)
+    np.testing.assert_array_equal(a, b)
+    assert np.abs(a - c).max() > 1e-6
+
+
+def test_particle_filter_reset_restarts_the_random_stream() -> None:
+    pf = ParticleFilter(particles=200, seed=4)
+    samples = linear_stream(2.0)
+    first = as_array([e for s in samples for e in pf.push(s)])
+    pf.reset()
+    np.testing.assert_array_equal(as_array([e for s in samples for e in pf.push(s)]), first)
+
+
+def test_systematic_resampling_keeps_the_weights() -> None:
+    rng = np.random.default_rng(0)
+    w = np.array([0.5, 0.25, 0.125, 0.125, 0.0])
+    for _ in range(20):
+        counts = np.bincount(systematic_resample(w, rng), minlength=5)
+        assert counts.sum() == 5 and counts[4] == 0
+        assert np.abs(counts - 5 * w).max() < 1.0
+    idx = systematic_resample(np.full(1000, 1e-3), rng)
+    assert sorted(idx.tolist()) == list(range(1000))
+    with pytest.raises(ValueError, match="particles"):
+        ParticleFilter(particles=3)
+
+
+# ---- IMM --------------------------------------------------------------------------------------------------------
+
+
+def test_transition_matrix_is_stochastic_and_follows_sojourn_times() -> None:
+    Pi = transition_matrix(0.02, (10.0, 2.0))
+    np.testing.assert_allclose(Pi.sum(axis=1), 1.0)
+    assert Pi[0, 1] == pytest.approx(1 - math.exp(-0.002)) and Pi[1, 0] == pytest.approx(1 - math.exp(-0.01))
+    with pytest.raises(ValueError, match="sojourn_s"):
+        Imm(sojourn_s=(1.0, 0.0))
+
+
+# ---- registry ---------------------------------------------------------------------------------------------------
+
+
+def test_registry_builds_every_estimator_by_name() -> None:
+    config = load_config()
+    assert set(ESTIMATORS) <= set(estimator_names())
+    for name in ESTIMATORS:
+        est = make_estimator(name, config)
+        assert est.name == name
+
+
+def test_registry_rejects_unknown_names() -> None:
+    with pytest.raises(ConfigError, match=r"unknown estimator 'kalman'.*ekf"):
+        make_estimator("kalman", load_config())
+
+
+def test_registry_reports_a_broken_entry(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(ESTIMATORS, "broken", ("sumhe.baseline.no_such_module", "Nothing"))
+    with pytest.raises(ConfigError, match="cannot load estimator 'broken'"):
+        estimator_class("broken")
+
+
+def test_registry_uses_the_config_settings() -> None:
+    config = load_config(overrides={"estimator.yaw_rate_bias": False, "estimator.speed_scale": False})
+    est = make_estimator("ekf", config)
+    assert isinstance(est, Ekf) and est.layout.n == 5
+
+
+# ---- tuning command ---------------------------------------------------------------------------------------------
+
+
+def test_search_refuses_test_seeds(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        tuning_main(["search", "ekf", "--seeds", "5-7"])
+    assert "test seeds" in capsys.readouterr().err
