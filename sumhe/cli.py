@@ -26,6 +26,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("sumhe.commands.run", "the daemon: CAN bus + serial GNSS in, positions over UDP out"),
     "play": ("sumhe.commands.play", "play a recorded drive onto a CAN bus and a pseudo-terminal (real time)"),
     "replay": ("sumhe.commands.replay", "run an estimator on a recorded CAN log + NMEA log (JSON lines out)"),
+    "protocol": ("sumhe.commands.protocol", "paper 000's outage protocol on simulated drives: errors per method"),
+    "bench": ("sumhe.commands.bench", "benchmarks: MHE latency/accuracy/replay speed (mhe), paper 000's protocol"),
 }
 
 

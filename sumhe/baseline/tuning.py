@@ -39,7 +39,16 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-TUNED_NOISE: dict[str, Noise] = {}
+TUNED_NOISE: dict[str, Noise] = {
+    "ekf": Noise(
+        pos_rw=0.003125,
+        heading_rw=0.0005,
+        speed_rw=0.5,
+        yaw_rate_rw=0.01875,
+        bias_rw=2.5e-05,
+        gps_scale=2.0,
+    ),
+}
 """Tuned :class:`Noise` of each estimator (``rts`` runs the EKF's); the IMM's two models are ``imm-straight``
 and ``imm-turn``."""
 IMM_SOJOURN_S = (10.0, 3.0)

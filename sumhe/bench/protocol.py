@@ -133,6 +133,7 @@ def method_settings(method: str, base: EstimatorSettings) -> EstimatorSettings:
             "yaw_rate_bias": False,
             "speed_scale": False,
             "discretisation": "euler",
+            "antenna_lever": False,
         },
     }
     return dataclasses.replace(base, **changes[method])  # type: ignore[arg-type]
@@ -307,9 +308,10 @@ def format_report(runs: Sequence[Run], ps: ProtocolSettings) -> str:
         label = by[(methods[0], k)].label
         cells = " ".join(f"{by[(m, k)].max_m:>9.3f} /{by[(m, k)].mean_m:>7.3f} " for m in methods)
         lines.append(f"{k:>6} {label:<8} {cells}")
+    bar = f"<{ps.bar_m:g} m"
     lines.append("")
     lines.append(
-        f"{'method':<13} {'max med':>8} {'max p95':>8} {'worst':>8} {'mean':>7} {'<' + format(ps.bar_m, 'g') + ' m':>7} "
+        f"{'method':<13} {'max med':>8} {'max p95':>8} {'worst':>8} {'mean':>7} {bar:>7} "
         f"{'failed':>6} {'ipopt mean':>10} {'ipopt p95':>9}"
     )
     for s in summarise(runs, ps.bar_m):

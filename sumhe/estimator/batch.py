@@ -5,25 +5,32 @@ Pipeline for one window of samples (a time-ordered list of :class:`~sumhe.messag
 
 1. :func:`~sumhe.estimator.grid.build_grid`: GNSS epochs as steps, outage gaps filled, CAN on the grid,
    per-epoch error allowances. :func:`~sumhe.estimator.bounds.noise_bounds`: floors and caps of q and r.
+   The model (:mod:`sumhe.model.su`): su5 or su7 (000 (19)-(20)), optionally with the CAN yaw-rate bias and
+   speed scale as window-constant parameters (Theta of 000 (2)), discretised by the trapezoidal twin of
+   (19) (``discretisation``) and, for su7, with antenna 2 swinging about antenna 1 in turns
+   (``antenna_lever``).
 2. Start point (000 sec. 4.2): the linear SU program (21)-(22) with OSQP and 001's retry rule
-   (:mod:`sumhe.estimator.lp`). :func:`estimate_lp` returns it as an estimator of its own.
+   (:mod:`sumhe.estimator.lp`); if even the widened LP fails, the fixes interpolated in time.
+   :func:`estimate_lp` returns the LP as an estimator of its own.
 3. Stage 1, the MAP of (q, r) over the feasible set S of (14) with the box prior (11) from the derived
    floors and caps, by ``settings.objective``:
    ``"log"``: the paper's (15), ``sum ln q_i + sum (K_j/T) ln r_j`` (K_j: outputs of kind j present);
    ``"linear"``: ``sum q_i/qcap_i + sum (K_j/T) r_j/rcap_j`` (001's linearised MAP, normalised);
-   ``"caps"``: no stage 1, q and r are their caps (a pure set-membership estimate).
+   ``"caps"``: no stage 1, q and r are their caps (a pure set-membership estimate; the centre always runs).
 4. Stage 2, the reported point (``settings.centre``). The objective depends on q and r only, so every
    trajectory in S(q, r) is a MAP estimate; ``"lsq"`` reports the centre of S(q', r'), with q and r fixed
    at the stage-1 values widened by ``centre_margin`` (``q' = (1 + margin) q``), as the point minimising
    ``sum (w_ti / q'_i)^2 + sum (e_kj / r'_j)^2``: the constrained least-squares smoother whose weights are
    the variances ``q^2/3``, ``r^2/3`` of the uniform noises. ``"none"`` reports the stage-1 point.
 5. On request, the extent of the newest position over S(q', r'): min and max of its east and north
-   (four more solves with a linear objective; a local optimum of a nearly convex set).
+   (four more solves with a linear objective; a local optimum, exact when S is convex near the solution).
 
 One :class:`~sumhe.estimator.problem.SuNlp` per model and window size serves every stage (objective
-weights and bounds are parameters; fixed q, r are variables with equal bounds). If IPOPT fails, the result
-carries the last good point (stage 1, else the LP start) with ``success=False`` and the IPOPT status.
-See ``docs/formulation.md`` for the choices against the paper and their measured effect.
+weights and bounds are parameters; fixed q, r are variables with equal bounds). When IPOPT finds a stage
+infeasible, the caps of q and r are widened by ``widen_factor`` and the stages rerun (algorithm 3.3 of 001,
+at most ``max_widenings`` times). If IPOPT fails otherwise, the result carries the last good point (stage 1,
+else the start point) with ``success=False`` and the IPOPT status. See ``docs/formulation.md`` for every
+choice against the paper and its measured effect on the protocol (:mod:`sumhe.bench.protocol`).
 """
 
 from __future__ import annotations
@@ -36,14 +43,23 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from sumhe.errors import SolverError
 from sumhe.estimator.bounds import NoiseBounds, noise_bounds, widen_caps
 from sumhe.estimator.grid import Grid, build_grid
-from sumhe.estimator.lp import LpSolution, solve_lp
+from sumhe.estimator.lp import LpSolution, interpolated_start, solve_lp
 from sumhe.estimator.problem import NlpSolution, SuNlp, build_nlp
 from sumhe.estimator.settings import EstimatorSettings
 from sumhe.geo import LocalFrame
 from sumhe.messages import Sample
-from sumhe.model.su import BIAS_STATE, SCALE_STATE, SuModel, antenna_distance_residual, su_model, wrap_angle
+from sumhe.model.su import (
+    BIAS_STATE,
+    SCALE_STATE,
+    SuModel,
+    antenna_distance_residual,
+    output_residuals,
+    state_residuals,
+    su_model,
+)
 
 log = logging.getLogger(__name__)
 
@@ -101,24 +117,14 @@ class SuResult:
 
 def model_for(settings: EstimatorSettings) -> SuModel:
     """The SU model the settings select (``model``, ``yaw_rate_bias``, ``speed_scale``)."""
-    return su_model(settings.model, settings.yaw_rate_bias, settings.speed_scale, settings.discretisation)
+    return su_model(
+        settings.model, settings.yaw_rate_bias, settings.speed_scale, settings.discretisation, lever_m(settings)
+    )
 
 
-def state_residuals(model: SuModel, x: NDArray[np.float64], h: NDArray[np.float64]) -> NDArray[np.float64]:
-    """State noise ``w_t = x_t - g(x_{t-1})`` (N-1 x m_dynamic) of a trajectory ``x`` (N x m); angles wrapped."""
-    md = model.n_dynamic
-    w = x[1:, :md] - np.array(model.transition(x[:-1].T, x[1:].T, h)[:md]).T
-    for i in model.angle_states:
-        w[:, i] = wrap_angle(w[:, i])
-    return w
-
-
-def output_residuals(model: SuModel, x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Output noise ``e_k = y_k - h(x_k)`` (N x n) for all steps (mask the missing ones); angles wrapped."""
-    e = y - np.array(model.output(x.T)).T
-    for j in model.angle_outputs:
-        e[:, j] = wrap_angle(e[:, j])
-    return e
+def lever_m(settings: EstimatorSettings) -> float:
+    """The antenna-2 lever arm of su7 (m): the antenna distance, or 0 for the paper's rigid translation."""
+    return settings.antenna_distance_m if settings.antenna_lever else 0.0
 
 
 def state_box(model: SuModel, n_steps: int, settings: EstimatorSettings) -> tuple[NDArray, NDArray]:
@@ -209,25 +215,31 @@ def estimate_batch(
 ) -> SuResult:
     """Batch SU estimate of a window of samples (see the module docstring for the stages).
 
-    ``frame`` is the local frame of the result (default: at the first valid fix). Raises
-    EstimatorInputError for unusable input and SolverError if even the LP start point cannot be found.
+    ``frame`` is the local frame of the result (default: at the first valid fix); ``extent`` asks for the
+    extent of the newest position. Raises EstimatorInputError for unusable input; a failed solve is not an
+    exception but a result with ``success=False`` (and the LP start, or the interpolated fixes, as states).
     """
     t_start = time.perf_counter()
     settings = settings or EstimatorSettings()
     model = model_for(settings)
     grid = build_grid(samples, model, settings, frame)
-    bounds = noise_bounds(model, grid, settings)
+    bounds = noise_bounds(model, grid, settings, lever_m(settings))
     nlp = build_nlp(
         settings.model,
         settings.yaw_rate_bias,
         settings.speed_scale,
         settings.discretisation,
+        lever_m(settings),
         grid.n_steps,
         settings.ipopt_max_iter,
         settings.ipopt_tol,
     )
     win = _Window(nlp, model, grid, bounds, settings)
-    lp = solve_lp(grid, model, bounds, settings, win.origin)
+    try:
+        lp = solve_lp(grid, model, bounds, settings, win.origin)
+    except SolverError as e:
+        log.warning("%s; the NLP starts from the interpolated fixes", e)
+        lp = interpolated_start(grid, model, settings)
     x0 = start_states(lp, model, win.origin)
     for widenings in range(settings.max_widenings + 1):
         stages = _stages(win, x0)
@@ -325,7 +337,7 @@ def estimate_lp(
     settings = settings or EstimatorSettings()
     model = model_for(settings)
     grid = build_grid(samples, model, settings, frame)
-    bounds = noise_bounds(model, grid, settings)
+    bounds = noise_bounds(model, grid, settings, lever_m(settings))
     origin = np.mean(grid.y[grid.gps, :2], axis=0)
     lp = solve_lp(grid, model, bounds, settings, origin)
     x = start_states(lp, model, np.zeros(2))

@@ -7,10 +7,13 @@ limit as any ``q_i -> 0``, the lower ends decide the answer, so both ends are de
   ``h^2/2 * max_accel``, of the azimuth ``h^2/2 * max_yaw_accel``, one-step changes ``h * max_accel`` (v)
   and ``h * max_yaw_accel`` (omega). The CAN-error states (bias, scale) are constant over a window and
   have no q.
-* q floors (``derived_floors``): the same quantities evaluated on this window's CAN data (longitudinal
-  acceleration from the speed differences, lateral ``v * omega``, yaw acceleration from the yaw-rate
-  differences): the model error the measured motion itself implies, so a floor never excludes the truth
-  of a vehicle that did what its CAN says. Otherwise a token floor ``1e-6 * cap`` (the paper: ``q >= 0``).
+* q floors (``derived_floors``): the state noise, under the model and its discretisation, of a vehicle
+  that does exactly what this window's CAN says (speed and yaw rate integrated finely,
+  :func:`can_trajectory`): the model error the measured motion itself implies, so a floor never excludes
+  a vehicle that did what its CAN says (for v and omega: the one-step CAN changes, noise included); at
+  least what the CAN resolution leaves unknown over a step (:func:`resolution_floors`: a second-order
+  scheme integrates a yaw rate that is linear within a step exactly, and a floor of 0 is no floor).
+  Otherwise a token floor ``1e-6 * cap`` (the paper: ``q >= 0``).
 * r caps: the median per-epoch error allowance of :mod:`sumhe.estimator.grid` (``r_cap_sigmas`` times
   the receiver's sigma, CAN resolution and noise, plus the unmodelled CAN scale/bias when those states are
   off). Per-epoch differences enter as scales: the output bound at epoch k is ``r_j * r_scale[k, j]``.
@@ -22,6 +25,7 @@ State-noise bounds scale with the step length as ``(h_t / h_ref) ** q_power``.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,7 +33,7 @@ from numpy.typing import NDArray
 
 from sumhe.estimator.grid import Grid
 from sumhe.estimator.settings import EstimatorSettings
-from sumhe.model.su import SuModel
+from sumhe.model.su import SCALE_STATE, SuModel, state_residuals
 
 TOKEN_FLOOR = 1e-6
 
@@ -77,23 +81,50 @@ def q_caps(model: SuModel, h: float, settings: EstimatorSettings) -> NDArray[np.
     return np.array([caps[_state_kind(s)] for s in model.states[: model.n_dynamic]])
 
 
-def q_floors(model: SuModel, grid: Grid, q_scale: NDArray[np.float64], cap: NDArray[np.float64]) -> NDArray:
-    """Floor on the state noise of each dynamic state (at ``h_ref``): the model error the window's CAN data
-    implies (accelerations from speed and yaw-rate differences, lateral ``v * omega``)."""
-    h = grid.h
-    v = fill_gaps(grid.can_speed, grid.t)
-    w = fill_gaps(grid.can_yaw_rate, grid.t)
-    dv, dw = np.abs(np.diff(v)), np.abs(np.diff(w))
-    accel = np.hypot(dv / h, np.abs(v[:-1] * w[:-1]))
-    per_step = {
-        "position": 0.5 * h * h * accel,
-        "phi": 0.5 * h * dw,
-        "v": dv,
-        "omega": dw,
-    }
-    kinds = [_state_kind(s) for s in model.states[: model.n_dynamic]]
-    lo = np.array([np.max(per_step[k] / q_scale[:, i]) for i, k in enumerate(kinds)])
-    return np.clip(lo, TOKEN_FLOOR * cap, cap)
+def can_trajectory(model: SuModel, grid: Grid, lever_m: float, substeps: int = 10) -> NDArray[np.float64]:
+    """A trajectory (N x m) of a vehicle that does exactly what its CAN says, on the grid.
+
+    Speed and yaw rate are linear between the steps; azimuth and positions are integrated on ``substeps``
+    sub-steps per step (midpoint rule) from 0; antenna 2 (su7) sits ``lever_m`` behind antenna 1; bias 0,
+    scale 1. Its state noise under ``model`` is the model's discretisation error for this motion.
+    """
+    t = grid.t
+    v = fill_gaps(grid.can_speed, t)
+    w = fill_gaps(grid.can_yaw_rate, t)
+    tf = np.concatenate([np.linspace(a, b, substeps, endpoint=False) for a, b in itertools.pairwise(t)] + [t[-1:]])
+    vf, wf = np.interp(tf, t, v), np.interp(tf, t, w)
+    dt = np.diff(tf)
+    phi = np.concatenate([[0.0], -np.cumsum(0.5 * (wf[1:] + wf[:-1]) * dt)])
+    mid_phi, mid_v = 0.5 * (phi[1:] + phi[:-1]), 0.5 * (vf[1:] + vf[:-1])
+    east = np.concatenate([[0.0], np.cumsum(mid_v * np.sin(mid_phi) * dt)])
+    north = np.concatenate([[0.0], np.cumsum(mid_v * np.cos(mid_phi) * dt)])
+    k = np.arange(len(t)) * substeps
+    x = np.zeros((len(t), model.n_states))
+    x[:, 0], x[:, 1] = east[k], north[k]
+    if model.antennas == 2:
+        x[:, 2], x[:, 3] = east[k] - lever_m * np.sin(phi[k]), north[k] - lever_m * np.cos(phi[k])
+    i_phi = model.index("phi")
+    x[:, i_phi], x[:, i_phi + 1], x[:, i_phi + 2] = phi[k], v, w
+    if SCALE_STATE in model.states:
+        x[:, model.index(SCALE_STATE)] = 1.0
+    return x
+
+
+def resolution_floors(model: SuModel, h: float, settings: EstimatorSettings) -> NDArray[np.float64]:
+    """What one step of ``h`` s leaves unknown given the CAN resolution: half a resolution step of speed
+    (of yaw rate) integrated over the step for positions (azimuth), and half a step for v (omega)."""
+    res_v, res_w = 0.5 * settings.can_speed_resolution_mps, 0.5 * settings.can_yaw_rate_resolution_rps
+    floors = {"position": h * res_v, "phi": h * res_w, "v": res_v, "omega": res_w}
+    return np.array([floors[_state_kind(s)] for s in model.states[: model.n_dynamic]])
+
+
+def q_floors(
+    model: SuModel, grid: Grid, q_scale: NDArray[np.float64], cap: NDArray[np.float64], lever_m: float
+) -> NDArray[np.float64]:
+    """The largest state noise (at ``h_ref``), under the model, of the vehicle that does what the window's
+    CAN says (:func:`can_trajectory`), per dynamic state."""
+    w = np.abs(state_residuals(model, can_trajectory(model, grid, lever_m), grid.h)) / q_scale
+    return np.minimum(w.max(axis=0), cap)
 
 
 def r_floors(model: SuModel, settings: EstimatorSettings) -> NDArray[np.float64]:
@@ -105,8 +136,9 @@ def r_floors(model: SuModel, settings: EstimatorSettings) -> NDArray[np.float64]
     return np.array(floors)
 
 
-def noise_bounds(model: SuModel, grid: Grid, settings: EstimatorSettings) -> NoiseBounds:
-    """The floors, caps and scales of q and r for this window (see the module docstring)."""
+def noise_bounds(model: SuModel, grid: Grid, settings: EstimatorSettings, lever_m: float = 0.0) -> NoiseBounds:
+    """The floors, caps and scales of q and r for this window (see the module docstring); ``lever_m`` is
+    the su7 antenna-2 lever arm of the model (m)."""
     h = grid.h
     h_ref = float(np.median(h))
     q_scale = (h[:, None] / h_ref) ** np.array(model.q_power)[None, :]
@@ -119,7 +151,8 @@ def noise_bounds(model: SuModel, grid: Grid, settings: EstimatorSettings) -> Noi
             r_hi[j] = float(np.median(grid.allow[ok, j]))
             r_scale[ok, j] = grid.allow[ok, j] / r_hi[j]
     if settings.derived_floors:
-        q_lo = q_floors(model, grid, q_scale, q_hi)
+        q_lo = np.maximum(q_floors(model, grid, q_scale, q_hi, lever_m), resolution_floors(model, h_ref, settings))
+        q_lo = np.minimum(q_lo, q_hi)
         r_lo = np.minimum(r_floors(model, settings), r_hi)
     else:
         q_lo, r_lo = TOKEN_FLOOR * q_hi, TOKEN_FLOOR * r_hi

@@ -11,6 +11,7 @@ sensors' resolution and noise; :mod:`sumhe.estimator.bounds` turns allowances in
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 from collections.abc import Sequence
@@ -125,7 +126,7 @@ def step_times(anchors: NDArray[np.float64], t_lo: float, t_hi: float, period: f
     if t_hi - pts[-1] > 0.5 * period:
         pts = np.concatenate([pts, [t_hi]])
     out = [pts[:1]]
-    for a, b in zip(pts[:-1], pts[1:], strict=True):
+    for a, b in itertools.pairwise(pts):
         n = round((b - a) / period)
         if n >= 2 and b - a > 1.5 * period:
             out.append(np.linspace(a, b, n + 1)[1:])
@@ -164,8 +165,10 @@ def build_grid(
 ) -> Grid:
     """Check the samples and put them on the step grid of ``model``; EstimatorInputError if unusable.
 
-    ``frame`` defaults to a local frame at the first valid fix. Fixes of antenna 2 are used by ``su7``
-    only; CAN times are moved back by ``settings.can_delay_s``.
+    ``frame`` defaults to a local frame at the first valid fix. Fixes are projected into it at the datum's
+    height ``frame.alt0_m`` (a level road; NMEA altitudes are above the geoid, not the ellipsoid, and mixing
+    the two moves positions by ``dh * distance / R_earth``). Fixes of antenna 2 are used by ``su7`` only;
+    CAN times are moved back by ``settings.can_delay_s``.
     """
     check_samples(samples)
     fixes = [s for s in samples if isinstance(s, GnssFix)]
@@ -176,7 +179,7 @@ def build_grid(
         raise EstimatorInputError(f"need at least 2 valid GNSS positions in the window, got {len(valid1)}")
     if frame is None:
         first = valid1[0]
-        frame = LocalFrame(float(first.lat_deg), float(first.lon_deg))  # type: ignore[arg-type]
+        frame = LocalFrame(float(first.lat_deg), float(first.lon_deg), first.alt_m or 0.0)  # type: ignore[arg-type]
     cans = [s for s in samples if isinstance(s, CanSample)]
     t_can = {q: np.array([s.t - settings.can_delay_s for s in cans if s.quantity == q]) for q in CAN_USED}
     v_can = {q: np.array([s.value for s in cans if s.quantity == q]) for q in CAN_USED}
@@ -196,7 +199,7 @@ def build_grid(
         tf = np.array([fix_time(f, settings) for f in group])
         k = _nearest(t, tf, 0.5 * period)
         ok = k >= 0
-        enu = frame.to_enu([f.lat_deg for f in group], [f.lon_deg for f in group])
+        enu = frame.to_enu([f.lat_deg for f in group], [f.lon_deg for f in group], frame.alt0_m)
         sig = np.array([gps_sigma_m(f, settings) for f in group])
         for c in (0, 1):
             y[k[ok], col + c] = enu[ok, c]

@@ -17,7 +17,8 @@ OSQP solves QPs; an LP is a QP with ``P = 0``, on which its ADMM converges slowl
 an optimal face is optimal, to an arbitrary one. We add ``P = eps * D'D``, ``eps = lp_regularisation``,
 where ``D z`` are the state residuals ``p_t - p_{t-1} - h u``: among (nearly) optimal points OSQP then
 returns the one with the smallest squared process noise (the smoothest), and the LP value moves by a
-negligible ``O(eps)``. If OSQP reports primal infeasibility, algorithm 3.3 of 001 applies: ``qbar`` and
+negligible ``O(eps)``. If the LP fails (OSQP reports primal infeasibility, or does not converge within
+``LP_MAX_ITER``, which happens next to the infeasibility boundary), algorithm 3.3 of 001 applies: ``qbar`` and
 ``rbar`` are widened by ``widen_factor`` and the LP is solved again, at most ``max_widenings`` times.
 """
 
@@ -36,14 +37,13 @@ from sumhe.errors import SolverError
 from sumhe.estimator.bounds import NoiseBounds, fill_gaps
 from sumhe.estimator.grid import Grid
 from sumhe.estimator.settings import EstimatorSettings
-from sumhe.model.su import SuModel
+from sumhe.model.su import SCALE_STATE, SuModel
 
 log = logging.getLogger(__name__)
 
-INFEASIBLE = (osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE, osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE_INACCURATE)
 SOLVED = (osqp.SolverStatus.OSQP_SOLVED, osqp.SolverStatus.OSQP_SOLVED_INACCURATE)
 LP_TOL = 1e-5
-LP_MAX_ITER = 50000
+LP_MAX_ITER = 20000
 LP_MAX_ITER_PRIM_RES = 1e-3
 """An iterate at the iteration limit is still a usable start point when its constraint violation is below
 this (m): the NLP starts from it and does not need it to be optimal."""
@@ -107,15 +107,39 @@ def can_inputs(grid: Grid) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     return speed, fill_gaps(grid.can_yaw_rate, grid.t)
 
 
+def interpolated_start(grid: Grid, model: SuModel, settings: EstimatorSettings) -> LpSolution:
+    """The fallback start point when the LP fails: fixes interpolated linearly in time (held at the ends),
+    with the LP's azimuth, speed and yaw-rate inputs; ``status = "interpolated"``, q and r NaN."""
+    n_pos = 2 * model.antennas
+    speed, yaw_rate = can_inputs(grid)
+    phi = azimuth_inputs(grid, model, yaw_rate, settings.discretisation == "trapezoid")
+    p = np.column_stack([fill_gaps(np.where(grid.avail[:, i], grid.y[:, i], np.nan), grid.t) for i in range(n_pos)])
+    nan = np.full(n_pos, np.nan)
+    return LpSolution(p, nan, nan, phi, speed, yaw_rate, "interpolated", 0, 0, 0.0)
+
+
+def displacements(
+    model: SuModel, h: NDArray[np.float64], phi: NDArray, speed: NDArray, yaw_rate: NDArray
+) -> NDArray[np.float64]:
+    """``h u_{t-1}`` of (21) for every step (N-1 x antenna positions, m): the model's own transition of the
+    positions driven by the inputs (azimuth phi-hat, CAN speed and yaw rate; bias 0, scale 1)."""
+    x = np.zeros((len(phi), model.n_states))
+    i_phi = model.index("phi")
+    x[:, i_phi], x[:, i_phi + 1], x[:, i_phi + 2] = phi, speed, yaw_rate
+    if SCALE_STATE in model.states:
+        x[:, model.index(SCALE_STATE)] = 1.0
+    n_pos = 2 * model.antennas
+    return np.array(model.transition(x[:-1].T, x[1:].T, h)[:n_pos]).T
+
+
 def _lp_matrices(
-    grid: Grid, bounds: NoiseBounds, n_pos: int, u: NDArray[np.float64]
+    grid: Grid, bounds: NoiseBounds, n_pos: int, move: NDArray[np.float64]
 ) -> tuple[sp.csc_matrix, NDArray, NDArray, sp.csc_matrix, NDArray]:
-    """A, l, u rows for the state and output constraints (without the q/r boxes), D and D's target h*u."""
+    """A, l, u rows for the state and output constraints (without the q/r boxes), D and D's target."""
     N = grid.n_steps
     nx = N * n_pos
     nz = nx + 2 * n_pos
     iq, ir = nx, nx + n_pos
-    h = grid.h
     steps = np.arange(1, N)
     rows_a, cols_a, vals_a, lo, hi = [], [], [], [], []
     row = 0
@@ -125,7 +149,7 @@ def _lp_matrices(
         s = bounds.q_scale[:, i]
         for t in steps:
             cur, prev = t * n_pos + i, (t - 1) * n_pos + i
-            hu = h[t - 1] * u[t - 1, i % 2]
+            hu = move[t - 1, i]
             k = (t - 1) * n_pos + i
             d_rows += [k, k]
             d_cols += [cur, prev]
@@ -167,11 +191,7 @@ def solve_lp(
     speed, yaw_rate = can_inputs(grid)
     trapezoid = settings.discretisation == "trapezoid"
     phi = azimuth_inputs(grid, model, yaw_rate, trapezoid)
-    if trapezoid:
-        v_step, phi_step = 0.5 * (speed[:-1] + speed[1:]), 0.5 * (phi[:-1] + phi[1:])
-    else:
-        v_step, phi_step = speed[:-1], phi[:-1]
-    u = np.column_stack([v_step * np.sin(phi_step), v_step * np.cos(phi_step)])
+    move = displacements(model, grid.h, phi, speed, yaw_rate)
     shift = np.tile(origin, model.antennas)
     centred = Grid(
         t=grid.t,
@@ -182,7 +202,7 @@ def solve_lp(
         can_yaw_rate=grid.can_yaw_rate,
         frame=grid.frame,
     )
-    A, lo, hi, D, target = _lp_matrices(centred, bounds, n_pos, u)
+    A, lo, hi, D, target = _lp_matrices(centred, bounds, n_pos, move)
     nz = A.shape[1]
     nx = nz - 2 * n_pos
     eps = settings.lp_regularisation
@@ -228,9 +248,7 @@ def solve_lp(
                 iterations=iterations,
                 time_s=time.perf_counter() - t_start,
             )
-        if status not in INFEASIBLE:
-            raise SolverError(f"linear SU program: OSQP ended with {status.name}")
-        log.info("LP infeasible (attempt %d): widening qbar, rbar by %.1f", attempt + 1, settings.widen_factor)
+        log.info("LP %s (attempt %d): widening qbar, rbar by %g", status.name, attempt + 1, settings.widen_factor)
         qbar *= settings.widen_factor
         rbar *= settings.widen_factor
-    raise SolverError(f"linear SU program infeasible after {settings.max_widenings} widenings of qbar, rbar")
+    raise SolverError(f"linear SU program failed ({status.name}) after {settings.max_widenings} widenings")

@@ -8,9 +8,12 @@ from the previous solution shifted by the steps the window slid; the newest stat
 Between epochs, each CAN speed sample gives an estimate at its own time: the newest solution moved on with the CAN
 samples since, so the position sent is that of the newest CAN sample. ``docs/mhe.md`` describes the choices.
 
-* Noise bounds: output bounds R are the per-epoch error allowances of :mod:`sumhe.estimator.grid` (the r caps of
-  the batch estimator); state bounds Q are ``mhe_noise = "floors"``: the model error the window's CAN data implies
-  (:func:`sumhe.estimator.bounds.q_floors`, widened by ``centre_margin``), or ``"caps"``: the vehicle limits.
+* Noise bounds: they are not estimated per epoch. The output bounds R are the per-epoch error allowances of
+  :mod:`sumhe.estimator.grid` (the r caps of the batch estimator), the state bounds Q the q caps (the vehicle's
+  limits, :func:`sumhe.estimator.bounds.q_caps`) scaled with each step's length: the estimate is the centre of
+  the set-membership set of the prior box (11), as the batch estimator's ``objective = "caps"``. On a 5 s window
+  the MAP of (q, r) is noisy, and bounds near the derived floors make the boxes active (slow, and measured worse:
+  ``docs/mhe.md``).
 * Arrival box (information leaving the window): when steps are dropped, the first state is held to a box around
   the previous solution's estimate of it. Its half-widths ``alpha`` are an interval bound carried along:
   ``alpha <- min(alpha, m_k)`` with ``m_k`` what the dropped step's outputs bound directly (a position by its
@@ -51,12 +54,11 @@ from sumhe.config import Config
 from sumhe.errors import ConfigError
 from sumhe.estimator.base import LocalFix, StateEstimate
 from sumhe.estimator.batch import model_for, state_box
-from sumhe.estimator.bounds import q_caps, q_floors
-from sumhe.estimator.grid import GGA_RTK_FIXED, GGA_RTK_FLOAT, Grid, gps_sigma_m
+from sumhe.estimator.bounds import q_caps
+from sumhe.estimator.grid import GGA_RTK_FIXED, GGA_RTK_FLOAT, gps_sigma_m
 from sumhe.estimator.settings import EstimatorSettings
 from sumhe.estimator.sqp import SolveResult, WindowProblem, WindowSolver, make_solver
 from sumhe.estimator.window import Window, WindowPolicy, plan_window
-from sumhe.geo import LocalFrame
 from sumhe.messages import CanSample, GpsStatus
 from sumhe.model.su import BIAS_STATE, SCALE_STATE
 
@@ -70,10 +72,10 @@ GATE_RESET_S = 10.0
 """Valid fixes rejected for this long without a break: the estimate is what is wrong; restart at the newest fix."""
 CAN_KEEP_S = 2.0
 """CAN samples older than the newest step by more than this are forgotten."""
+MIN_HALF_S = 0.005
+"""A step's CAN outputs are the sample nearest to it while the samples reach less than this past it (s)."""
 STARTUP_ITERATIONS = 3
 """SQP iterations per epoch until the window first reaches its normal length (the start point is rough)."""
-_FRAME = LocalFrame(0.0, 0.0)
-"""Placeholder frame of the grids handed to :func:`~sumhe.estimator.bounds.q_floors` (which ignores it)."""
 
 
 @dataclass
@@ -161,6 +163,9 @@ class MovingHorizonEstimator:
         self._last_real_epoch: float | None = None
         self._intervals: deque[float] = deque(maxlen=PERIOD_HISTORY)
         self._delays: deque[float] = deque(maxlen=PERIOD_HISTORY)
+        self._period = self.settings.step_s
+        self._delay = 0.0
+        self._Q = np.zeros((0, self._md))
         self._alpha = np.full(self._md, np.inf)
         self._centre = np.zeros(self._m)
         self._theta_centre: NDArray[np.float64] | None = None
@@ -199,7 +204,7 @@ class MovingHorizonEstimator:
     @property
     def period_s(self) -> float:
         """The nominal GNSS period (s): median of the recent intervals between epochs."""
-        return float(np.median(self._intervals)) if self._intervals else self.settings.step_s
+        return self._period
 
     def smoothed(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The window now: step times (s) and the smoothed states (L x m, the model's state order), for replays."""
@@ -233,7 +238,7 @@ class MovingHorizonEstimator:
         store.add(t, float(value))
         if not self._started:
             return []
-        out = self._missed_epochs(t - self._delay_s())
+        out = self._missed_epochs(t - self._delay)
         if q == "speed" and t > self._t_prop:
             self._prop = self._advance(self._prop, self._t_prop, t)
             self._t_prop = t
@@ -251,10 +256,12 @@ class MovingHorizonEstimator:
         usable = self._usable(fix)
         if self._last_real_epoch is not None and t - self._last_real_epoch <= MAX_PERIOD_S:
             self._intervals.append(t - self._last_real_epoch)
+            self._period = float(np.median(self._intervals))
         self._last_real_epoch = t
         newest_can = max(self._speed.newest, self._yaw.newest)
         if newest_can > t:
             self._delays.append(newest_can - t)
+            self._delay = float(np.median(self._delays))
         self._check_gap(t)
         if not self._started:
             self._last_epoch = t
@@ -279,10 +286,6 @@ class MovingHorizonEstimator:
             self.reset()
             self._speed, self._yaw = speed, yaw
         self._t_last = max(self._t_last, t)
-
-    def _delay_s(self) -> float:
-        """Typical delay of fixes behind the CAN data (s)."""
-        return float(np.median(self._delays)) if self._delays else 0.0
 
     def _missed_epochs(self, t_fix_clock: float) -> list[StateEstimate]:
         """Outage epochs for the epochs GNSS missed up to ``t_fix_clock`` (silence > 1.5 periods)."""
@@ -340,6 +343,11 @@ class MovingHorizonEstimator:
                 self._last_epoch = t
                 return self._begin(fix)
         y, avail, allow = self._outputs(t, h_prev, x_pred, fix if status == "ok" else None)
+        # the previous step's CAN outputs again, now that the samples of its second half-interval are in
+        i = len(win) - 1
+        t_before = win.t[i - 1] if i else win.t[i] - self.period_s
+        self._can_outputs(win.t[i], 0.5 * (t_before + win.t[i]), win.t[i] + 0.5 * h_prev, win.y[i], win.avail[i],
+                          win.allow[i])
         win.append(t, y, avail, allow, x_pred)
         self._counts["epochs"] += 1
         self._counts[{"ok": "gps_ok", "rejected": "gps_rejected", "outage": "outage_epochs"}[status]] += 1
@@ -401,20 +409,8 @@ class MovingHorizonEstimator:
         CAN speed and yaw rate averaged over the step's half-intervals, the fix's position and azimuth."""
         s, n = self.settings, self._n
         y, avail, allow = np.zeros(n), np.zeros(n, dtype=bool), np.ones(n)
-        t0, t1 = t - 0.5 * h_prev, t + 0.5 * self.period_s
-        for store, j in ((self._speed, self._jspeed), (self._yaw, self._jyaw)):
-            value = store.mean(t0, t1)
-            if value is None:
-                value = store.at(t, s.can_max_gap_s)
-            if value is not None:
-                y[j], avail[j] = value, True
+        self._can_outputs(t, t - 0.5 * h_prev, t + 0.5 * self.period_s, y, avail, allow)
         k_sig = s.r_cap_sigmas
-        allow[self._jspeed] = 0.5 * s.can_speed_resolution_mps + k_sig * s.can_speed_sigma_mps
-        allow[self._jyaw] = 0.5 * s.can_yaw_rate_resolution_rps + k_sig * s.can_yaw_rate_sigma_rps
-        if self._ik is None:
-            allow[self._jspeed] += s.speed_scale_max * abs(y[self._jspeed])
-        if self._ib is None:
-            allow[self._jyaw] += s.yaw_rate_bias_max_rps
         if fix is not None:
             sig = self._fix_sigma(fix)
             for j, value, sg in zip(self._jpos, (fix.east_m, fix.north_m), sig, strict=True):
@@ -425,6 +421,27 @@ class MovingHorizonEstimator:
                 turn = 0.5 * self.period_s * abs(y[self._jyaw])
                 y[self._jangle], avail[self._jangle], allow[self._jangle] = angle[0], True, k_sig * angle[1] + turn
         return y, avail, allow
+
+    def _can_outputs(
+        self, t: float, t0: float, t1: float, y: NDArray[np.float64], avail: NDArray[np.bool_], allow: NDArray
+    ) -> None:
+        """Fill in place the CAN outputs of the step at ``t`` whose half-intervals span (t0, t1]: the mean of the
+        samples there, else the nearest within ``can_max_gap_s``; and their error allowances. While the samples
+        reach only part of the second half-interval, the interval is shrunk symmetrically around ``t`` (a mean
+        over the first half alone would lag by a quarter step)."""
+        s = self.settings
+        for store, j in ((self._speed, self._jspeed), (self._yaw, self._jyaw)):
+            reach = min(t - t0, t1 - t, store.newest - t)
+            value = store.mean(t - reach, t + reach) if reach > MIN_HALF_S else None
+            if value is None:
+                value = store.at(t, s.can_max_gap_s)
+            y[j], avail[j] = (value, True) if value is not None else (0.0, False)
+        allow[self._jspeed] = 0.5 * s.can_speed_resolution_mps + s.r_cap_sigmas * s.can_speed_sigma_mps
+        allow[self._jyaw] = 0.5 * s.can_yaw_rate_resolution_rps + s.r_cap_sigmas * s.can_yaw_rate_sigma_rps
+        if self._ik is None:
+            allow[self._jspeed] += s.speed_scale_max * abs(y[self._jspeed])
+        if self._ib is None:
+            allow[self._jyaw] += s.yaw_rate_bias_max_rps
 
     # ---- the solve ------------------------------------------------------------------------------------------------
 
@@ -448,20 +465,13 @@ class MovingHorizonEstimator:
         return solver
 
     def _noise_bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """State bounds Q (L-1 x m_dynamic) and output bounds R (L x n) of the window (module docstring)."""
-        s, win, period = self.settings, self._window, self.period_s
-        h = np.diff(win.t)
-        scale = (h[:, None] / period) ** np.array(self.model.q_power)[None, :]
-        cap = q_caps(self.model, period, s)
-        if s.mhe_noise == "caps":
-            q = cap
-        else:
-            can_speed = np.where(win.avail[:, self._jspeed], win.y[:, self._jspeed], np.nan)
-            can_yaw = np.where(win.avail[:, self._jyaw], win.y[:, self._jyaw], np.nan)
-            grid = Grid(t=win.t, y=win.y, avail=win.avail, allow=win.allow, can_speed=can_speed,
-                        can_yaw_rate=can_yaw, frame=_FRAME)
-            q = np.minimum(q_floors(self.model, grid, scale, cap) * (1.0 + s.centre_margin), cap)
-        return q[None, :] * scale, win.allow.copy()
+        """State bounds Q (L-1 x m_dynamic): the q caps (vehicle limits) at the nominal period, scaled with each
+        step's length; output bounds R (L x n): the steps' error allowances (module docstring)."""
+        win, period = self._window, self.period_s
+        scale = (np.diff(win.t)[:, None] / period) ** np.array(self.model.q_power)[None, :]
+        import os
+        qs = np.array([float(v) for v in os.environ.get("QS", "1,1,1,1,1").split(",")])
+        return qs * q_caps(self.model, period, self.settings)[None, :] * scale, win.allow.copy()
 
     def _problem(self, capacity: int, Q: NDArray, R: NDArray, widen: float) -> WindowProblem:
         win, C, L = self._window, capacity, len(self._window)
@@ -488,6 +498,7 @@ class MovingHorizonEstimator:
             self._theta_centre = win.x[0, self._md :].copy()
         self._centre = np.concatenate([self._centre[: self._md], self._theta_centre])
         Q, R = self._noise_bounds()
+        self._Q = Q
         iterations = s.mhe_sqp_iterations if L >= self.policy.steps else max(s.mhe_sqp_iterations, STARTUP_ITERATIONS)
         for attempt in range(s.mhe_max_retries + 1):
             widen = s.widen_factor**attempt
@@ -501,6 +512,7 @@ class MovingHorizonEstimator:
             self._counts["solves"] += 1
             self._counts["qp_iterations" if s.mhe_solver == "sqp" else "nlp_iterations"] += result.iterations
             if result.success:
+                self._counts["banded_solves"] += result.status == "banded"
                 if attempt:
                     self._counts["widened"] += 1
                 return result.x[:L], "mhe-widened" if attempt else "mhe"
@@ -512,12 +524,13 @@ class MovingHorizonEstimator:
         """Carry the arrival box over the ``drop`` oldest steps leaving the window (module docstring)."""
         win, md = self._window, self._md
         alpha = self._alpha
-        Q, _ = self._noise_bounds()
+        Q = self._Q
+        cap = q_caps(self.model, self.period_s, self.settings)
         for k in range(min(drop, len(win) - 1)):
             alpha = np.minimum(alpha, self._measured_bounds(k))
             F = np.abs(self._jac_step(win.x[k], win.x[k + 1], win.t[k + 1] - win.t[k]).full()[:md, :md])
             with np.errstate(invalid="ignore"):
-                alpha = np.nan_to_num(F @ alpha, nan=np.inf) + 2.0 * Q[k]
+                alpha = np.where(F > 0, F * alpha[None, :], 0.0).sum(axis=1) + 2.0 * (Q[k] if k < len(Q) else cap)
         self._alpha = alpha
         k = min(drop, len(win) - 1)
         self._centre = win.x[k].copy()

@@ -23,6 +23,7 @@ log = logging.getLogger(__name__)
 ENTRY_POINT_GROUP = "sumhe.estimators"
 
 ESTIMATORS: dict[str, tuple[str, str]] = {
+    "mhe": ("sumhe.estimator.mhe", "MovingHorizonEstimator"),
     "dead-reckoning": ("sumhe.baseline.dead_reckoning", "DeadReckoning"),
     "ekf": ("sumhe.baseline.ekf", "Ekf"),
     "rts": ("sumhe.baseline.rts", "Rts"),

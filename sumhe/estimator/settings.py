@@ -59,9 +59,10 @@ class EstimatorSettings:
     max_accel_mps2: float = 10.0
     max_yaw_rate_rps: float = 1.5
     max_yaw_accel_rps2: float = 3.0
-    # two antennas (su7): distance d and tolerance alpha of (23)
+    # two antennas (su7): distance d and tolerance alpha of (23); antenna_lever: antenna 2 swings in turns
     antenna_distance_m: float = 1.0
     antenna_tolerance_m2: float = 0.05
+    antenna_lever: bool = True
     # time base: GNSS epochs at the fix's UTC time ("utc") or at receive time minus latency ("receive")
     gps_time: str = "utc"
     gps_latency_s: float = 0.0
@@ -74,7 +75,7 @@ class EstimatorSettings:
     # algorithm 3.3 of 001: widen the caps of q and r by this factor while a problem is infeasible
     widen_factor: float = 2.0
     max_widenings: int = 8
-    # moving-horizon estimator (docs/mhe.md): solver, window policy (steps), QP, noise bounds, arrival box, gate
+    # moving-horizon estimator (docs/mhe.md): solver, window policy (steps), QP, arrival box, gate
     mhe_solver: str = "sqp"
     mhe_steps: int = 50
     mhe_steps_before: int = 20
@@ -86,7 +87,6 @@ class EstimatorSettings:
     mhe_sqp_iterations: int = 1
     mhe_qp_max_iter: int = 200
     mhe_qp_tol: float = 1e-5
-    mhe_noise: str = "floors"
     mhe_arrival_theta: float = 0.1
     mhe_gate_m: float = 2.0
     mhe_gate_drift: float = 0.05
@@ -148,13 +148,11 @@ def _one_of(obj: object, name: str, allowed: tuple[str, ...]) -> None:
 
 
 MHE_SOLVERS = ("sqp", "ipopt", "fatrop")
-MHE_NOISE = ("floors", "caps")
 
 
 def _check_mhe(s: EstimatorSettings) -> None:
     """Validate the ``mhe_*`` fields (ValueError naming the field)."""
     _one_of(s, "mhe_solver", MHE_SOLVERS)
-    _one_of(s, "mhe_noise", MHE_NOISE)
     for name in ("mhe_max_steps", "mhe_max_merge", "mhe_bucket_steps", "mhe_sqp_iterations", "mhe_qp_max_iter"):
         if getattr(s, name) < 1:
             raise ValueError(f"{name}: must be >= 1, got {getattr(s, name)!r}")

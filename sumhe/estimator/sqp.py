@@ -42,6 +42,7 @@ import casadi as ca
 import numpy as np
 import osqp
 import scipy.sparse as sp
+from scipy.linalg import solveh_banded
 from numpy.typing import NDArray
 
 from sumhe.errors import SolverError
@@ -54,6 +55,10 @@ OSQP_INFEASIBLE = (osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE, osqp.SolverStatus.O
 NLP_OK = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
 STEP_TOL = 1e-4
 """An SQP iteration whose largest state change is below this (m, rad, m/s, rad/s) ends the iterations."""
+BOX_TOL = 1e-9
+"""Slack allowed on the boxes when the banded (unconstrained) solution is checked against them."""
+REGULARISATION = 1e-9
+"""Added to the normal matrix's diagonal: directions no data fixes (an azimuth at standstill) stay put."""
 
 
 @dataclass(frozen=True)
@@ -116,11 +121,12 @@ class WindowSolver(Protocol):
 
 def residual_functions(model: SuModel) -> tuple[ca.Function, ca.Function]:
     """CasADi functions of one step: state noise ``w(x_prev, x_next, h)`` (m_dynamic) and output noise
-    ``e(x, y)`` (n), angles wrapped with atan2(sin, cos) as in :mod:`sumhe.estimator.problem`."""
+    ``e(x, y)`` (n). Output angles are wrapped with atan2(sin, cos) as in :mod:`sumhe.estimator.problem`; the
+    azimuth state is kept continuous along the window (never wrapped), so its noise is not: a wrapped state
+    noise would let the azimuth jump by 2 pi from step to step, away from its arrival box."""
     m, md, n = model.n_states, model.n_dynamic, model.n_outputs
     xp, xn, h = ca.SX.sym("xp", m), ca.SX.sym("xn", m), ca.SX.sym("h")
     w = xn[:md] - ca.vertcat(*model.transition(xp, xn, h, ca)[:md])
-    w = ca.vertcat(*[wrap_angle(w[i], ca) if i in model.angle_states else w[i] for i in range(md)])
     x, y = ca.SX.sym("x", m), ca.SX.sym("y", n)
     e = y - ca.vertcat(*model.output(x, ca))
     e = ca.vertcat(*[wrap_angle(e[j], ca) if j in model.angle_outputs else e[j] for j in range(n)])
@@ -139,23 +145,38 @@ def _arrival_weights(half: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 class SqpSolver:
-    """Real-time iteration: one (or a few) OSQP QPs per epoch on a structure fixed per capacity (module doc)."""
+    """Real-time iteration on a structure fixed per capacity (module docstring).
+
+    Each QP is first solved without its inequalities: the normal equations of the least-squares objective are
+    block-banded (state ``k`` meets only states ``k - 1`` and ``k + 1``, plus the window's CAN bias and scale),
+    so a banded Cholesky factorisation solves them in O(N), a Kalman smoother's cost. If that point lies inside
+    every box it is the QP's solution (the problem is convex); otherwise OSQP solves the QP (``banded=False``:
+    always OSQP).
+    """
 
     name = "sqp"
 
-    def __init__(self, model: SuModel, capacity: int, max_iter: int = 200, tol: float = 1e-5, iterations: int = 1):
+    def __init__(
+        self,
+        model: SuModel,
+        capacity: int,
+        max_iter: int = 200,
+        tol: float = 1e-5,
+        iterations: int = 1,
+        banded: bool = True,
+    ) -> None:
         if capacity < 2:
             raise ValueError(f"capacity: need at least 2 steps, got {capacity}")
         t0 = time.perf_counter()
-        self.model, self.capacity, self.iterations = model, capacity, iterations
+        self.model, self.capacity, self.iterations, self.banded = model, capacity, iterations, banded
         m, md, n, C = model.n_states, model.n_dynamic, model.n_outputs, capacity
-        self.m, self.md, self.n = m, md, n
-        self.nz = C * md + (m - md)
+        self.m, self.md, self.n, self.nt = m, md, n, m - md
+        self.nz = C * md + self.nt
         self.nw, self.ne = md * (C - 1), n * C
-        nv = self.nz + self.nw + self.ne
-        self.nv = nv
+        self.nv = nv = self.nz + self.nw + self.ne
+        nr = self.nw + self.ne
         fw, fe = residual_functions(model)
-        Xd, th = ca.SX.sym("x", md, C), ca.SX.sym("theta", m - md)
+        Xd, th = ca.SX.sym("x", md, C), ca.SX.sym("theta", self.nt)
         H, Y = ca.SX.sym("h", 1, C - 1), ca.SX.sym("y", n, C)
         X = ca.vertcat(Xd, ca.repmat(th, 1, C))
         res = ca.vertcat(ca.vec(fw.map(C - 1)(X[:, :-1], X[:, 1:], H)), ca.vec(fe.map(C)(X, Y)))
@@ -163,26 +184,24 @@ class SqpSolver:
         J = ca.jacobian(res, z)
         self._lin = ca.Function("mhe_lin", [z, H, Y], [res, J.nz[:]])
         rows, cols = (np.asarray(a, dtype=np.int64) for a in J.sparsity().get_triplet())
-        nr = self.nw + self.ne
-        # A = [J, -diag(Q, R); I]: Jacobian entries, the lifted noises' bounds, the identity of every variable
+        self._rows, self._cols = rows, cols
+        self._row_step = np.concatenate([np.repeat(np.arange(C - 1), md), np.repeat(np.arange(C), n)])
+        self._z_step = np.concatenate([np.repeat(np.arange(C), md), np.zeros(self.nt, dtype=np.int64)])
+        self._setup_banded()
+        # OSQP: A = [J / B, -I; I] (rows divided by their bound B = Q or R; lifted noises v = w / Q, u = e / R)
         a_rows = np.concatenate([rows, np.arange(nr), nr + np.arange(nv)])
         a_cols = np.concatenate([cols, self.nz + np.arange(nr), np.arange(nv)])
-        order = np.lexsort((a_rows, a_cols))
-        self._perm = order
-        self._n_jac = len(rows)
-        indptr = np.searchsorted(a_cols[order], np.arange(nv + 1))
-        values = np.ones(len(order))
-        A = sp.csc_matrix((values, a_rows[order], indptr), shape=(nr + nv, nv))
+        self._perm = np.lexsort((a_rows, a_cols))
+        indptr = np.searchsorted(a_cols[self._perm], np.arange(nv + 1))
+        A = sp.csc_matrix((np.ones(len(self._perm)), a_rows[self._perm], indptr), shape=(nr + nv, nv))
+        self._a_values = np.concatenate([np.zeros(len(rows)), -np.ones(nr), np.ones(nv)])
         self._p_diag = np.concatenate([np.zeros(self.nz), np.full(nr, 2.0)])
         P = sp.csc_matrix((self._p_diag.copy(), np.arange(nv), np.arange(nv + 1)), shape=(nv, nv))
-        # step of each row / variable, to mark padding free
-        self._dyn_step = np.repeat(np.arange(C - 1), md)
-        self._out_step = np.repeat(np.arange(C), n)
-        self._z_step = np.concatenate([np.repeat(np.arange(C), md), np.zeros(m - md, dtype=np.int64)])
-        self._blocks = [(0, md, C - 1), (self.nw, n, C), (nr, md, C), (nr + C * md, m - md, 1)]
+        # blocks of OSQP's rows (offset, width per step, steps) for shifting the duals
+        self._blocks = [(0, md, C - 1), (self.nw, n, C), (nr, md, C), (nr + C * md, self.nt, 1)]
         self._blocks += [(nr + self.nz, md, C - 1), (nr + self.nz + self.nw, n, C)]
-        self._solver = osqp.OSQP()
-        self._solver.setup(
+        self._osqp = osqp.OSQP()
+        self._osqp.setup(
             P,
             np.zeros(nv),
             A,
@@ -197,11 +216,63 @@ class SqpSolver:
             polishing=False,
             check_termination=5,
             warm_starting=True,
-            adaptive_rho=True,
         )
         self._y_prev: NDArray[np.float64] | None = None
-        log.debug("SQP/OSQP MHE problem for %d steps: %d variables, %d rows, built in %.1f ms",
-                  C, nv, nr + nv, 1e3 * (time.perf_counter() - t0))
+        self.banded_solves = 0
+        log.debug("SQP MHE problem, %d steps: %d variables, built in %.1f ms", C, nv, 1e3 * (time.perf_counter() - t0))
+
+    def _setup_banded(self) -> None:
+        """Index maps from products of Jacobian entries of one row to the normal matrix: its band (states, upper
+        band storage of :func:`scipy.linalg.solveh_banded`), the state-CAN block and the CAN-CAN block."""
+        rows, cols, nx, nt = self._rows, self._cols, self.capacity * self.md, self.nt
+        order = np.argsort(rows, kind="stable")
+        starts = np.searchsorted(rows[order], np.arange(self.nw + self.ne + 1))
+        first, second = [], []
+        for i in range(self.nw + self.ne):
+            idx = order[starts[i] : starts[i + 1]]
+            a, b = np.meshgrid(idx, idx, indexing="ij")
+            keep = cols[a] <= cols[b]
+            first.append(a[keep])
+            second.append(b[keep])
+        pa, pb = np.concatenate(first), np.concatenate(second)
+        ci, cj = cols[pa], cols[pb]
+        xx, xt, tt = (ci < nx) & (cj < nx), (ci < nx) & (cj >= nx), (ci >= nx) & (cj >= nx)
+        self._bw = int(np.max(cj[xx] - ci[xx], initial=0))
+        self._pairs = (pa, pb)
+        self._xx = (xx, (self._bw + ci[xx] - cj[xx]) * nx + cj[xx])
+        self._xt = (xt, ci[xt] * nt + (cj[xt] - nx))
+        self._tt = (tt, (ci[tt] - nx) * nt + (cj[tt] - nx))
+
+    def _banded_step(
+        self, js: NDArray, rs: NDArray, weight: NDArray, d: NDArray, delta: NDArray, L: int
+    ) -> NDArray[np.float64] | None:
+        """The minimiser of ``sum weight (J dz / B + r / B)^2 + sum d (dz - delta)^2`` over the first ``L`` steps
+        and the CAN states (None if the normal matrix is singular); ``js = J / B`` entries, ``rs = r / B``."""
+        md, nt, nx, bw = self.md, self.nt, self.capacity * self.md, self._bw
+        pa, pb = self._pairs
+        prod = weight[self._rows[pa]] * js[pa] * js[pb]
+        xx, xx_at = self._xx
+        band = np.bincount(xx_at, prod[xx], minlength=(bw + 1) * nx).reshape(bw + 1, nx)
+        xt, xt_at = self._xt
+        Nxt = np.bincount(xt_at, prod[xt], minlength=nx * nt).reshape(nx, nt)
+        tt, tt_at = self._tt
+        Ntt = np.bincount(tt_at, prod[tt], minlength=nt * nt).reshape(nt, nt)
+        Ntt = np.triu(Ntt) + np.triu(Ntt, 1).T
+        grad = np.bincount(self._cols, js * (weight * rs)[self._rows], minlength=self.nz)
+        b = d * delta - grad
+        n_live = L * md
+        band = band[:, :n_live]
+        band[bw] += d[:n_live] + REGULARISATION
+        Ntt += np.diag(d[nx:] + REGULARISATION)
+        try:
+            sol = solveh_banded(band, np.column_stack([b[:n_live], Nxt[:n_live]]), check_finite=False)
+            dtheta = np.linalg.solve(Ntt - Nxt[:n_live].T @ sol[:, 1:], b[nx:] - Nxt[:n_live].T @ sol[:, 0])
+        except np.linalg.LinAlgError:
+            return None
+        dz = np.zeros(self.nz)
+        dz[:n_live] = sol[:, 0] - sol[:, 1:] @ dtheta
+        dz[nx:] = dtheta
+        return dz
 
     def _shifted_duals(self, shift: int | None) -> NDArray[np.float64]:
         y = np.zeros(self.nw + self.ne + self.nv)
@@ -216,58 +287,74 @@ class SqpSolver:
         return y
 
     def solve(self, problem: WindowProblem, shift: int | None, iterations: int | None = None) -> SolveResult:
-        """Run the SQP iterations (``iterations`` QPs at most, default the solver's) from ``problem.x``; the first
-        QP is warm-started with the duals of the previous one shifted by ``shift`` steps (None: cold)."""
-        md, m, L = self.md, self.m, problem.n_steps
+        """Run the SQP iterations (``iterations`` QPs at most, default the solver's) from ``problem.x``; OSQP is
+        warm-started with its previous duals shifted by ``shift`` steps (None: cold)."""
+        md, nt, nz, C, L = self.md, self.nt, self.nz, self.capacity, problem.n_steps
         x = problem.x.copy()
-        Q, R = problem.state_bound.reshape(-1), problem.out_bound.reshape(-1)
-        active_w = self._dyn_step < L - 1
-        active_e = problem.avail.reshape(-1) & (self._out_step < L)
+        bound = np.concatenate([problem.state_bound.reshape(-1), problem.out_bound.reshape(-1)])
+        active = np.concatenate([self._row_step[: self.nw] < L - 1, problem.avail.reshape(-1)])
+        active[self.nw :] &= self._row_step[self.nw :] < L
+        weight = active.astype(float)
         wa = _arrival_weights(problem.half)
+        d = np.zeros(nz)
+        d[:md], d[nz - nt :] = wa[:md], wa[md:]
         lo = np.maximum(problem.lo, problem.centre - problem.half)
         hi = np.minimum(problem.hi, problem.centre + problem.half)
+        box_lo = np.concatenate([lo[:md], np.tile(problem.lo[:md], C - 1), lo[md:]])
+        box_hi = np.concatenate([hi[:md], np.tile(problem.hi[:md], C - 1), hi[md:]])
         z_live = self._z_step < L
-        ones_v, ones_e = np.ones(self.nw), np.ones(self.ne)
-        iterations, qp_solves, status, cost = 0, 0, "not solved", np.inf
+        status, cost, success = "not solved", np.inf, False
+        iters = qp_solves = 0
         t_eval = t_asm = t_solve = 0.0
-        success = False
         for it in range(iterations or self.iterations):
             t0 = time.perf_counter()
             zbar = np.concatenate([x[:, :md].reshape(-1), x[0, md:]])
             res, jac = self._lin(zbar, problem.h, problem.y.T)
             res, jac = res.full().reshape(-1), jac.full().reshape(-1)
             t1 = time.perf_counter()
-            wbar, ebar = res[: self.nw], res[self.nw :]
-            # rows: J dz - Q v = -wbar (state noise), J dz - R u = -ebar (outputs), then the variable boxes
-            l_w, u_w = _free(active_w, -wbar, -wbar)
-            l_e, u_e = _free(active_e, -ebar, -ebar)
-            box_lo = np.concatenate([np.tile(problem.lo[:md], self.capacity), lo[md:]])
-            box_hi = np.concatenate([np.tile(problem.hi[:md], self.capacity), hi[md:]])
-            box_lo[:md], box_hi[:md] = lo[:md], hi[:md]
-            l_z, u_z = _free(z_live, box_lo - zbar, box_hi - zbar)
-            l_v, u_v = _free(active_w, -ones_v, ones_v)
-            l_u, u_u = _free(active_e, -ones_e, ones_e)
-            lower = np.concatenate([l_w, l_e, l_z, l_v, l_u])
-            upper = np.concatenate([u_w, u_e, u_z, u_v, u_u])
+            js, rs = jac / bound[self._rows], res / bound
+            delta = np.zeros(nz)
+            delta[:md] = (problem.centre - x[0])[:md]
+            delta[nz - nt :] = (problem.centre - x[0])[md:]
+            delta = np.where(d > 0, delta, 0.0)
+            dz = self._banded_step(js, rs, weight, d, delta, L) if self.banded else None
+            if dz is not None:
+                after = np.bincount(self._rows, js * dz[self._cols], minlength=len(rs)) + rs
+                inside = np.all(np.abs(after[active]) <= 1.0 + BOX_TOL)
+                moved = (zbar + dz)[z_live]
+                if inside and np.all(moved >= box_lo[z_live] - BOX_TOL) and np.all(moved <= box_hi[z_live] + BOX_TOL):
+                    t2 = time.perf_counter()
+                    t_asm += t2 - t1
+                    t_eval += t1 - t0
+                    self.banded_solves += 1
+                    self._y_prev = np.zeros(self.nw + self.ne + self.nv)
+                    status, success, cost = "banded", True, float(np.sum(after[active] ** 2))
+                    self._apply(x, dz, L)
+                    if np.max(np.abs(dz[: L * md]), initial=0.0) < STEP_TOL:
+                        break
+                    continue
+            row_lo, row_hi = _free(active, -rs, -rs)
+            z_lo, z_hi = _free(z_live, box_lo - zbar, box_hi - zbar)
+            v_lo, v_hi = _free(active, -np.ones(len(rs)), np.ones(len(rs)))
             p_diag = self._p_diag.copy()
-            p_diag[:md] = 2.0 * wa[:md]
-            p_diag[self.nz - (m - md) : self.nz] = 2.0 * wa[md:]
-            qvec = np.zeros(self.nv)
-            dev = x[0] - problem.centre
-            qvec[:md] = p_diag[:md] * np.where(wa[:md] > 0, dev[:md], 0.0)
-            qvec[self.nz - (m - md) : self.nz] = p_diag[self.nz - (m - md) : self.nz] * np.where(wa[md:] > 0, dev[md:], 0.0)
-            a_values = np.concatenate([jac, -Q, -R, np.ones(self.nv)])[self._perm]
-            v0 = np.zeros(self.nv)
-            v0[self.nz : self.nz + self.nw] = np.where(active_w, wbar / Q, 0.0)
-            v0[self.nz + self.nw :] = np.where(active_e, ebar / R, 0.0)
+            p_diag[:nz] = 2.0 * d
+            a_values = self._a_values.copy()
+            a_values[: len(js)] = js
+            v0 = np.concatenate([np.zeros(nz), np.where(active, rs, 0.0)])
             t2 = time.perf_counter()
-            self._solver.update(q=qvec, l=lower, u=upper, Px=p_diag, Ax=a_values)
-            self._solver.warm_start(x=v0, y=self._shifted_duals(shift if it == 0 else 0))
-            out = self._solver.solve(raise_error=False)
+            self._osqp.update(
+                q=np.concatenate([-2.0 * d * delta, np.zeros(len(rs))]),
+                l=np.concatenate([row_lo, z_lo, v_lo]),
+                u=np.concatenate([row_hi, z_hi, v_hi]),
+                Px=p_diag,
+                Ax=a_values[self._perm],
+            )
+            self._osqp.warm_start(x=v0, y=self._shifted_duals(shift if it == 0 else 0))
+            out = self._osqp.solve(raise_error=False)
             t3 = time.perf_counter()
             t_eval, t_asm, t_solve = t_eval + t1 - t0, t_asm + t2 - t1, t_solve + t3 - t2
             qp_solves += 1
-            iterations += int(out.info.iter)
+            iters += int(out.info.iter)
             st = osqp.SolverStatus(out.info.status_val)
             status = st.name
             if st not in OSQP_OK or out.x is None or not np.all(np.isfinite(out.x)):
@@ -276,14 +363,18 @@ class SqpSolver:
                 break
             success = True
             self._y_prev = np.asarray(out.y, dtype=float).copy()
-            dz = out.x[: self.nz]
-            x[:L, :md] += dz[: L * md].reshape(L, md)
-            x[:, md:] += dz[self.nz - (m - md) :]
-            v, u = out.x[self.nz : self.nz + self.nw], out.x[self.nz + self.nw :]
-            cost = float(np.sum(v[active_w] ** 2) + np.sum(u[active_e] ** 2))
+            dz = out.x[:nz]
+            self._apply(x, dz, L)
+            lifted = out.x[nz:]
+            cost = float(np.sum(lifted[active] ** 2))
             if np.max(np.abs(dz[: L * md]), initial=0.0) < STEP_TOL:
                 break
-        return SolveResult(x, success, status, iterations, qp_solves, cost, t_eval, t_asm, t_solve)
+        return SolveResult(x, success, status, iters, qp_solves, cost, t_eval, t_asm, t_solve)
+
+    def _apply(self, x: NDArray[np.float64], dz: NDArray[np.float64], L: int) -> None:
+        md = self.md
+        x[:L, :md] += dz[: L * md].reshape(L, md)
+        x[:, md:] += dz[self.nz - self.nt :]
 
 
 class NlpSolver:

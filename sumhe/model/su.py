@@ -18,6 +18,7 @@ parameters Theta of paper 000 (2), with no state noise.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -47,18 +48,30 @@ def _n_rows(x: Any) -> int:
     return len(x) if isinstance(x, list | tuple) else int(x.shape[0])
 
 
-def su7_step(x: Any, h: Any, ns: Any = np) -> list[Any]:
+def su7_step(x: Any, h: Any, ns: Any = np, lever_m: float = 0.0) -> list[Any]:
     """Paper (19) without noise: the state one step of ``h`` seconds later (explicit Euler).
 
     ``x`` = (px1, py1, px2, py2, phi, v, omega, *extra); extra states (bias, scale) are carried unchanged.
     Both antennas move by ``h v (sin phi, cos phi)``; ``phi`` decreases by ``h omega``; v and omega are
-    random walks (no fast changes between two epochs).
+    random walks (no fast changes between two epochs). With ``lever_m = 0`` this is (19) exactly. Antenna 2
+    sits ``d`` behind antenna 1 on the vehicle's axis, so when the vehicle turns it also swings sideways:
+    ``lever_m = d`` adds that rotation, ``h d omega (cos phi, -sin phi)`` (a left turn swings it right).
     """
     px1, py1, px2, py2, phi, v, omega = (x[i] for i in range(7))
     dx = h * v * ns.sin(phi)
     dy = h * v * ns.cos(phi)
+    swing = h * lever_m * omega
     extra = [x[i] for i in range(7, _n_rows(x))]
-    return [px1 + dx, py1 + dy, px2 + dx, py2 + dy, phi - h * omega, v, omega, *extra]
+    return [
+        px1 + dx,
+        py1 + dy,
+        px2 + dx + swing * ns.cos(phi),
+        py2 + dy - swing * ns.sin(phi),
+        phi - h * omega,
+        v,
+        omega,
+        *extra,
+    ]
 
 
 def su5_step(x: Any, h: Any, ns: Any = np) -> list[Any]:
@@ -175,11 +188,35 @@ class SuModel:
         return self.states.index(state)
 
 
+def state_residuals(model: SuModel, x: Any, h: Any) -> Any:
+    """State noise ``w_t = x_t - g(x_{t-1})`` (N-1 x n_dynamic) of a trajectory ``x`` (N x m, numpy) with
+    steps ``h`` (N-1,), s; angles wrapped."""
+    md = model.n_dynamic
+    w = x[1:, :md] - np.array(model.transition(x[:-1].T, x[1:].T, h)[:md]).T
+    for i in model.angle_states:
+        w[:, i] = wrap_angle(w[:, i])
+    return w
+
+
+def output_residuals(model: SuModel, x: Any, y: Any) -> Any:
+    """Output noise ``e_k = y_k - h(x_k)`` (N x n) of a trajectory ``x`` (N x m, numpy) against outputs ``y``
+    (N x n) at every step (mask the missing ones); angles wrapped."""
+    e = y - np.array(model.output(x.T)).T
+    for j in model.angle_outputs:
+        e[:, j] = wrap_angle(e[:, j])
+    return e
+
+
 def su_model(
-    name: str, yaw_rate_bias: bool = False, speed_scale: bool = False, discretisation: str = "euler"
+    name: str,
+    yaw_rate_bias: bool = False,
+    speed_scale: bool = False,
+    discretisation: str = "euler",
+    lever_m: float = 0.0,
 ) -> SuModel:
     """The model ``"su7"`` (paper (19)-(20)) or ``"su5"`` (single antenna), with optional CAN-error states,
-    discretised by ``"euler"`` (the paper's (19)) or ``"trapezoid"`` (:func:`trapezoid`)."""
+    discretised by ``"euler"`` (the paper's (19)) or ``"trapezoid"`` (:func:`trapezoid`); ``lever_m`` is
+    the antenna-2 lever arm of :func:`su7_step` (0: the paper's rigid translation)."""
     if name not in ("su7", "su5"):
         raise ValueError(f"model: unknown SU model {name!r} (su5, su7)")
     if discretisation not in ("euler", "trapezoid"):
@@ -189,7 +226,7 @@ def su_model(
     states = base + extra
     bias_index = states.index(BIAS_STATE) if yaw_rate_bias else None
     scale_index = states.index(SCALE_STATE) if speed_scale else None
-    step = su7_step if name == "su7" else su5_step
+    step: Step = functools.partial(su7_step, lever_m=lever_m) if name == "su7" else su5_step
     out = su7_output if name == "su7" else su5_output
 
     def output(x: Any, ns: Any = np) -> list[Any]:
