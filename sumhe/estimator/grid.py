@@ -249,8 +249,8 @@ def _angle_output(
 ) -> None:
     """Fill the azimuth output in place: xi of the antenna pair (su7) or the receiver's heading/course (su5).
 
-    The allowance adds half a step of turning, ``h |omega| / 2``: the Euler model's azimuth is the chord
-    direction of the step, half a step behind the instantaneous one.
+    The allowance adds half a step of turning, ``h |omega| / 2``: with the paper's Euler steps the model's
+    azimuth is the chord direction of the step, half a step behind the instantaneous one.
     """
     j = model.angle_outputs[0]
     h = np.concatenate([np.diff(t), [period]])

@@ -94,10 +94,10 @@ class _Samples:
         if k > 256 or (k and k == len(self.t)):
             del self.t[:k], self.v[:k]
 
-    def mean(self, t0: float, t1: float) -> float | None:
-        """Mean of the samples in (t0, t1], None if there is none."""
+    def mean(self, t0: float, t1: float) -> tuple[float, int] | None:
+        """Mean of the samples in (t0, t1] and their number, None if there is none."""
         i, j = bisect.bisect_right(self.t, t0), bisect.bisect_right(self.t, t1)
-        return sum(self.v[i:j]) / (j - i) if j > i else None
+        return (sum(self.v[i:j]) / (j - i), j - i) if j > i else None
 
     def at(self, t: float, max_age: float) -> float | None:
         """The newest sample at or before ``t`` if it is at most ``max_age`` s old, else the next one within it."""
@@ -136,7 +136,8 @@ class MovingHorizonEstimator:
         self._jspeed, self._jyaw = self._n - 2, self._n - 1
         lo, hi = state_box(model, 1, s)
         self._lo, self._hi = lo[0], hi[0]
-        self._theta_half = self.settings.mhe_arrival_theta * (self._hi[self._md :] - self._lo[self._md :]) / 2.0
+        self._theta_range = (self._hi[self._md :] - self._lo[self._md :]) / 2.0
+        self._theta_floor = self.settings.mhe_arrival_theta * self._theta_range
         self._window = Window(self.policy.max_steps + 1, self._m, self._n, gps_column=self._jpos[0])
         self._buckets = self._bucket_sizes()
         self._solvers: dict[int, WindowSolver] = {}
@@ -169,6 +170,8 @@ class MovingHorizonEstimator:
         self._alpha = np.full(self._md, np.inf)
         self._centre = np.zeros(self._m)
         self._theta_centre: NDArray[np.float64] | None = None
+        self._theta_half = self._theta_range.copy()
+        self._theta_info: NDArray[np.float64] | None = None
         self._prop: list[float] = []
         self._t_prop = -math.inf
         self._status: GpsStatus = "outage"
@@ -426,18 +429,20 @@ class MovingHorizonEstimator:
         self, t: float, t0: float, t1: float, y: NDArray[np.float64], avail: NDArray[np.bool_], allow: NDArray
     ) -> None:
         """Fill in place the CAN outputs of the step at ``t`` whose half-intervals span (t0, t1]: the mean of the
-        samples there, else the nearest within ``can_max_gap_s``; and their error allowances. While the samples
-        reach only part of the second half-interval, the interval is shrunk symmetrically around ``t`` (a mean
-        over the first half alone would lag by a quarter step)."""
+        samples there, else the nearest within ``can_max_gap_s``; and their error allowances, half a resolution
+        step plus ``r_cap_sigmas`` sigmas of the mean (the sensor's sigma over the root of the samples averaged).
+        While the samples reach only part of the second half-interval, the interval is shrunk symmetrically
+        around ``t`` (a mean over the first half alone would lag by a quarter step)."""
         s = self.settings
-        for store, j in ((self._speed, self._jspeed), (self._yaw, self._jyaw)):
+        for store, j, res, sigma in (
+            (self._speed, self._jspeed, s.can_speed_resolution_mps, s.can_speed_sigma_mps),
+            (self._yaw, self._jyaw, s.can_yaw_rate_resolution_rps, s.can_yaw_rate_sigma_rps),
+        ):
             reach = min(t - t0, t1 - t, store.newest - t)
-            value = store.mean(t - reach, t + reach) if reach > MIN_HALF_S else None
-            if value is None:
-                value = store.at(t, s.can_max_gap_s)
+            mean = store.mean(t - reach, t + reach) if reach > MIN_HALF_S else None
+            value, count = mean if mean is not None else (store.at(t, s.can_max_gap_s), 1)
             y[j], avail[j] = (value, True) if value is not None else (0.0, False)
-        allow[self._jspeed] = 0.5 * s.can_speed_resolution_mps + s.r_cap_sigmas * s.can_speed_sigma_mps
-        allow[self._jyaw] = 0.5 * s.can_yaw_rate_resolution_rps + s.r_cap_sigmas * s.can_yaw_rate_sigma_rps
+            allow[j] = 0.5 * res + s.r_cap_sigmas * sigma / math.sqrt(count)
         if self._ik is None:
             allow[self._jspeed] += s.speed_scale_max * abs(y[self._jspeed])
         if self._ib is None:
@@ -513,6 +518,7 @@ class MovingHorizonEstimator:
             self._counts["qp_iterations" if s.mhe_solver == "sqp" else "nlp_iterations"] += result.iterations
             if result.success:
                 self._counts["banded_solves"] += result.status == "banded"
+                self._theta_info = None if result.theta_info is None else result.theta_info / L
                 if attempt:
                     self._counts["widened"] += 1
                 return result.x[:L], "mhe-widened" if attempt else "mhe"
@@ -535,6 +541,9 @@ class MovingHorizonEstimator:
         k = min(drop, len(win) - 1)
         self._centre = win.x[k].copy()
         self._theta_centre = win.x[k, md:].copy()
+        if self._theta_info is not None:
+            weight = 1.0 / np.square(self._theta_half) + drop * np.maximum(self._theta_info, 0.0)
+            self._theta_half = np.clip(1.0 / np.sqrt(weight), self._theta_floor, self._theta_range)
 
     def _measured_bounds(self, k: int) -> NDArray[np.float64]:
         """What the outputs of step ``k`` bound directly: half-widths per dynamic state (inf if nothing)."""
@@ -582,9 +591,8 @@ class MovingHorizonEstimator:
         ta = t0
         for k, tb in enumerate(times):
             v = self._speed.v[i + k] if i + k < j else self._speed.at(tb, gap)
-            w = self._yaw.mean(ta, tb)
-            if w is None:
-                w = self._yaw.at(tb, gap)
+            mean = self._yaw.mean(ta, tb)
+            w = mean[0] if mean is not None else self._yaw.at(tb, gap)
             xn = list(x)
             if v is not None:
                 xn[self._iv] = v / scale if scale else v

@@ -98,6 +98,8 @@ class SuNlp:
         opts = {
             "print_time": False,
             "error_on_fail": False,
+            # IPOPT backtracks from a NaN (a log of a q it relaxed below 0); the status reports real trouble
+            "show_eval_warnings": False,
             "ipopt": {
                 "print_level": 0,
                 "sb": "yes",

@@ -103,6 +103,7 @@ class SolveResult:
     eval_s: float = 0.0
     assemble_s: float = 0.0
     solve_s: float = 0.0
+    theta_info: NDArray[np.float64] | None = None
 
     @property
     def infeasible(self) -> bool:
@@ -218,6 +219,7 @@ class SqpSolver:
             warm_starting=True,
         )
         self._y_prev: NDArray[np.float64] | None = None
+        self._theta_info: NDArray[np.float64] | None = None
         self.banded_solves = 0
         log.debug("SQP MHE problem, %d steps: %d variables, built in %.1f ms", C, nv, 1e3 * (time.perf_counter() - t0))
 
@@ -266,9 +268,11 @@ class SqpSolver:
         Ntt += np.diag(d[nx:] + REGULARISATION)
         try:
             sol = solveh_banded(band, np.column_stack([b[:n_live], Nxt[:n_live]]), check_finite=False)
-            dtheta = np.linalg.solve(Ntt - Nxt[:n_live].T @ sol[:, 1:], b[nx:] - Nxt[:n_live].T @ sol[:, 0])
+            schur = Ntt - Nxt[:n_live].T @ sol[:, 1:]
+            dtheta = np.linalg.solve(schur, b[nx:] - Nxt[:n_live].T @ sol[:, 0])
         except np.linalg.LinAlgError:
             return None
+        self._theta_info = np.diag(schur) - d[nx:] - REGULARISATION
         dz = np.zeros(self.nz)
         dz[:n_live] = sol[:, 0] - sol[:, 1:] @ dtheta
         dz[nx:] = dtheta
@@ -304,6 +308,7 @@ class SqpSolver:
         box_hi = np.concatenate([hi[:md], np.tile(problem.hi[:md], C - 1), hi[md:]])
         z_live = self._z_step < L
         status, cost, success = "not solved", np.inf, False
+        self._theta_info = None
         iters = qp_solves = 0
         t_eval = t_asm = t_solve = 0.0
         for it in range(iterations or self.iterations):
@@ -369,7 +374,8 @@ class SqpSolver:
             cost = float(np.sum(lifted[active] ** 2))
             if np.max(np.abs(dz[: L * md]), initial=0.0) < STEP_TOL:
                 break
-        return SolveResult(x, success, status, iters, qp_solves, cost, t_eval, t_asm, t_solve)
+        info = self._theta_info if status == "banded" else None
+        return SolveResult(x, success, status, iters, qp_solves, cost, t_eval, t_asm, t_solve, info)
 
     def _apply(self, x: NDArray[np.float64], dz: NDArray[np.float64], L: int) -> None:
         md = self.md
