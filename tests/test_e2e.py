@@ -230,7 +230,7 @@ def _check(records, code, stop_s, offset, sim, svc_text):
     assert set(gps[after]) == {"ok"}
     # errors against the truth
     frame = sim.frame
-    enu = frame.to_enu(np.array([r["lat"] for r in records]), np.array([r["lon"] for r in records]), 0.0)
+    enu = frame.to_enu(np.array([r["lat"] for r in records]), np.array([r["lon"] for r in records]), frame.alt0_m)
     at = sim.truth.at(t + sim.settings.start_unix_s)
     err = np.hypot(enu[:, 0] - at.east, enu[:, 1] - at.north)
     steady = (t > first_ok + 3) & ~inside & ~near_jump

@@ -12,12 +12,14 @@ import sys
 import time
 from contextlib import nullcontext
 from pathlib import Path
+from typing import TextIO
 
 from sumhe.commands.candump import reference_config
 from sumhe.config import load_config
 from sumhe.estimator.registry import make_estimator
 from sumhe.io.replay import log_samples
 from sumhe.io.udp import estimate_to_json
+from sumhe.messages import Estimate
 from sumhe.service.app import percentile
 from sumhe.service.pipeline import Pipeline
 
@@ -29,6 +31,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--estimator", metavar="NAME", help="estimator to run (default: estimator.name)")
     parser.add_argument("--out", metavar="FILE", help="JSON lines output (default: stdout)")
     parser.add_argument("--offset", type=float, default=0.0, metavar="S", help="add S seconds to the NMEA times")
+
+
+def _write(out: TextIO, estimates: list[Estimate], solve_ms: list[float]) -> None:
+    for est in estimates:
+        if est.solve_ms > 0:
+            solve_ms.append(est.solve_ms)
+        out.write(json.dumps(estimate_to_json(est), separators=(",", ":")) + "\n")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -43,10 +52,8 @@ def run(args: argparse.Namespace) -> int:
         for sample in log_samples(config, Path(args.canlog), Path(args.nmea), args.offset):
             first_t = sample.t if first_t is None else first_t
             last_t = sample.t
-            for est in pipeline.push(sample):
-                if est.solve_ms > 0:
-                    solve_ms.append(est.solve_ms)
-                out.write(json.dumps(estimate_to_json(est), separators=(",", ":")) + "\n")
+            _write(out, pipeline.push(sample), solve_ms)
+        _write(out, pipeline.finish(), solve_ms)
     wall = time.perf_counter() - wall0
     span = (last_t - first_t) if first_t is not None and last_t is not None else 0.0
     ts, ps = pipeline.guard.stats, pipeline.stats

@@ -15,6 +15,9 @@ Contract of :meth:`Estimator.push`:
   takes the missed epochs as outage epochs (returned as estimates with ``gps="outage"``);
 * nothing is returned before the first valid fix ("no fix yet");
 * an estimator never raises for bad data in the stream: samples going back in time are dropped and counted.
+
+Offline smoothers (``su-batch``) also provide ``finish() -> list[StateEstimate]``, called once at the end of a
+recorded drive; the pipeline calls it where it exists (:meth:`sumhe.service.pipeline.Pipeline.finish`).
 """
 
 from __future__ import annotations
@@ -51,6 +54,7 @@ class LocalFix:
     course_rad: float | None = None
     heading_rad: float | None = None
     fix: GnssFix | None = field(default=None, compare=False, repr=False)
+    frame: LocalFrame | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True, slots=True)
@@ -131,6 +135,7 @@ class FixConverter:
             course_rad=fix.course_rad,
             heading_rad=fix.heading_rad,
             fix=fix,
+            frame=self.frame,
         )
 
 

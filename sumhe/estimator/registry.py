@@ -24,6 +24,7 @@ ENTRY_POINT_GROUP = "sumhe.estimators"
 
 ESTIMATORS: dict[str, tuple[str, str]] = {
     "mhe": ("sumhe.estimator.mhe", "MovingHorizonEstimator"),
+    "su-batch": ("sumhe.estimator.su_batch", "SuBatch"),
     "dead-reckoning": ("sumhe.baseline.dead_reckoning", "DeadReckoning"),
     "ekf": ("sumhe.baseline.ekf", "Ekf"),
     "rts": ("sumhe.baseline.rts", "Rts"),

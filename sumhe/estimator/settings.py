@@ -91,8 +91,13 @@ class EstimatorSettings:
     mhe_gate_m: float = 2.0
     mhe_gate_drift: float = 0.05
     mhe_max_retries: int = 2
+    # su-batch: the batch estimator over a whole recorded drive, in overlapping windows
+    batch_window_s: float = 30.0
+    batch_overlap_s: float = 6.0
 
     def __post_init__(self) -> None:
+        if not 0.0 < self.batch_overlap_s < self.batch_window_s:
+            raise ValueError(f"batch_overlap_s: must be within (0, batch_window_s), got {self.batch_overlap_s!r}")
         _one_of(self, "model", MODELS)
         _one_of(self, "objective", OBJECTIVES)
         _one_of(self, "centre", CENTRES)

@@ -55,7 +55,7 @@ def position_errors(records: list[dict[str, Any]], truth: Truth, frame: LocalFra
     if not records:
         return np.zeros(0), np.zeros(0, dtype=object)
     t = np.array([r["t"] for r in records])
-    enu = frame.to_enu(np.array([r["lat"] for r in records]), np.array([r["lon"] for r in records]), 0.0)
+    enu = frame.to_enu(np.array([r["lat"] for r in records]), np.array([r["lon"] for r in records]), frame.alt0_m)
     at = truth.at(t)
     err = np.hypot(enu[:, 0] - at.east, enu[:, 1] - at.north)
     return err, np.array([r["gps"] for r in records], dtype=object)
@@ -200,7 +200,7 @@ def plot(
         ax.plot(truth.east[sel], truth.north[sel], color="orange", lw=6, alpha=0.35)
     for name, recs in runs.items():
         if recs:
-            enu = frame.to_enu(np.array([r["lat"] for r in recs]), np.array([r["lon"] for r in recs]), 0.0)
+            enu = frame.to_enu(np.array([r["lat"] for r in recs]), np.array([r["lon"] for r in recs]), frame.alt0_m)
             ax.plot(enu[:, 0], enu[:, 1], lw=0.8, label=name)
     ax.plot([], [], color="orange", lw=6, alpha=0.35, label="GPS outage")
     ax.set_xlabel("east (m)")

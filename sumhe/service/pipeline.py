@@ -173,6 +173,16 @@ class Pipeline:
         self._count(out)
         return out
 
+    def finish(self) -> list[Estimate]:
+        """The end of a recorded drive: what an offline smoother produces then (nothing for live estimators)."""
+        finish = getattr(self.estimator, "finish", None)
+        frame = self.converter.frame
+        if finish is None or frame is None:
+            return []
+        out = [to_estimate(s, frame, self._up_m) for s in finish()]
+        self._count(out)
+        return out
+
     def _local_fix(self, fix: GnssFix) -> LocalFix:
         self.stats.fixes += 1
         local = self.converter.convert(fix)

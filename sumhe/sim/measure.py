@@ -109,9 +109,9 @@ def _gps_rows(truth: Truth, path: Path, antenna: int) -> list[ErrorRow]:
     t_fix = np.array([_fix_time(f) for f in valid])
     at = truth.at(t_fix)
     frame = LocalFrame(float(truth.lat[0]), float(truth.lon[0]))
-    measured = frame.to_enu([f.lat_deg for f in valid], [f.lon_deg for f in valid])
+    measured = frame.to_enu([f.lat_deg for f in valid], [f.lon_deg for f in valid], frame.alt0_m)
     second = antenna == 2 and at.lat2 is not None and at.lon2 is not None
-    true_enu = frame.to_enu(at.lat2, at.lon2) if second else frame.to_enu(at.lat, at.lon)
+    true_enu = frame.to_enu(at.lat2, at.lon2, frame.alt0_m) if second else frame.to_enu(at.lat, at.lon, frame.alt0_m)
     err = measured[:, :2] - true_enu[:, :2]
     moving = at.speed > MOVING_MPS
     rows += [

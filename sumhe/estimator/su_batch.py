@@ -1,0 +1,127 @@
+"""``su-batch``: the batch SU estimate of a whole recorded drive, for offline replays.
+
+It buffers the stream and, at the end (:meth:`SuBatch.finish`), smooths it in overlapping windows of
+``batch_window_s`` seconds (each solved by :func:`~sumhe.estimator.batch.estimate_batch`). A window ends only where
+GNSS is present (paper 000, sec. 3.2: data must be present at both ends of a window), so a boundary never falls
+inside an outage; each window keeps the estimates of its middle, away from the ends by ``batch_overlap_s``/2,
+where the smoother has data on both sides. It returns one estimate per step of the grid (GNSS epochs and the
+outage steps between them). During the drive :meth:`push` returns nothing: it is not a live estimator.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping
+
+import numpy as np
+
+from sumhe.config import Config
+from sumhe.errors import EstimatorInputError
+from sumhe.estimator.base import LocalFix, StateEstimate
+from sumhe.estimator.batch import SuResult, estimate_batch
+from sumhe.estimator.settings import EstimatorSettings
+from sumhe.geo import LocalFrame
+from sumhe.messages import CanSample, GnssFix, Sample
+
+log = logging.getLogger(__name__)
+
+
+def window_bounds(t_gps: np.ndarray, t_end: float, length_s: float, overlap_s: float) -> list[tuple[float, float]]:
+    """Window [start, end] times over a drive: each ``length_s`` long (stretched to the next GNSS time so no window
+    ends in an outage), consecutive windows overlapping by ``overlap_s``."""
+    if t_gps.size == 0:
+        return []
+    out = []
+    start = float(t_gps[0])
+    while True:
+        later = t_gps[t_gps >= start + length_s]
+        end = float(later[0]) if later.size else t_end
+        out.append((start, end))
+        if end >= t_end or not later.size:
+            return out
+        earlier = t_gps[(t_gps <= end - overlap_s) & (t_gps > start)]
+        start = float(earlier[-1]) if earlier.size else end
+
+
+class SuBatch:
+    """The batch SU estimator over a whole drive, in overlapping windows (see the module docstring)."""
+
+    name = "su-batch"
+
+    def __init__(self, settings: EstimatorSettings) -> None:
+        self.settings = settings
+        self.reset()
+
+    @classmethod
+    def from_config(cls, config: Config) -> SuBatch:
+        return cls(config.estimator)
+
+    def reset(self) -> None:
+        self._samples: list[Sample] = []
+        self._frame: LocalFrame | None = None
+        self._windows = 0
+        self._failed = 0
+        self._solve_s = 0.0
+
+    def push(self, sample: LocalFix | CanSample) -> list[StateEstimate]:
+        if isinstance(sample, LocalFix):
+            if sample.fix is None:
+                return []
+            if self._frame is None and sample.valid:
+                self._frame = sample.frame
+            self._samples.append(sample.fix)
+        elif sample.quantity in ("speed", "yaw_rate"):
+            self._samples.append(sample)
+        return []
+
+    def finish(self) -> list[StateEstimate]:
+        """Smooth everything pushed so far; one estimate per grid step, in time order."""
+        if self._frame is None or len(self._samples) < 2:
+            return []
+        s = self.settings
+        t_gps = np.array([x.t for x in self._samples if isinstance(x, GnssFix) and x.valid])
+        t_end = self._samples[-1].t
+        out: list[StateEstimate] = []
+        last_t = -math.inf
+        for i, (start, end) in enumerate(window_bounds(t_gps, t_end, s.batch_window_s, s.batch_overlap_s)):
+            chunk = [x for x in self._samples if start <= x.t <= end]
+            try:
+                result = estimate_batch(chunk, s, frame=self._frame)
+            except EstimatorInputError as e:
+                log.warning("su-batch: window %d (%.1f-%.1f s) skipped: %s", i, start, end, e)
+                continue
+            self._windows += 1
+            self._failed += not result.success
+            self._solve_s += result.solve_time_s
+            keep_from = last_t if i == 0 else max(last_t, start + s.batch_overlap_s / 2)
+            for est in _estimates(result):
+                if est.t > keep_from:
+                    out.append(est)
+            last_t = out[-1].t if out else last_t
+        return out
+
+    def stats(self) -> Mapping[str, float | int | str]:
+        return {"windows": self._windows, "failed": self._failed, "solve_s": round(self._solve_s, 3)}
+
+
+def _estimates(result: SuResult) -> list[StateEstimate]:
+    names = result.state_names
+    east, north = result.east, result.north
+    phi, v, omega = (result.states[:, names.index(n)] for n in ("phi", "v", "omega"))
+    mode = "su-batch" if result.success else f"su-batch failed: {result.status}"
+    return [
+        StateEstimate(
+            t=float(result.t[k]),
+            east_m=float(east[k]),
+            north_m=float(north[k]),
+            azimuth_rad=float(phi[k]),
+            speed_mps=float(v[k]),
+            yaw_rate_rps=float(omega[k]),
+            gps="ok" if result.gps[k] else "outage",
+            mode=mode,
+            window=len(result.t),
+            solve_ms=result.solve_time_s * 1000.0,
+        )
+        for k in range(len(result.t))
+    ]

@@ -1,0 +1,51 @@
+import itertools
+
+import numpy as np
+import pytest
+
+from sumhe.config import load_config
+from sumhe.estimator.registry import make_estimator
+from sumhe.estimator.su_batch import window_bounds
+from sumhe.io.fixtime import stamp_fix
+from sumhe.messages import CanSample
+from sumhe.service.pipeline import Pipeline
+from sumhe.sim import SimSettings, simulate
+
+
+def test_window_bounds_overlap_and_never_end_inside_an_outage():
+    t_gps = np.r_[np.arange(0.0, 30.0, 0.1), np.arange(45.0, 100.0, 0.1)]  # an outage 30-45 s
+    wins = window_bounds(t_gps, 100.0, length_s=20.0, overlap_s=4.0)
+    assert wins[0][0] == 0.0 and wins[-1][1] == pytest.approx(100.0)
+    for (_, e0), (s1, _) in itertools.pairwise(wins):
+        assert e0 - s1 >= 4.0 - 1e-9  # consecutive windows overlap by at least overlap_s
+    for s, e in wins:
+        assert not 30.0 <= e < 45.0, "a window ends inside the outage"
+        assert not 30.0 <= s < 45.0, "a window starts inside the outage"
+
+
+def test_window_bounds_of_nothing():
+    assert window_bounds(np.zeros(0), 10.0, 20.0, 4.0) == []
+
+
+@pytest.mark.slow
+def test_su_batch_smooths_a_drive_through_an_outage():
+    sim = simulate(SimSettings(scenario="urban", seed=3, duration_s=50.0, outages=((20.0, 8.0),)))
+    config = load_config(None, env={}, overrides={"estimator.name": "su-batch", "estimator.batch_window_s": 20.0})
+    pipeline = Pipeline(config, make_estimator("su-batch", config))
+    fixes = [stamp_fix(f, config.gps) for f in sim.fixes()]
+    can = [c for c in sim.can_samples() if isinstance(c, CanSample)]
+    out = []
+    for sample in sorted([*fixes, *can], key=lambda s: s.t):
+        out += pipeline.push(sample)
+    assert out == [], "su-batch answers only at the end of the drive"
+    out = pipeline.finish()
+    t = np.array([e.t for e in out])
+    assert len(out) > 400 and np.all(np.diff(t) > 0)
+    enu = sim.frame.to_enu(np.array([e.lat_deg for e in out]), np.array([e.lon_deg for e in out]), sim.frame.alt0_m)
+    at = sim.truth.at(t)
+    err = np.hypot(enu[:, 0] - at.east, enu[:, 1] - at.north)
+    in_outage = np.array([sim.in_outage(x) for x in t])
+    assert in_outage.sum() > 60
+    assert {e.gps for e, o in zip(out, in_outage, strict=True) if o} == {"outage"}
+    assert np.max(err[in_outage]) < 3.0
+    assert np.mean(err[~in_outage]) < 2.0
