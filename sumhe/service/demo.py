@@ -184,7 +184,7 @@ def dead_reckoning_records(drive_dir: Path) -> list[dict[str, Any]]:
 def plot(
     path: Path, truth: Truth, frame: LocalFrame, runs: dict[str, list[dict[str, Any]]], outages: list[list[float]]
 ) -> bool:
-    """Trajectory PNG (truth, each run's estimates, outages marked); False when matplotlib is not installed."""
+    """Trajectory and error-over-time PNG (outages shaded); False when matplotlib is not installed."""
     try:
         import matplotlib
 
@@ -192,24 +192,28 @@ def plot(
         import matplotlib.pyplot as plt
     except ImportError:
         return False
-    fig, ax = plt.subplots(figsize=(9, 8))
+    fig, (ax, ax_err) = plt.subplots(1, 2, figsize=(14, 7), gridspec_kw={"width_ratios": [1, 1.6]})
     ax.plot(truth.east, truth.north, color="black", lw=1.0, label="truth")
     t0 = truth.t[0]
     for start, length in outages:
         sel = (truth.t >= t0 + start) & (truth.t <= t0 + start + length)
-        ax.plot(truth.east[sel], truth.north[sel], color="orange", lw=6, alpha=0.35)
+        ax.plot(truth.east[sel], truth.north[sel], color="orange", lw=7, alpha=0.35)
+        ax_err.axvspan(start, start + length, color="orange", alpha=0.25)
     for name, recs in runs.items():
         if recs:
             enu = frame.to_enu(np.array([r["lat"] for r in recs]), np.array([r["lon"] for r in recs]), frame.alt0_m)
             ax.plot(enu[:, 0], enu[:, 1], lw=0.8, label=name)
-    ax.plot([], [], color="orange", lw=6, alpha=0.35, label="GPS outage")
-    ax.set_xlabel("east (m)")
-    ax.set_ylabel("north (m)")
-    ax.set_aspect("equal")
-    ax.legend()
-    ax.set_title("sumhe demo: bundled drive")
+            err, _ = position_errors(recs, truth, frame)
+            ax_err.plot(np.array([r["t"] for r in recs]) - t0, err, lw=0.8, label=name)
+    ax.plot([], [], color="orange", lw=7, alpha=0.35, label="GPS outage")
+    ax.set(xlabel="east (m)", ylabel="north (m)", title="bundled drive")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.legend(loc="best", fontsize=8)
+    ax_err.set(xlabel="time (s)", ylabel="horizontal error (m)", title="error against the truth (outages shaded)")
+    ax_err.legend(loc="upper left", fontsize=8)
+    ax_err.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
     return True
 
