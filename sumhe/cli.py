@@ -27,7 +27,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "play": ("sumhe.commands.play", "play a recorded drive onto a CAN bus and a pseudo-terminal (real time)"),
     "replay": ("sumhe.commands.replay", "run an estimator on a recorded CAN log + NMEA log (JSON lines out)"),
     "protocol": ("sumhe.commands.protocol", "paper 000's outage protocol on simulated drives: errors per method"),
-    "bench": ("sumhe.commands.bench", "benchmarks: MHE latency/accuracy/replay speed (mhe), paper 000's protocol"),
+    "bench": ("sumhe.commands.bench", "benchmarks: estimators side by side (default), MHE (mhe), paper 000 (protocol)"),
+    "plot": ("sumhe.commands.plot", "PNG of replays: trajectory, outages, error, window length, bounds"),
 }
 
 

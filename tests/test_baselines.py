@@ -315,3 +315,17 @@ def test_search_refuses_test_seeds(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
         tuning_main(["search", "ekf", "--seeds", "5-7"])
     assert "test seeds" in capsys.readouterr().err
+
+
+def test_gnss_period_follows_the_epochs() -> None:
+    ekf = Ekf()
+    assert ekf.period_s == ekf.settings.step_s
+    ekf.push(LocalFix(t=1.0, valid=False))
+    ekf.push(LocalFix(t=1.01, valid=False))
+    ekf.push(LocalFix(t=1.1, valid=False))
+    assert math.isfinite(ekf.period_s)
+    rng = np.random.default_rng(1)
+    for k in range(1, 40):
+        ekf.push(LocalFix(t=1.1 + k * 0.2 + rng.uniform(0, 0.02), valid=False))
+    assert "dropped_backwards" not in ekf.stats()
+    assert ekf.period_s == pytest.approx(0.2, abs=0.002)

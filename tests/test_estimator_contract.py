@@ -84,13 +84,35 @@ def synthetic_drive(
     return Synthetic([s for _, s in stream], t0 + t, east, north)
 
 
-def push_all(est: Estimator, samples: Sequence[Sample]) -> list[list[StateEstimate]]:
-    return [est.push(s) for s in samples]
+def offline(est: Estimator) -> bool:
+    """An offline smoother: ``push`` returns nothing, ``finish()`` returns the estimates at the end."""
+    return callable(getattr(est, "finish", None))
 
 
-def epoch_estimates(samples: Sequence[Sample], batches: Sequence[list[StateEstimate]]) -> list[StateEstimate]:
-    """The estimates of GNSS epochs: all a fix returned, and those a CAN sample returned for an earlier time."""
-    return [e for s, out in zip(samples, batches, strict=True) for e in out if isinstance(s, LocalFix) or e.t != s.t]
+@dataclass(frozen=True)
+class Outputs:
+    """What each ``push`` returned (parallel to the samples), and what ``finish()`` returned (offline only)."""
+
+    samples: Sequence[Sample]
+    batches: list[list[StateEstimate]]
+    final: list[StateEstimate]
+
+    @property
+    def estimates(self) -> list[StateEstimate]:
+        return [e for batch in self.batches for e in batch] + self.final
+
+    @property
+    def epochs(self) -> list[StateEstimate]:
+        """GNSS-epoch estimates: all a fix returned, those a CAN sample returned for an earlier time, the final."""
+        pairs = zip(self.samples, self.batches, strict=True)
+        live = [e for s, out in pairs for e in out if isinstance(s, LocalFix) or e.t != s.t]
+        return live + self.final
+
+
+def run(est: Estimator, samples: Sequence[Sample], finish: bool = True) -> Outputs:
+    batches = [est.push(s) for s in samples]
+    final = est.finish() if finish and offline(est) else []  # type: ignore[attr-defined]
+    return Outputs(samples, batches, list(final))
 
 
 def errors(drive: Synthetic, estimates: Sequence[StateEstimate]) -> np.ndarray:
@@ -115,16 +137,31 @@ def test_nothing_before_the_first_valid_fix(estimator: Estimator) -> None:
     drive = synthetic_drive(5.0)
     first = next(i for i, s in enumerate(drive.samples) if isinstance(s, LocalFix))
     assert first > 10
-    assert all(out == [] for out in push_all(estimator, drive.samples[:first]))
+    assert all(out == [] for out in run(estimator, drive.samples[:first], finish=False).batches)
     assert estimator.push(LocalFix(t=drive.samples[first].t - 0.01, valid=False)) == []
     out = estimator.push(drive.samples[first])
-    assert len(out) == 1 and out[0].gps == "ok" and out[0].t == drive.samples[first].t
+    if offline(estimator):
+        assert out == []
+        assert all(e.t >= drive.samples[first].t for e in run(estimator, drive.samples[first + 1 :]).estimates)
+    else:
+        assert len(out) == 1 and out[0].gps == "ok" and out[0].t == drive.samples[first].t
 
 
 def test_one_estimate_per_epoch_and_per_speed_sample(estimator: Estimator) -> None:
     drive = synthetic_drive(10.0)
+    outputs = run(estimator, drive.samples)
+    for e in outputs.estimates:
+        assert all(math.isfinite(v) for v in (e.east_m, e.north_m, e.azimuth_rad, e.speed_mps, e.yaw_rate_rps))
+        assert 0.0 <= e.azimuth_rad < 2 * math.pi
+        assert e.gps in ("ok", "rejected", "outage")
+    if offline(estimator):
+        assert all(out == [] for out in outputs.batches)
+        epochs = [s.t for s in drive.samples if isinstance(s, LocalFix)]
+        times = [e.t for e in outputs.final]
+        assert times == sorted(times) and set(epochs) <= set(times)
+        return
     started = False
-    for sample, out in zip(drive.samples, push_all(estimator, drive.samples), strict=True):
+    for sample, out in zip(drive.samples, outputs.batches, strict=True):
         started = started or bool(out)
         if not started:
             continue
@@ -135,22 +172,19 @@ def test_one_estimate_per_epoch_and_per_speed_sample(estimator: Estimator) -> No
             assert [e.t for e in out] == [sample.t]
         else:
             assert out == []
-        assert all(math.isfinite(v) for e in out for v in (e.east_m, e.north_m, e.azimuth_rad, e.speed_mps))
-        assert all(0.0 <= e.azimuth_rad < 2 * math.pi for e in out)
     assert started
 
 
 def test_tracks_a_synthetic_drive(estimator: Estimator) -> None:
     drive = synthetic_drive(20.0)
-    out = [e for batch in push_all(estimator, drive.samples) for e in batch]
-    late = [e for e in out if e.t > drive.t[0] + 5.0]
+    late = [e for e in run(estimator, drive.samples).estimates if e.t > drive.t[0] + 5.0]
+    assert late
     assert np.percentile(errors(drive, late), 95) < 1.0
 
 
 def test_silent_gnss_gives_outage_epochs(estimator: Estimator) -> None:
     drive = synthetic_drive(15.0, silent=[(5.0, 3.0)])
-    epochs = epoch_estimates(drive.samples, push_all(estimator, drive.samples))
-    outage = [e for e in epochs if e.gps == "outage"]
+    outage = [e for e in run(estimator, drive.samples).epochs if e.gps == "outage"]
     t0 = drive.t[0]
     # fixes at x.05 s; 5.05 ... 7.95 missing: 30 epochs at 0.1 s spacing
     assert len(outage) == 30
@@ -162,28 +196,28 @@ def test_silent_gnss_gives_outage_epochs(estimator: Estimator) -> None:
 
 def test_no_fix_epochs_are_outage_epochs(estimator: Estimator) -> None:
     drive = synthetic_drive(12.0, nofix=[(5.0, 2.0)])
-    epochs = epoch_estimates(drive.samples, push_all(estimator, drive.samples))
-    outage = [e for e in epochs if e.gps == "outage"]
+    outage = [e for e in run(estimator, drive.samples).epochs if e.gps == "outage"]
     assert len(outage) == 20
     assert np.max(errors(drive, outage)) < 2.0
 
 
 def test_time_going_backwards_is_dropped_and_counted(estimator: Estimator) -> None:
     drive = synthetic_drive(6.0)
-    push_all(estimator, drive.samples)
+    run(estimator, drive.samples, finish=False)
     last_can = next(s for s in reversed(drive.samples) if isinstance(s, CanSample))
     last_fix = next(s for s in reversed(drive.samples) if isinstance(s, LocalFix))
     before = estimator.stats().get("dropped_backwards", 0)
     assert estimator.push(dataclasses.replace(last_can, t=last_can.t - 0.5)) == []
     assert estimator.push(dataclasses.replace(last_fix, t=last_fix.t - 0.3)) == []
     assert estimator.stats()["dropped_backwards"] == before + 2
-    out = estimator.push(CanSample(last_can.t + 0.02, "speed", 10.0))
-    assert len(out) == 1 and math.isfinite(out[0].east_m)
+    out = run(estimator, [CanSample(last_can.t + 0.02, "speed", 10.0)]).estimates
+    assert out and all(math.isfinite(e.east_m) for e in out)
+    assert all(e.t != last_can.t - 0.5 and e.t != last_fix.t - 0.3 for e in out)
 
 
 def test_bad_data_never_raises(estimator: Estimator) -> None:
     drive = synthetic_drive(6.0)
-    push_all(estimator, drive.samples)
+    run(estimator, drive.samples, finish=False)
     t = max(s.t for s in drive.samples)
     bad: list[object] = [
         CanSample(t + 0.01, "speed", math.nan),
@@ -196,34 +230,38 @@ def test_bad_data_never_raises(estimator: Estimator) -> None:
         LocalFix(t=t + 0.15, valid=True, east_m=1.0, north_m=1.0, sigma_m=-1.0),
         GnssFix(t=t + 0.2, time_utc=None, lat_deg=None, lon_deg=None, alt_m=None, quality=0, valid=False),
         "not a sample",
+        CanSample(t + 0.3, "speed", 10.0),
     ]
-    for sample in bad:
-        out = estimator.push(sample)  # type: ignore[arg-type]
-        assert all(math.isfinite(e.east_m) and math.isfinite(e.north_m) for e in out)
+    out = run(estimator, bad).estimates  # type: ignore[arg-type]
+    assert out and all(math.isfinite(e.east_m) and math.isfinite(e.north_m) for e in out)
     stats = estimator.stats()
     assert stats.get("bad_samples", 0) + stats.get("bad_fixes", 0) >= 7
-    out = estimator.push(CanSample(t + 0.3, "speed", 10.0))
-    assert out and all(math.isfinite(e.east_m) for e in out)
 
 
 def test_reset_forgets_the_drive(estimator: Estimator) -> None:
     drive = synthetic_drive(6.0)
-    push_all(estimator, drive.samples)
+    run(estimator, drive.samples, finish=False)
     estimator.reset()
     t = max(s.t for s in drive.samples)
-    assert estimator.push(CanSample(t + 0.02, "speed", 10.0)) == []
-    out = estimator.push(LocalFix(t=t + 0.05, valid=True, east_m=500.0, north_m=-20.0, sigma_m=0.5))
-    assert len(out) == 1
-    assert out[0].east_m == pytest.approx(500.0, abs=0.2) and out[0].north_m == pytest.approx(-20.0, abs=0.2)
+    assert estimator.push(CanSample(t + 0.02, "speed", 0.0)) == []
+    fixes = [LocalFix(t=t + 0.05 + 0.1 * k, valid=True, east_m=500.0, north_m=-20.0, sigma_m=0.5) for k in range(3)]
+    outputs = run(estimator, fixes)
+    assert outputs.estimates and all(e.t >= t for e in outputs.estimates)
+    for e in outputs.estimates:
+        assert e.east_m == pytest.approx(500.0, abs=0.5) and e.north_m == pytest.approx(-20.0, abs=0.5)
+    if not offline(estimator):
+        assert [e.t for e in outputs.batches[0]] == [fixes[0].t]
 
 
 def test_restarts_after_a_long_data_gap(estimator: Estimator) -> None:
     drive = synthetic_drive(6.0)
-    push_all(estimator, drive.samples)
+    run(estimator, drive.samples, finish=False)
     t = max(s.t for s in drive.samples) + 60.0
-    assert estimator.push(CanSample(t, "speed", 10.0)) == []
-    out = estimator.push(LocalFix(t=t + 0.01, valid=True, east_m=-300.0, north_m=7.0, sigma_m=0.5))
-    assert len(out) == 1 and out[0].east_m == pytest.approx(-300.0, abs=0.2)
+    assert estimator.push(CanSample(t, "speed", 0.0)) == []
+    fixes = [LocalFix(t=t + 0.01 + 0.1 * k, valid=True, east_m=-300.0, north_m=7.0, sigma_m=0.5) for k in range(3)]
+    outputs = run(estimator, fixes)
+    assert outputs.estimates and all(e.t >= t for e in outputs.estimates)
+    assert all(e.east_m == pytest.approx(-300.0, abs=0.5) for e in outputs.estimates)
 
 
 # ---- a simulated drive with a 60 s outage and a 50 m jump ---------------------------------------------------------
@@ -279,16 +317,16 @@ def sim_errors(run: SimRun, estimates: Sequence[StateEstimate]) -> np.ndarray:
 
 
 def test_outage_recovery_and_jump(estimator: Estimator, sim_run: SimRun) -> None:
-    batches = push_all(estimator, sim_run.samples)
-    out = [e for batch in batches for e in batch]
+    outputs = run(estimator, sim_run.samples)
+    out = outputs.estimates
     assert all(math.isfinite(e.east_m) and math.isfinite(e.north_m) for e in out)
     rel = np.array([e.t for e in out]) - sim_run.drive.settings.start_unix_s
     start, length = OUTAGE
-    epochs = epoch_estimates(sim_run.samples, batches)
-    outage = [e for e in epochs if e.gps == "outage"]
+    outage = [e for e in outputs.epochs if e.gps == "outage"]
     assert len(outage) == pytest.approx(10 * length, abs=1)
     assert all(start <= e.t - sim_run.drive.settings.start_unix_s < start + length for e in outage)
     after = [e for e, r in zip(out, rel, strict=True) if start + length + 2.0 <= r < start + length + 8.0]
+    assert after
     assert np.max(sim_errors(sim_run, after)) < 3.0
     jumped = [e for e in out if e.t in sim_run.jumped]
     assert len(jumped) == 3

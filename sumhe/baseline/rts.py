@@ -11,6 +11,9 @@ forward-backward Kalman smoothing paper 001 compares its SU estimator with. Back
 with ``F_k`` the Jacobian at ``x_k|k``, recomputed. A re-acquisition or a heading set-up resets the filter's
 prior; the smoother does not carry information back across such a step. A restart of the filter (numerical
 failure, data gap, :meth:`reset`) empties the window.
+
+:class:`RtsBatch` (``rts-batch``) is the offline form for replays: ``push`` returns nothing and ``finish()`` the
+smoothed drive, as ``su-batch`` does.
 """
 
 from __future__ import annotations
@@ -27,8 +30,9 @@ from sumhe.baseline.ekf import Ekf
 from sumhe.baseline.kinematics import OMEGA, PHI, E, FloatArray, N, Noise, V
 from sumhe.baseline.stream import Inputs
 from sumhe.config import Config
-from sumhe.estimator.base import StateEstimate
+from sumhe.estimator.base import LocalFix, StateEstimate
 from sumhe.estimator.settings import EstimatorSettings
+from sumhe.messages import CanSample
 
 HISTORY_S = 300.0
 """Default length of the smoothing window (s): ~1 kB per CAN speed sample, ~15 MB at 50 Hz."""
@@ -56,8 +60,8 @@ class Rts(Ekf):
     def __init__(
         self, settings: EstimatorSettings | None = None, noise: Noise | None = None, history_s: float = HISTORY_S
     ) -> None:
-        if not (math.isfinite(history_s) and history_s > 0):
-            raise ValueError(f"history_s: must be a positive number, got {history_s!r}")
+        if not history_s > 0:
+            raise ValueError(f"history_s: must be a positive number of seconds (inf: all), got {history_s!r}")
         self.history_s = history_s
         super().__init__(settings, noise)
 
@@ -65,8 +69,9 @@ class Rts(Ekf):
     def from_config(cls, config: Config) -> Rts:
         return cls(config.estimator)
 
-    def smoothed(self) -> list[StateEstimate]:
-        """The estimates ``push`` returned within the window, smoothed with every sample seen since."""
+    def smoothed(self, epochs_only: bool = False) -> list[StateEstimate]:
+        """The estimates ``push`` returned within the window (only those of GNSS epochs with ``epochs_only``),
+        smoothed with every sample seen since."""
         if not self._steps:
             return []
         steps = list(self._steps)
@@ -82,7 +87,9 @@ class Rts(Ekf):
             xs[i] = kin.wrap_state(cur.x_post + C @ kin.state_difference(xs[i + 1], nxt.x_prior))
         first = steps[0].index
         out = []
-        for index, est in self._reports:
+        for index, est, epoch in self._reports:
+            if epochs_only and not epoch:
+                continue
             step = steps[index - first]
             x = xs[index - first]
             if est.t != step.t:
@@ -102,7 +109,7 @@ class Rts(Ekf):
     def _reset_filter(self) -> None:
         super()._reset_filter()
         self._steps: deque[_Step] = deque()
-        self._reports: deque[tuple[int, StateEstimate]] = deque()
+        self._reports: deque[tuple[int, StateEstimate, bool]] = deque()
 
     def _start(self, x0: FloatArray, P0: FloatArray) -> None:
         super()._start(x0, P0)
@@ -127,8 +134,37 @@ class Rts(Ekf):
         super()._init_heading(phi, sigma)
         self._steps[-1].restart = True
 
-    def _on_report(self, estimate: StateEstimate) -> None:
-        self._reports.append((self._steps[-1].index, estimate))
+    def _on_report(self, estimate: StateEstimate, epoch: bool) -> None:
+        self._reports.append((self._steps[-1].index, estimate, epoch))
 
     def _window(self) -> int:
         return len(self._steps)
+
+
+class RtsBatch(Rts):
+    """Offline RTS smoothing of a whole recorded drive (``rts-batch``), the peer of ``su-batch``.
+
+    ``push`` runs the EKF and returns nothing; :meth:`finish` returns the smoothed estimates of every GNSS epoch
+    (fixes and outage epochs) of the drive. The window is the whole drive: memory grows by ~1 kB per CAN speed
+    sample (~200 MB per hour at 50 Hz).
+    """
+
+    name = "rts-batch"
+
+    def __init__(
+        self, settings: EstimatorSettings | None = None, noise: Noise | None = None, history_s: float = math.inf
+    ) -> None:
+        super().__init__(settings, noise, history_s)
+
+    @classmethod
+    def from_config(cls, config: Config) -> RtsBatch:
+        return cls(config.estimator)
+
+    def push(self, sample: LocalFix | CanSample) -> list[StateEstimate]:
+        """Feed one sample; nothing is returned before :meth:`finish`."""
+        super().push(sample)
+        return []
+
+    def finish(self) -> list[StateEstimate]:
+        """The smoothed estimates of the drive's GNSS epochs (call once, at the end of the drive)."""
+        return self.smoothed(epochs_only=True)

@@ -206,7 +206,8 @@ class RecursiveEstimator(ABC):
             return self.settings.step_s
         d = np.asarray(self._intervals)
         median = float(np.median(d))
-        return float(np.mean(d[np.abs(d - median) <= 0.5 * median]))
+        regular = d[np.abs(d - median) <= 0.5 * median]
+        return float(np.mean(regular)) if regular.size else median
 
     # ---- hooks ------------------------------------------------------------------------------------------------
 
@@ -242,8 +243,8 @@ class RecursiveEstimator(ABC):
     def _mean(self) -> FloatArray:
         """The state estimate at ``t_state``."""
 
-    def _on_report(self, estimate: StateEstimate) -> None:  # noqa: B027 - an optional hook
-        """Called with every estimate returned (the RTS smoother records them)."""
+    def _on_report(self, estimate: StateEstimate, epoch: bool) -> None:  # noqa: B027 - an optional hook
+        """Called with every estimate returned, ``epoch`` False for the CAN-rate ones (the RTS records them)."""
 
     def _window(self) -> int:
         return 0
@@ -281,7 +282,7 @@ class RecursiveEstimator(ABC):
         self._can_update(inputs)
         self._yaw_sum, self._yaw_n = 0.0, 0
         self._counts["can_updates"] += 1
-        out.append(self._report(t, self._status))
+        out.append(self._report(t, self._status, epoch=False))
         return out
 
     def _push_fix(self, fix: LocalFix) -> list[StateEstimate]:
@@ -456,7 +457,7 @@ class RecursiveEstimator(ABC):
         pending.commit()
         return "ok"
 
-    def _report(self, t: float, status: GpsStatus) -> StateEstimate:
+    def _report(self, t: float, status: GpsStatus, epoch: bool = True) -> StateEstimate:
         x = self._mean()
         if t != self._t_state:
             x = step(x, t - self._t_state)
@@ -474,7 +475,7 @@ class RecursiveEstimator(ABC):
             window=self._window(),
             solve_ms=1000.0 * (time.perf_counter() - self._push_t0),
         )
-        self._on_report(estimate)
+        self._on_report(estimate, epoch)
         return estimate
 
     def _count(self, key: str, msg: str, *args: object) -> None:

@@ -41,17 +41,42 @@ log = logging.getLogger(__name__)
 
 TUNED_NOISE: dict[str, Noise] = {
     "ekf": Noise(
+        pos_rw=0.00078125,
+        heading_rw=0.000125,
+        speed_rw=0.5,
+        yaw_rate_rw=0.009375,
+        bias_rw=2.5e-05,
+        gps_scale=2.0,
+    ),
+    "pf": Noise(
         pos_rw=0.003125,
-        heading_rw=0.0005,
+        heading_rw=1.5625e-05,
+        speed_rw=0.5,
+        yaw_rate_rw=0.009375,
+        bias_rw=5e-05,
+        scale_rw=8e-05,
+        gps_scale=2.0,
+    ),
+    "imm-straight": Noise(
+        pos_rw=0.00078125,
+        heading_rw=0.000125,
         speed_rw=0.5,
         yaw_rate_rw=0.01875,
+        bias_rw=2.5e-05,
+        gps_scale=2.0,
+    ),
+    "imm-turn": Noise(
+        pos_rw=0.003125,
+        heading_rw=0.000125,
+        speed_rw=0.5,
+        yaw_rate_rw=0.0375,
         bias_rw=2.5e-05,
         gps_scale=2.0,
     ),
 }
 """Tuned :class:`Noise` of each estimator (``rts`` runs the EKF's); the IMM's two models are ``imm-straight``
 and ``imm-turn``."""
-IMM_SOJOURN_S = (10.0, 3.0)
+IMM_SOJOURN_S = (10.0, 0.75)
 """Mean time (s) the IMM stays in the straight and in the turning model."""
 PF_PARTICLES = 500
 
@@ -127,11 +152,11 @@ def case_settings(case: Case) -> EstimatorSettings:
 
 @dataclass(frozen=True)
 class Run:
-    """One estimator over one case: every estimate, which of them are GNSS epochs, the time per pushed sample."""
+    """One estimator over one case: every estimate, which of them are GNSS epochs, the time of each push (ms)."""
 
     estimates: list[StateEstimate]
     is_epoch: list[bool]
-    ms_per_sample: float
+    push_ms: np.ndarray
 
     @property
     def epochs(self) -> list[StateEstimate]:
@@ -149,12 +174,14 @@ def run_case(estimator: RecursiveEstimator, case: Case) -> Run:
 
     estimates: list[StateEstimate] = []
     is_epoch: list[bool] = []
-    t0 = time.perf_counter()
-    for sample in case.samples:
+    push_ms = np.empty(len(case.samples))
+    for i, sample in enumerate(case.samples):
+        t0 = time.perf_counter()
         out = estimator.push(sample)
+        push_ms[i] = 1000.0 * (time.perf_counter() - t0)
         estimates.extend(out)
         is_epoch.extend(isinstance(sample, LocalFix) or e.t != sample.t for e in out)
-    return Run(estimates, is_epoch, 1000.0 * (time.perf_counter() - t0) / len(case.samples))
+    return Run(estimates, is_epoch, push_ms)
 
 
 @dataclass(frozen=True)
@@ -197,18 +224,45 @@ SEARCH_FACTORS = (0.25, 0.5, 2.0, 4.0)
 SEARCH_PARAMETERS: dict[str, tuple[str, ...]] = {
     "ekf": ("pos_rw", "heading_rw", "speed_rw", "yaw_rate_rw", "bias_rw", "gps_scale", "course_rad"),
     "ukf": ("pos_rw", "heading_rw", "yaw_rate_rw", "gps_scale"),
-    "pf": ("pos_rw", "heading_rw", "bias_rw", "scale_rw", "gps_scale", "course_rad"),
-    "imm": ("turn.yaw_rate_rw", "turn.heading_rw", "turn.pos_rw", "straight.yaw_rate_rw", "sojourn_turn_s"),
+    "pf": (
+        "pos_rw",
+        "heading_rw",
+        "bias_rw",
+        "scale_rw",
+        "gps_scale",
+        "course_rad",
+        "can_speed_mps",
+        "can_yaw_rate_rps",
+    ),
+    "imm": (
+        "straight.yaw_rate_rw",
+        "straight.heading_rw",
+        "turn.yaw_rate_rw",
+        "turn.heading_rw",
+        "turn.pos_rw",
+        "sojourn_turn_s",
+    ),
 }
 """What the search tunes per estimator (an estimator not tuned yet starts from the EKF's values)."""
+
+
+IMM_TURN_FIELDS = ("pos_rw", "heading_rw", "yaw_rate_rw")
+"""Where the IMM's turning model is at least as loud as its straight one (the search keeps it so) ..."""
+IMM_MIN_CONTRAST = 2.0
+"""... with at least this multiple of its yaw-rate noise (without it the search makes the two models equal:
+an EKF) ..."""
+IMM_TURN_START = 4.0
+"""... and this multiple of all three when the search starts."""
 
 
 def start_values(name: str) -> dict[str, Any]:
     """Where the search of ``name`` starts: the current defaults (for the IMM, its two models and sojourn times)."""
     if name == "imm":
+        straight = tuned_noise("imm-straight")
+        louder = {f: IMM_TURN_START * getattr(straight, f) for f in IMM_TURN_FIELDS}
         return {
-            "straight": tuned_noise("imm-straight"),
-            "turn": tuned_noise("imm-turn"),
+            "straight": straight,
+            "turn": TUNED_NOISE.get("imm-turn", dataclasses.replace(straight, **louder)),
             "sojourn_straight_s": IMM_SOJOURN_S[0],
             "sojourn_turn_s": IMM_SOJOURN_S[1],
         }
@@ -250,6 +304,10 @@ def build(name: str, settings: EstimatorSettings, values: dict[str, Any] | None 
         values = start_values(name)
     if name == "imm":
         models = (values["straight"], values["turn"])
+        if any(getattr(models[1], f) < getattr(models[0], f) for f in IMM_TURN_FIELDS) or (
+            models[1].yaw_rate_rw < IMM_MIN_CONTRAST * models[0].yaw_rate_rw
+        ):
+            raise ValueError(f"the turning model needs {IMM_MIN_CONTRAST:g}x the straight one's yaw-rate noise")
         return Imm(settings, models=models, sojourn_s=(values["sojourn_straight_s"], values["sojourn_turn_s"]))
     classes: dict[str, Callable[..., RecursiveEstimator]] = {
         "dead-reckoning": DeadReckoning,
@@ -303,24 +361,26 @@ def summary(errors: np.ndarray) -> tuple[float, float, float]:
 def evaluate(names: Sequence[str], cases: Sequence[Case], write: Callable[[str], None]) -> None:
     """A table of position errors per estimator over ``cases`` (the RTS also smoothed)."""
     head = "".join(f" | {f'outage {int(L)} s':^20}" for L in OUTAGE_LENGTHS_S)
-    write(f"{'estimator':<15}{head} | {'with GPS':^20} | ms/sample")
-    write(f"{'':<15}" + " | mean   p95    max   " * (len(OUTAGE_LENGTHS_S) + 1) + " |")
+    write(f"{'estimator':<15}{head} | {'with GPS':^20} | ms per sample")
+    write(f"{'':<15}" + " | mean   p95    max   " * (len(OUTAGE_LENGTHS_S) + 1) + " | mean   p99    max")
     for name in names:
         rows: dict[str, list[Errors]] = {name: []}
         ms = []
         for case in cases:
             estimator = build(name, case_settings(case))
             run = run_case(estimator, case)
-            ms.append(run.ms_per_sample)
+            ms.append(run.push_ms)
             rows[name].append(position_errors(case, run.epochs))
             if name == "rts":
                 smoothed = run.select(estimator.smoothed())  # type: ignore[attr-defined]
                 rows.setdefault("rts-smoothed", []).append(position_errors(case, smoothed))
+        timing = np.concatenate(ms)
+        cost = f"{timing.mean():6.3f} {np.percentile(timing, 99):6.3f} {timing.max():6.2f}"
         for label, errs in rows.items():
             cells = [summary(np.concatenate([e.outage[L] for e in errs])) for L in OUTAGE_LENGTHS_S]
             cells.append(summary(np.concatenate([e.gps for e in errs])))
             text = "".join(" | " + " ".join(f"{v:6.2f}" for v in c) for c in cells)
-            write(f"{label:<15}{text} | {np.mean(ms):.3f}")
+            write(f"{label:<15}{text} | {cost}")
 
 
 def _seeds(text: str) -> list[int]:

@@ -10,6 +10,8 @@
   :mod:`sumhe.baseline` (built through the registry). After each outage (up to ``batch_max_outage_s``), once
   ``after`` GNSS epochs are back, the MHE's smoothed window over the outage is compared with the batch estimate
   (:func:`~sumhe.estimator.batch.estimate_batch`) of the same span (``before`` + outage + ``after`` epochs).
+* Multipath: drives with multipath jumps (white GNSS errors otherwise): the error of every estimate, per
+  estimator (what each gate lets through).
 * Replay speed: one long drive through the MHE (every decoded CAN sample pushed, as a replay does), in x real time.
 """
 
@@ -53,6 +55,7 @@ class MheBenchSettings:
 
     scenarios: tuple[str, ...] = ("urban", "highway", "offroad")
     seeds: tuple[int, ...] = (21, 22)
+    gps_errors: tuple[str, ...] = ("walk", "gaussian")
     outage_lengths_s: tuple[float, ...] = (5.0, 10.0, 30.0)
     duration_s: float = 300.0
     recover_s: float = 20.0
@@ -63,9 +66,12 @@ class MheBenchSettings:
     nlp_latency_epochs: int = 150
     replay_s: float = 3600.0
     batch_max_outage_s: float = 10.0
+    multipath_per_min: float = 3.0
     before: int = 10
     after: int = 10
-    estimator: EstimatorSettings = field(default_factory=EstimatorSettings)
+    estimator: EstimatorSettings = field(
+        default_factory=lambda: EstimatorSettings(can_delay_s=SimSettings().can_sensor_delay_s)
+    )
 
     @classmethod
     def quick(cls) -> MheBenchSettings:
@@ -223,12 +229,13 @@ class _Smoothed:
 
 
 def accuracy_drive(
-    scenario: str, seed: int, length_s: float, bs: MheBenchSettings, progress: Progress | None = None
+    scenario: str, seed: int, gps_error: str, length_s: float, bs: MheBenchSettings, progress: Progress | None = None
 ) -> dict[str, object]:
     """One drive with outages of ``length_s``: per estimator the errors inside outages; per outage the MHE's
     smoothed window against the batch estimate (for short outages)."""
     plan = outage_plan(bs.duration_s, length_s, bs.recover_s)
-    drive = simulate(SimSettings(scenario=scenario, seed=seed, duration_s=bs.duration_s, outages=plan))
+    sim = SimSettings(scenario=scenario, seed=seed, duration_s=bs.duration_s, outages=plan, gps_error=gps_error)
+    drive = simulate(sim)
     stream = drive_stream(drive)
     start = drive.settings.start_unix_s
     outages = [(start + s, start + s + n) for s, n in plan]
@@ -256,7 +263,7 @@ def accuracy_drive(
         result["smoothed"], result["batch"] = smoothed, batch
     if progress is not None:
         progress(
-            f"  {scenario} seed {seed} outages {length_s:.0f} s: "
+            f"  {scenario} seed {seed} {gps_error} outages {length_s:.0f} s: "
             + ", ".join(f"{k} {np.mean(v):.2f} m" for k, v in errors.items() if len(v))
         )
     return result
@@ -299,6 +306,41 @@ def _after_outage(
         north_b = np.interp(grid_t, res.t, res.north)
         batch_err.append(float(np.mean(np.hypot(east_b - truth.east, north_b - truth.north))))
     return smoothed_err, batch_err
+
+
+def multipath_report(bs: MheBenchSettings, say: Progress) -> list[str]:
+    """Error of every estimate (m) on drives with multipath jumps (5-50 m for 1-10 s) and white GNSS errors:
+    what the gates let through."""
+    names = ["mhe", *bs.baselines]
+    pooled: dict[str, list[NDArray]] = {n: [] for n in names}
+    config = Config(estimator=bs.estimator)
+    for scenario in bs.scenarios:
+        say(f"multipath {scenario}")
+        sim = SimSettings(
+            scenario=scenario,
+            seed=bs.seeds[0],
+            duration_s=bs.duration_s,
+            gps_error="gaussian",
+            multipath_per_min=bs.multipath_per_min,
+        )
+        drive = simulate(sim)
+        stream = drive_stream(drive)
+        for name in names:
+            try:
+                est = MovingHorizonEstimator(bs.estimator) if name == "mhe" else make_estimator(name, config)
+            except SumheError as e:
+                log.warning("baseline %s not available: %s", name, e)
+                continue
+            pooled[name].append(position_errors(drive, run_stream(est, stream).estimates)[1])
+    lines = [
+        f"multipath: {bs.multipath_per_min:g} jumps per minute of 5-50 m lasting 1-10 s, white GNSS errors, "
+        f"{len(bs.scenarios)} drives of {bs.duration_s:.0f} s; error of every estimate (m):"
+    ]
+    for name in names:
+        if pooled[name]:
+            mean, p95, mx = _stats(np.concatenate(pooled[name]))
+            lines.append(f"    {name:15s} mean {mean:6.2f}  p95 {p95:6.2f}  max {mx:6.2f}")
+    return lines
 
 
 # ---- replay --------------------------------------------------------------------------------------------------------
@@ -367,6 +409,8 @@ def run_benchmark(bs: MheBenchSettings, progress: Progress | None = None) -> lis
     )
     lines.append("")
     lines.append(_accuracy_report(bs, say))
+    lines.append("")
+    lines += multipath_report(bs, say)
     if bs.replay_s <= 0:
         return lines
     lines.append("")
@@ -384,8 +428,17 @@ def run_benchmark(bs: MheBenchSettings, progress: Progress | None = None) -> lis
 def _accuracy_report(bs: MheBenchSettings, say: Progress) -> str:
     lines = [
         "accuracy: error of the newest state inside outages (m), all estimates (GNSS epochs and CAN rate); "
-        f"{len(bs.scenarios)} scenarios x {len(bs.seeds)} seeds, {bs.duration_s:.0f} s drives"
+        f"{len(bs.scenarios)} scenarios x {len(bs.seeds)} seeds, {bs.duration_s:.0f} s drives, CAN delay "
+        f"calibrated ({bs.estimator.can_delay_s} s) for every estimator"
     ]
+    for gps_error in bs.gps_errors:
+        lines.append(f" GNSS errors {gps_error!r}:")
+        lines += _accuracy_lines(bs, gps_error, say)
+    return "\n".join(lines)
+
+
+def _accuracy_lines(bs: MheBenchSettings, gps_error: str, say: Progress) -> list[str]:
+    lines: list[str] = []
     names = ["mhe", *bs.baselines]
     for length in bs.outage_lengths_s:
         pooled: dict[str, list[NDArray]] = {n: [] for n in names}
@@ -394,8 +447,8 @@ def _accuracy_report(bs: MheBenchSettings, say: Progress) -> str:
         count = 0
         for scenario in bs.scenarios:
             for seed in bs.seeds:
-                say(f"accuracy {scenario} seed {seed} outages {length:.0f} s")
-                r = accuracy_drive(scenario, seed, length, bs, say)
+                say(f"accuracy {scenario} seed {seed} {gps_error} outages {length:.0f} s")
+                r = accuracy_drive(scenario, seed, gps_error, length, bs, say)
                 errs = r["errors"]
                 assert isinstance(errs, dict)
                 for n in names:
@@ -427,4 +480,4 @@ def _accuracy_report(bs: MheBenchSettings, say: Progress) -> str:
                     f"    after the outage ({bs.after} epochs back): MHE smoothed window over the outage mean "
                     f"{sm:.2f} m vs batch {bt:.2f} m ({sm / bt:.2f}x, {len(ok)} outages)"
                 )
-    return "\n".join(lines)
+    return lines

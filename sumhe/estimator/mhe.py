@@ -8,25 +8,28 @@ from the previous solution shifted by the steps the window slid; the newest stat
 Between epochs, each CAN speed sample gives an estimate at its own time: the newest solution moved on with the CAN
 samples since, so the position sent is that of the newest CAN sample. ``docs/mhe.md`` describes the choices.
 
-* Noise bounds: they are not estimated per epoch. The output bounds R are the per-epoch error allowances of
-  :mod:`sumhe.estimator.grid` (the r caps of the batch estimator), the state bounds Q the q caps (the vehicle's
-  limits, :func:`sumhe.estimator.bounds.q_caps`) scaled with each step's length: the estimate is the centre of
-  the set-membership set of the prior box (11), as the batch estimator's ``objective = "caps"``. On a 5 s window
-  the MAP of (q, r) is noisy, and bounds near the derived floors make the boxes active (slow, and measured worse:
-  ``docs/mhe.md``).
-* Arrival box (information leaving the window): when steps are dropped, the first state is held to a box around
-  the previous solution's estimate of it. Its half-widths ``alpha`` are an interval bound carried along:
-  ``alpha <- min(alpha, m_k)`` with ``m_k`` what the dropped step's outputs bound directly (a position by its
-  allowance, the azimuth by the course's, speed and yaw rate by the CAN allowances), then moved one step on,
-  ``alpha <- |dT/dx| alpha + 2 Q_k`` (the set grows by one step of state noise, twice because the box is
-  centred on the estimate, not on the set). The CAN bias and scale get a fixed half-width, ``mhe_arrival_theta``
-  times their limits. Inside the box, ``|(x_0 - c) / alpha|^2`` is added to the objective (the variance of a
-  uniform prior on the box).
+* Noise bounds are not estimated per epoch. The output bounds R are the per-step error allowances (as in
+  :mod:`sumhe.estimator.grid`: ``r_cap_sigmas`` sigmas of the receiver's accuracy; for CAN, of the mean of the
+  samples averaged), the state bounds Q the q caps (the vehicle's limits, :func:`mhe_q_caps`) scaled with each
+  step's length: the estimate is the centre of the set of the prior box (11), as the batch estimator's
+  ``objective = "caps"``. (On a 5 s window the MAP of (q, r) is noisy, and bounds near the derived
+  floors make the boxes active: slower and less accurate, ``docs/mhe.md``.)
+* Information leaving the window is kept twice. (1) The arrival box: when steps are dropped, the first state is
+  held to a box around the previous solution's estimate of it, of half-widths ``alpha`` carried as an interval
+  bound: ``alpha <- min(alpha, m_k)`` with ``m_k`` what the dropped step's outputs bound directly (a position by
+  its allowance, the azimuth by the course's, speed and yaw rate by the CAN allowances and the CAN states' limits),
+  then moved one step on, ``alpha <- |dT/dx| alpha + 2 Q_k`` (the set grows by one step of state noise, twice
+  because the box is centred on the estimate, not on the set). (2) The arrival cost ``(z_0 - p)' W (z_0 - p)`` of
+  the least-squares objective: the dropped steps' terms (their outputs, their state noise and the previous arrival
+  cost), linearised at the solution, with the dropped states eliminated (a Schur complement: what an information
+  filter carries). It keeps the correlations a box cannot, of the speed scale with the positions above all: the
+  scale is seen over the whole drive, not just over one window. The CAN bias and scale may drift by
+  ``mhe_theta_drift`` of their limits per square-root minute.
 * Gate: a fix whose distance to the prediction exceeds its position allowance + ``mhe_gate_m`` +
   ``mhe_gate_drift`` x the distance driven since the last fix used is rejected (``gps="rejected"``) and left out of
   the window, so one multipath jump cannot widen the bounds. The gate widens with the distance driven, so after
-  a long outage the first good fixes are taken; fixes rejected for ``GATE_RESET_S`` without a break restart the
-  estimator at the newest fix.
+  a long outage the first good fixes are taken; fixes rejected for ``GATE_RESET_S`` (30 s) without a break restart
+  the estimator at the newest fix.
 * Failures: a failed or infeasible solve is retried with Q, R and the arrival box widened by ``widen_factor``
   (001 algorithm 3.3), at most ``mhe_max_retries`` times; then the epoch's estimate is the model prediction with
   ``mode="predict"``. An estimate is never skipped because of the solver.
@@ -46,7 +49,6 @@ from collections import Counter, deque
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-import casadi as ca
 import numpy as np
 from numpy.typing import NDArray
 
@@ -55,12 +57,12 @@ from sumhe.errors import ConfigError
 from sumhe.estimator.base import LocalFix, StateEstimate
 from sumhe.estimator.batch import model_for, state_box
 from sumhe.estimator.bounds import q_caps
-from sumhe.estimator.grid import GGA_RTK_FIXED, GGA_RTK_FLOAT, gps_sigma_m
+from sumhe.estimator.grid import CAN_USED, GGA_RTK_FIXED, GGA_RTK_FLOAT, gps_sigma_m
 from sumhe.estimator.settings import EstimatorSettings
-from sumhe.estimator.sqp import SolveResult, WindowProblem, WindowSolver, make_solver
+from sumhe.estimator.sqp import SolveResult, WindowProblem, WindowSolver, make_solver, step_jacobians
 from sumhe.estimator.window import Window, WindowPolicy, plan_window
 from sumhe.messages import CanSample, GpsStatus
-from sumhe.model.su import BIAS_STATE, SCALE_STATE
+from sumhe.model.su import BIAS_STATE, SCALE_STATE, SuModel
 
 log = logging.getLogger(__name__)
 
@@ -68,14 +70,29 @@ PERIOD_HISTORY = 16
 MAX_PERIOD_S = 5.0
 MAX_DATA_GAP_S = 10.0
 """No sample at all for this long restarts the estimator at the next valid fix."""
-GATE_RESET_S = 10.0
-"""Valid fixes rejected for this long without a break: the estimate is what is wrong; restart at the newest fix."""
+GATE_RESET_S = 30.0
+"""Valid fixes rejected for this long without a break (longer than a multipath episode): the estimate is what is
+wrong; restart at the newest fix."""
+PRIOR_POSITION_M = 1000.0
+"""Half-width of the weak prior on the first position (m) at a start."""
 CAN_KEEP_S = 2.0
 """CAN samples older than the newest step by more than this are forgotten."""
 MIN_HALF_S = 0.005
 """A step's CAN outputs are the sample nearest to it while the samples reach less than this past it (s)."""
 STARTUP_ITERATIONS = 3
 """SQP iterations per epoch until the window first reaches its normal length (the start point is rough)."""
+EPS = 1e-9
+"""Regularisation of the arrival cost's eliminations (directions without information)."""
+
+
+def mhe_q_caps(model: SuModel, h: float, settings: EstimatorSettings) -> NDArray[np.float64]:
+    """The MHE's state-noise bounds for a step of ``h`` s: the q caps (vehicle limits,
+    :func:`~sumhe.estimator.bounds.q_caps`), those of the integrated states (positions, azimuth; ``q_power`` 2)
+    times ``mhe_trapezoid_q`` with the trapezoidal transition, whose one-step error is O(h^3), not Euler's O(h^2)."""
+    caps = q_caps(model, h, settings)
+    if settings.discretisation == "trapezoid":
+        caps = np.where(np.array(model.q_power) == 2, settings.mhe_trapezoid_q * caps, caps)
+    return caps
 
 
 @dataclass
@@ -123,9 +140,8 @@ class MovingHorizonEstimator:
         if s.model != "su5":
             raise ConfigError(f"estimator.model: the moving-horizon estimator supports su5 only, got {s.model!r}")
         self.settings = s
-        self.model = model_for(s)
+        self.model = model = model_for(s)
         self.policy = WindowPolicy.from_settings(s)
-        model = self.model
         self._m, self._md, self._n = model.n_states, model.n_dynamic, model.n_outputs
         self._ie, self._in = model.position
         self._iphi, self._iv, self._iw = model.index("phi"), model.index("v"), model.index("omega")
@@ -137,19 +153,24 @@ class MovingHorizonEstimator:
         lo, hi = state_box(model, 1, s)
         self._lo, self._hi = lo[0], hi[0]
         self._theta_range = (self._hi[self._md :] - self._lo[self._md :]) / 2.0
-        self._theta_floor = self.settings.mhe_arrival_theta * self._theta_range
         self._window = Window(self.policy.max_steps + 1, self._m, self._n, gps_column=self._jpos[0])
-        self._buckets = self._bucket_sizes()
+        self._buckets = tuple(
+            sorted({*range(self.policy.steps, self.policy.max_steps, s.mhe_bucket_steps), self.policy.max_steps})
+        )
         self._solvers: dict[int, WindowSolver] = {}
-        self._jac_step = self._step_jacobian()
+        self._step_jac = step_jacobians(model)
         self._counts: Counter[str] = Counter()
         self.last_result: SolveResult | None = None
         self.reset()
 
     @classmethod
     def from_config(cls, config: Config) -> MovingHorizonEstimator:
-        """The estimator of ``config.estimator`` (the registry's constructor)."""
-        return cls(config.estimator)
+        """The estimator of ``config.estimator`` (the registry's constructor), with the ``sqp`` solvers of every
+        window size built now (half a second) rather than during the first long outage."""
+        estimator = cls(config.estimator)
+        if config.estimator.mhe_solver == "sqp":
+            estimator.warm_up()
+        return estimator
 
     # ---- the Estimator protocol ---------------------------------------------------------------------------------
 
@@ -167,11 +188,12 @@ class MovingHorizonEstimator:
         self._period = self.settings.step_s
         self._delay = 0.0
         self._Q = np.zeros((0, self._md))
+        self._q_caps = mhe_q_caps(self.model, self._period, self.settings)
         self._alpha = np.full(self._md, np.inf)
-        self._centre = np.zeros(self._m)
-        self._theta_centre: NDArray[np.float64] | None = None
-        self._theta_half = self._theta_range.copy()
-        self._theta_info: NDArray[np.float64] | None = None
+        self._box_centre = np.zeros(self._m)
+        self._prior = np.zeros(self._m)
+        self._weight = np.zeros((self._m, self._m))
+        self._theta0: NDArray[np.float64] | None = None
         self._prop: list[float] = []
         self._t_prop = -math.inf
         self._status: GpsStatus = "outage"
@@ -185,16 +207,16 @@ class MovingHorizonEstimator:
         """Feed one sample (time-ordered); returns the estimates it produced (contract in
         :mod:`sumhe.estimator.base`). Never raises for bad data: it is counted and dropped."""
         self._push_t0 = time.perf_counter()
+        if isinstance(sample, CanSample):
+            return self._push_can(sample) if sample.quantity in CAN_USED else []
         if isinstance(sample, LocalFix):
             return self._push_fix(sample)
-        if isinstance(sample, CanSample):
-            return self._push_can(sample)
         self._count("bad_samples", "not a LocalFix or CanSample: %s", type(sample).__name__)
         return []
 
     def stats(self) -> Mapping[str, float | int | str]:
-        """Counters (epochs, fixes used/rejected, outage epochs, solves, widenings, fallbacks, dropped samples),
-        the window length and the nominal period."""
+        """Counters (epochs, fixes used/rejected, outage epochs, solves, banded solves, widenings, fallbacks,
+        dropped samples), the window length and the nominal period."""
         out: dict[str, float | int | str] = {
             "estimator": self.name,
             "solver": self.settings.mhe_solver,
@@ -214,21 +236,19 @@ class MovingHorizonEstimator:
         return self._window.t.copy(), self._window.x.copy()
 
     def warm_up(self) -> None:
-        """Build the solver of every window size now rather than at first use (each takes milliseconds to
-        seconds, once)."""
+        """Build the solver of every window size now rather than at first use (milliseconds each for ``sqp``,
+        up to seconds for the NLP solvers)."""
         for size in self._buckets:
             self._solver(size)
 
     # ---- stream handling ----------------------------------------------------------------------------------------
 
     def _push_can(self, sample: CanSample) -> list[StateEstimate]:
-        q, value = sample.quantity, sample.value
-        t = sample.t - self.settings.can_delay_s
+        q, value, t = sample.quantity, sample.value, sample.t
         if not (isinstance(t, float | int) and isinstance(value, float | int) and math.isfinite(t)):
             self._count("bad_samples", "CAN %s sample with a non-finite time or value", q)
             return []
-        if q not in ("speed", "yaw_rate"):
-            return []
+        t -= self.settings.can_delay_s
         store = self._speed if q == "speed" else self._yaw
         if t < store.newest:
             self._count("dropped_backwards", "CAN %s sample %.3f s back in time dropped", q, store.newest - t)
@@ -242,10 +262,15 @@ class MovingHorizonEstimator:
         if not self._started:
             return []
         out = self._missed_epochs(t - self._delay)
-        if q == "speed" and t > self._t_prop:
+        if q != "speed":
+            return out
+        if t > self._t_prop:
             self._prop = self._advance(self._prop, self._t_prop, t)
             self._t_prop = t
             out.append(self._estimate(self._prop, t, self._status, "can"))
+        else:  # a sample older than the newest state (an epoch newer than the CAN data): the model run back
+            x = self.model.transition(self._prop, self._prop, t - self._t_prop, math)
+            out.append(self._estimate(x, t, self._status, "can"))
         return out
 
     def _push_fix(self, fix: LocalFix) -> list[StateEstimate]:
@@ -257,7 +282,7 @@ class MovingHorizonEstimator:
             self._count("dropped_backwards", "GNSS epoch %.3f s back in time dropped", self._last_epoch - t)
             return []
         usable = self._usable(fix)
-        if self._last_real_epoch is not None and t - self._last_real_epoch <= MAX_PERIOD_S:
+        if self._last_real_epoch is not None and 0.0 < t - self._last_real_epoch <= MAX_PERIOD_S:
             self._intervals.append(t - self._last_real_epoch)
             self._period = float(np.median(self._intervals))
         self._last_real_epoch = t
@@ -267,7 +292,6 @@ class MovingHorizonEstimator:
             self._delay = float(np.median(self._delays))
         self._check_gap(t)
         if not self._started:
-            self._last_epoch = t
             return [self._begin(fix)] if usable else []
         out = self._missed_epochs(t)
         out.append(self._epoch(t, fix if usable else None))
@@ -285,16 +309,22 @@ class MovingHorizonEstimator:
     def _check_gap(self, t: float) -> None:
         if self._started and t - self._t_last > MAX_DATA_GAP_S:
             self._count("restarts", "no data for %.1f s: restarting at the next fix", t - self._t_last)
-            speed, yaw = self._speed, self._yaw
-            self.reset()
-            self._speed, self._yaw = speed, yaw
+            self._restart()
         self._t_last = max(self._t_last, t)
+
+    def _restart(self) -> None:
+        """Start over at the next valid fix, keeping the CAN samples, the stream's timing and the CAN states."""
+        keep = (self._speed, self._yaw, self._last_real_epoch, self._intervals, self._period, self._t_last)
+        theta = self._window.x[-1, self._md :].copy() if len(self._window) else None
+        self.reset()
+        self._speed, self._yaw, self._last_real_epoch, self._intervals, self._period, self._t_last = keep
+        self._theta0 = theta
 
     def _missed_epochs(self, t_fix_clock: float) -> list[StateEstimate]:
         """Outage epochs for the epochs GNSS missed up to ``t_fix_clock`` (silence > 1.5 periods)."""
         out: list[StateEstimate] = []
         period = self.period_s
-        while self._last_epoch is not None and t_fix_clock - self._last_epoch > 1.5 * period:
+        while self._started and self._last_epoch is not None and t_fix_clock - self._last_epoch > 1.5 * period:
             self._counts["missed_epochs"] += 1
             out.append(self._epoch(self._last_epoch + period, None))
         return out
@@ -302,22 +332,34 @@ class MovingHorizonEstimator:
     # ---- epochs ---------------------------------------------------------------------------------------------------
 
     def _begin(self, fix: LocalFix) -> StateEstimate:
-        """Start at the first valid fix: position from it, azimuth from its course/heading (else 0), speed and
-        yaw rate from CAN, no bias, scale 1."""
+        """Start at a valid fix: position from it, azimuth from its course/heading (else 0), speed and yaw rate
+        from CAN, the CAN states from before a restart or none (bias 0, scale 1)."""
+        s, md = self.settings, self._md
         x = np.zeros(self._m)
         x[self._ie], x[self._in] = fix.east_m, fix.north_m
-        angle = self._fix_angle(fix, self._can_speed_at(fix.t))
+        speed, yaw = self._speed.at(fix.t, s.can_max_gap_s), self._yaw.at(fix.t, s.can_max_gap_s)
+        angle = self._fix_angle(fix, speed)
         x[self._iphi] = angle[0] if angle is not None else 0.0
-        speed, yaw = self._can_speed_at(fix.t), self._yaw.at(fix.t, self.settings.can_max_gap_s)
         x[self._iv] = speed if speed is not None else 0.0
         x[self._iw] = yaw if yaw is not None else 0.0
         if self._ik is not None:
             x[self._ik] = 1.0
-        if self._theta_centre is not None:
-            x[self._md :] = self._theta_centre
-        y, avail, allow = self._outputs(fix.t, self.settings.step_s, x, fix)
+        # a weak prior (no information yet): the position within a kilometre, the azimuth anywhere on the circle,
+        # speed and yaw rate within their limits, the CAN states within their ranges; it keeps directions no
+        # data fixes yet (the azimuth at standstill) where they are
+        half = np.full(self._m, PRIOR_POSITION_M)
+        half[self._iphi] = math.pi
+        half[self._iv] = 0.5 * (self._hi[self._iv] - self._lo[self._iv])
+        half[self._iw] = 0.5 * (self._hi[self._iw] - self._lo[self._iw])
+        half[md:] = self._theta_range
+        weight = np.diag(1.0 / np.square(half))
+        if self._theta0 is not None:
+            x[md:] = self._theta0
+        self._box_centre, self._prior, self._weight = x.copy(), x.copy(), weight
+        y, avail, allow = self._outputs(fix.t, s.step_s, fix)
         self._window.append(fix.t, y, avail, allow, x)
         self._started = True
+        self._last_epoch = fix.t
         self._used_fixes = 1
         self._status = "ok"
         self._counts["epochs"] += 1
@@ -329,38 +371,32 @@ class MovingHorizonEstimator:
         """One GNSS epoch at ``t`` (``fix`` None: no usable fix): append, plan, solve, report."""
         win = self._window
         self._last_epoch = t
-        h_prev = t - win.t[-1]
+        h_prev = t - float(win.t[-1])
         x_pred = np.array(self._advance(list(win.x[-1]), float(win.t[-1]), t))
-        speed = x_pred[self._iv] * (x_pred[self._ik] if self._ik is not None else 1.0)
-        self._since_fix_m += abs(speed) * h_prev
+        self._since_fix_m += abs(float(x_pred[self._iv])) * h_prev
         status: GpsStatus = "outage"
         if fix is not None:
             status = "ok" if self._gate(fix, x_pred) else "rejected"
             if status == "rejected" and self._rejected_since is not None and t - self._rejected_since > GATE_RESET_S:
                 self._count("gate_resets", "fixes rejected for %.0f s: restarting at the newest fix", GATE_RESET_S)
-                theta = win.x[-1, self._md :].copy()
-                speed_samples, yaw_samples, epoch = self._speed, self._yaw, self._last_real_epoch
-                self.reset()
-                self._speed, self._yaw, self._last_real_epoch = speed_samples, yaw_samples, epoch
-                self._theta_centre = theta
-                self._last_epoch = t
+                self._restart()
                 return self._begin(fix)
-        y, avail, allow = self._outputs(t, h_prev, x_pred, fix if status == "ok" else None)
+        y, avail, allow = self._outputs(t, h_prev, fix if status == "ok" else None)
         # the previous step's CAN outputs again, now that the samples of its second half-interval are in
         i = len(win) - 1
-        t_before = win.t[i - 1] if i else win.t[i] - self.period_s
-        self._can_outputs(win.t[i], 0.5 * (t_before + win.t[i]), win.t[i] + 0.5 * h_prev, win.y[i], win.avail[i],
-                          win.allow[i])
+        t_before = float(win.t[i - 1]) if i else float(win.t[i]) - self.period_s
+        self._can_outputs(
+            win.t[i], 0.5 * (t_before + win.t[i]), win.t[i] + 0.5 * h_prev, win.y[i], win.avail[i], win.allow[i]
+        )
         win.append(t, y, avail, allow, x_pred)
         self._counts["epochs"] += 1
         self._counts[{"ok": "gps_ok", "rejected": "gps_rejected", "outage": "outage_epochs"}[status]] += 1
         self._status = status
         plan = plan_window(win.gps, win.t, self.period_s, self.policy)
         if plan.drop:
-            self._arrival(plan.drop)
+            self._arrival(min(plan.drop, len(win) - 1))
         win.apply(plan)
-        shift = None if plan.merge else plan.drop
-        x_new, mode = self._solve(shift)
+        x_new, mode = self._solve(None if plan.merge else plan.drop)
         win.x[:] = x_new
         self._set_prop(x_new[-1], t)
         return self._estimate(list(x_new[-1]), t, status, mode)
@@ -388,7 +424,8 @@ class MovingHorizonEstimator:
         s = self.settings
         sigma = fix.sigma_m
         if sigma is None:
-            sigma = {GGA_RTK_FIXED: s.gps_sigma_rtk_m, GGA_RTK_FLOAT: s.gps_sigma_float_m}.get(fix.quality, s.gps_sigma_m)
+            by_quality = {GGA_RTK_FIXED: s.gps_sigma_rtk_m, GGA_RTK_FLOAT: s.gps_sigma_float_m}
+            sigma = by_quality.get(fix.quality, s.gps_sigma_m)
         return sigma, sigma
 
     def _fix_angle(self, fix: LocalFix, speed: float | None) -> tuple[float, float] | None:
@@ -397,32 +434,28 @@ class MovingHorizonEstimator:
         if s.use_heading and fix.heading_rad is not None and math.isfinite(fix.heading_rad):
             return fix.heading_rad, s.gps_heading_sigma_rad
         v = fix.speed_mps if fix.speed_mps is not None and math.isfinite(fix.speed_mps) else speed
-        if fix.course_rad is not None and math.isfinite(fix.course_rad) and v is not None:
-            if v >= s.course_min_speed_mps:
-                return fix.course_rad, s.gps_speed_sigma_mps / max(v, 1e-3)
+        moving = v is not None and v >= s.course_min_speed_mps
+        if moving and fix.course_rad is not None and math.isfinite(fix.course_rad):
+            return fix.course_rad, s.gps_speed_sigma_mps / max(v, 1e-3)  # type: ignore[arg-type]
         return None
 
-    def _can_speed_at(self, t: float) -> float | None:
-        return self._speed.at(t, self.settings.can_max_gap_s)
-
     def _outputs(
-        self, t: float, h_prev: float, x: NDArray[np.float64], fix: LocalFix | None
+        self, t: float, h_prev: float, fix: LocalFix | None
     ) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]:
         """Outputs, availability and error allowances of the step at ``t`` (as :mod:`sumhe.estimator.grid`):
         CAN speed and yaw rate averaged over the step's half-intervals, the fix's position and azimuth."""
         s, n = self.settings, self._n
         y, avail, allow = np.zeros(n), np.zeros(n, dtype=bool), np.ones(n)
         self._can_outputs(t, t - 0.5 * h_prev, t + 0.5 * self.period_s, y, avail, allow)
+        if fix is None:
+            return y, avail, allow
         k_sig = s.r_cap_sigmas
-        if fix is not None:
-            sig = self._fix_sigma(fix)
-            for j, value, sg in zip(self._jpos, (fix.east_m, fix.north_m), sig, strict=True):
-                y[j], avail[j], allow[j] = value, True, k_sig * max(sg, s.gps_resolution_m)
-            speed = y[self._jspeed] if avail[self._jspeed] else None
-            angle = self._fix_angle(fix, speed)
-            if angle is not None:
-                turn = 0.5 * self.period_s * abs(y[self._jyaw])
-                y[self._jangle], avail[self._jangle], allow[self._jangle] = angle[0], True, k_sig * angle[1] + turn
+        for j, value, sigma in zip(self._jpos, (fix.east_m, fix.north_m), self._fix_sigma(fix), strict=True):
+            y[j], avail[j], allow[j] = value, True, k_sig * max(sigma, s.gps_resolution_m)
+        angle = self._fix_angle(fix, y[self._jspeed] if avail[self._jspeed] else None)
+        if angle is not None:
+            turn = 0.5 * self.period_s * abs(y[self._jyaw])
+            y[self._jangle], avail[self._jangle], allow[self._jangle] = angle[0], True, k_sig * angle[1] + turn
         return y, avail, allow
 
     def _can_outputs(
@@ -450,10 +483,6 @@ class MovingHorizonEstimator:
 
     # ---- the solve ------------------------------------------------------------------------------------------------
 
-    def _bucket_sizes(self) -> tuple[int, ...]:
-        p, step = self.policy, self.settings.mhe_bucket_steps
-        return tuple(sorted({*range(p.steps, p.max_steps, step), p.max_steps}))
-
     def _solver(self, size: int) -> WindowSolver:
         capacity = self._buckets[bisect.bisect_left(self._buckets, size)]
         solver = self._solvers.get(capacity)
@@ -465,8 +494,8 @@ class MovingHorizonEstimator:
             solver = make_solver(self.model, capacity, s.mhe_solver, max_iter, tol, s.mhe_sqp_iterations)
             self._solvers[capacity] = solver
             self._counts["solver_builds"] += 1
-            log.info("MHE: %s solver for %d steps built in %.0f ms", s.mhe_solver, capacity,
-                     1e3 * (time.perf_counter() - t0))
+            build_ms = 1e3 * (time.perf_counter() - t0)
+            log.info("MHE: %s solver for %d steps built in %.0f ms", s.mhe_solver, capacity, build_ms)
         return solver
 
     def _noise_bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -474,21 +503,26 @@ class MovingHorizonEstimator:
         step's length; output bounds R (L x n): the steps' error allowances (module docstring)."""
         win, period = self._window, self.period_s
         scale = (np.diff(win.t)[:, None] / period) ** np.array(self.model.q_power)[None, :]
-        import os
-        qs = np.array([float(v) for v in os.environ.get("QS", "1,1,1,1,1").split(",")])
-        return qs * q_caps(self.model, period, self.settings)[None, :] * scale, win.allow.copy()
+        return self._q_caps[None, :] * scale, win.allow.copy()
 
     def _problem(self, capacity: int, Q: NDArray, R: NDArray, widen: float) -> WindowProblem:
-        win, C, L = self._window, capacity, len(self._window)
-        pad = C - L
-        x = np.vstack([win.x, np.repeat(win.x[-1:], pad, axis=0)])
-        h = np.concatenate([np.diff(win.t), np.full(pad, self.period_s)])
-        Qp = np.vstack([Q * widen, np.ones((pad, self._md))])
-        Rp = np.vstack([R * widen, np.ones((pad, self._n))])
-        y = np.vstack([win.y, np.zeros((pad, self._n))])
-        avail = np.vstack([win.avail, np.zeros((pad, self._n), dtype=bool)])
-        half = np.concatenate([self._alpha * widen, self._theta_half * widen])
-        return WindowProblem(L, x, h, y, avail, Rp, Qp, self._lo, self._hi, self._centre, half)
+        win, L = self._window, len(self._window)
+        pad = capacity - L
+        return WindowProblem(
+            n_steps=L,
+            x=np.vstack([win.x, np.repeat(win.x[-1:], pad, axis=0)]),
+            h=np.concatenate([np.diff(win.t), np.full(pad, self.period_s)]),
+            y=np.vstack([win.y, np.zeros((pad, self._n))]),
+            avail=np.vstack([win.avail, np.zeros((pad, self._n), dtype=bool)]),
+            out_bound=np.vstack([R * widen, np.ones((pad, self._n))]),
+            state_bound=np.vstack([Q * widen, np.ones((pad, self._md))]),
+            lo=self._lo,
+            hi=self._hi,
+            box_centre=self._box_centre,
+            box_half=np.concatenate([self._alpha * widen, np.full(self._m - self._md, np.inf)]),
+            prior=self._prior,
+            weight=self._weight,
+        )
 
     def _solve(self, shift: int | None) -> tuple[NDArray[np.float64], str]:
         """Solve the window with retries (module docstring); the trajectory (L x m) and the mode."""
@@ -499,15 +533,12 @@ class MovingHorizonEstimator:
         if capacity != self._capacity:
             shift = None
         self._capacity = capacity
-        if self._theta_centre is None:
-            self._theta_centre = win.x[0, self._md :].copy()
-        self._centre = np.concatenate([self._centre[: self._md], self._theta_centre])
+        self._q_caps = mhe_q_caps(self.model, self.period_s, s)
         Q, R = self._noise_bounds()
         self._Q = Q
-        iterations = s.mhe_sqp_iterations if L >= self.policy.steps else max(s.mhe_sqp_iterations, STARTUP_ITERATIONS)
+        iterations = s.mhe_sqp_iterations if self.policy.steps <= L else max(s.mhe_sqp_iterations, STARTUP_ITERATIONS)
         for attempt in range(s.mhe_max_retries + 1):
-            widen = s.widen_factor**attempt
-            problem = self._problem(capacity, Q, R, widen)
+            problem = self._problem(capacity, Q, R, s.widen_factor**attempt)
             try:
                 result = solver.solve(problem, shift if attempt == 0 else None, iterations)
             except (RuntimeError, ValueError, ArithmeticError) as e:
@@ -518,7 +549,6 @@ class MovingHorizonEstimator:
             self._counts["qp_iterations" if s.mhe_solver == "sqp" else "nlp_iterations"] += result.iterations
             if result.success:
                 self._counts["banded_solves"] += result.status == "banded"
-                self._theta_info = None if result.theta_info is None else result.theta_info / L
                 if attempt:
                     self._counts["widened"] += 1
                 return result.x[:L], "mhe-widened" if attempt else "mhe"
@@ -526,46 +556,80 @@ class MovingHorizonEstimator:
         self._count("fallbacks", "MHE solve failed %d times: reporting the model prediction", s.mhe_max_retries + 1)
         return win.x.copy(), "predict"
 
+    # ---- the arrival box and cost -----------------------------------------------------------------------------
+
     def _arrival(self, drop: int) -> None:
-        """Carry the arrival box over the ``drop`` oldest steps leaving the window (module docstring)."""
-        win, md = self._window, self._md
+        """Carry the arrival box and the arrival cost over the ``drop`` oldest steps leaving the window (module
+        docstring), linearised at the current trajectory."""
+        win, md, nt = self._window, self._md, self._m - self._md
+        nx = (drop + 1) * md
+        # the quadratic d' H d + 2 g' d over (x_0 .. x_drop dynamic states, CAN states) of the dropped terms
+        H, g = np.zeros((nx + nt, nx + nt)), np.zeros(nx + nt)
+        first = np.r_[0:md, nx : nx + nt]
+        H[np.ix_(first, first)] = self._weight
+        g[first] = self._weight @ (win.x[0] - self._prior)
         alpha = self._alpha
-        Q = self._Q
-        cap = q_caps(self.model, self.period_s, self.settings)
-        for k in range(min(drop, len(win) - 1)):
+        for k in range(drop):
+            q = self._Q[k] if k < len(self._Q) else self._q_caps
+            w, dwp, dwn, e, dep = self._step_jac(win.x[k], win.x[k + 1], float(win.t[k + 1] - win.t[k]), win.y[k])
+            J = np.zeros((md, nx + nt))
+            J[:, k * md : (k + 2) * md] = np.hstack([dwp[:, :md], dwn[:, :md]]) / q[:, None]
+            J[:, nx:] = dwp[:, md:] / q[:, None]
+            ok = win.avail[k]
+            Je = np.zeros((int(ok.sum()), nx + nt))
+            Je[:, k * md : (k + 1) * md] = dep[ok, :md] / win.allow[k][ok, None]
+            Je[:, nx:] = dep[ok, md:] / win.allow[k][ok, None]
+            H += J.T @ J + Je.T @ Je
+            g += J.T @ (w / q) + Je.T @ (e[ok] / win.allow[k][ok])
             alpha = np.minimum(alpha, self._measured_bounds(k))
-            F = np.abs(self._jac_step(win.x[k], win.x[k + 1], win.t[k + 1] - win.t[k]).full()[:md, :md])
-            with np.errstate(invalid="ignore"):
-                alpha = np.where(F > 0, F * alpha[None, :], 0.0).sum(axis=1) + 2.0 * (Q[k] if k < len(Q) else cap)
+            # x_{k+1} = T(x_k, x_{k+1}) + w: dx_{k+1}/dx_k = (dw/dx_{k+1})^-1 (-dw/dx_k)
+            F = np.abs(np.linalg.solve(dwn[:, :md], -dwp[:, :md]))
+            unknown = ~np.isfinite(alpha)
+            grown = F @ np.where(unknown, 0.0, alpha) + 2.0 * q
+            alpha = np.where((F[:, unknown] > 0).any(axis=1), np.inf, grown)
         self._alpha = alpha
-        k = min(drop, len(win) - 1)
-        self._centre = win.x[k].copy()
-        self._theta_centre = win.x[k, md:].copy()
-        if self._theta_info is not None:
-            weight = 1.0 / np.square(self._theta_half) + drop * np.maximum(self._theta_info, 0.0)
-            self._theta_half = np.clip(1.0 / np.sqrt(weight), self._theta_floor, self._theta_range)
+        self._box_centre = win.x[drop].copy()
+        self._prior, self._weight = self._reduce(H, g, drop * md, win.x[drop], float(win.t[drop] - win.t[0]))
+
+    def _reduce(
+        self, H: NDArray, g: NDArray, na: int, x_new: NDArray[np.float64], dt: float
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Eliminate the first ``na`` variables (the dropped states) from the quadratic ``d' H d + 2 g' d``: the
+        arrival cost's centre and weight on the new first state (its dynamic states, then the CAN states), with
+        the CAN states' drift over ``dt`` s."""
+        nt = self._m - self._md
+        K = np.linalg.solve(H[:na, :na] + EPS * np.eye(na), np.column_stack([H[:na, na:], g[:na]]))
+        Hr = H[na:, na:] - H[na:, :na] @ K[:, :-1]
+        gr = g[na:] - H[na:, :na] @ K[:, -1]
+        Hr = 0.5 * (Hr + Hr.T) + EPS * np.eye(len(gr))
+        prior = x_new - np.linalg.solve(Hr, gr)
+        if nt == 0:
+            return prior, Hr
+        # the CAN states drift: W <- (W^-1 + E D E')^-1 by Woodbury, D = drift variance over dt
+        drift = np.square(self.settings.mhe_theta_drift * self._theta_range) * dt / 60.0
+        E = Hr[:, -nt:]
+        weight = Hr - E @ np.linalg.solve(Hr[-nt:, -nt:] + np.diag(1.0 / np.maximum(drift, 1e-30)), E.T)
+        return prior, 0.5 * (weight + weight.T)
 
     def _measured_bounds(self, k: int) -> NDArray[np.float64]:
-        """What the outputs of step ``k`` bound directly: half-widths per dynamic state (inf if nothing)."""
+        """What the outputs of step ``k`` bound directly: half-widths per dynamic state (inf if nothing); speed
+        and yaw rate through the CAN states' whole range (a box must not rely on their estimates)."""
         win = self._window
         out = np.full(self._md, np.inf)
         avail, allow, x = win.avail[k], win.allow[k], win.x[k]
         for j, i in ((self._jpos[0], self._ie), (self._jpos[1], self._in), (self._jangle, self._iphi)):
             if avail[j]:
                 out[i] = allow[j]
+        nt0 = self._md
         if avail[self._jspeed]:
-            scale = abs(x[self._ik]) if self._ik is not None else 1.0
-            spread = abs(x[self._iv]) * self._theta_half[self._ik - self._md] if self._ik is not None else 0.0
-            out[self._iv] = (allow[self._jspeed] + spread) / max(scale, 1e-3)
+            k_range = self._theta_range[self._ik - nt0] if self._ik is not None else 0.0
+            k_low = (x[self._ik] - k_range) if self._ik is not None else 1.0
+            out[self._iv] = (allow[self._jspeed] + abs(x[self._iv]) * k_range) / max(k_low, 1e-3)
         if avail[self._jyaw]:
-            out[self._iw] = allow[self._jyaw] + (self._theta_half[self._ib - self._md] if self._ib is not None else 0.0)
+            out[self._iw] = allow[self._jyaw] + (
+                2.0 * self._theta_range[self._ib - nt0] if self._ib is not None else 0.0
+            )
         return out
-
-    def _step_jacobian(self) -> ca.Function:
-        m = self._m
-        xp, xn, h = ca.SX.sym("xp", m), ca.SX.sym("xn", m), ca.SX.sym("h")
-        T = ca.vertcat(*self.model.transition(xp, xn, h, ca))
-        return ca.Function("dT", [xp, xn, h], [ca.jacobian(T, xp)])
 
     # ---- propagation and estimates ------------------------------------------------------------------------------
 

@@ -28,6 +28,7 @@ ESTIMATORS: dict[str, tuple[str, str]] = {
     "dead-reckoning": ("sumhe.baseline.dead_reckoning", "DeadReckoning"),
     "ekf": ("sumhe.baseline.ekf", "Ekf"),
     "rts": ("sumhe.baseline.rts", "Rts"),
+    "rts-batch": ("sumhe.baseline.rts", "RtsBatch"),
     "ukf": ("sumhe.baseline.ukf", "Ukf"),
     "pf": ("sumhe.baseline.particle", "ParticleFilter"),
     "imm": ("sumhe.baseline.imm", "Imm"),

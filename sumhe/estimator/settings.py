@@ -75,7 +75,7 @@ class EstimatorSettings:
     # algorithm 3.3 of 001: widen the caps of q and r by this factor while a problem is infeasible
     widen_factor: float = 2.0
     max_widenings: int = 8
-    # moving-horizon estimator (docs/mhe.md): solver, window policy (steps), QP, arrival box, gate
+    # moving-horizon estimator (docs/mhe.md): solver, window policy (steps), QP, CAN states' drift, gate
     mhe_solver: str = "sqp"
     mhe_steps: int = 50
     mhe_steps_before: int = 20
@@ -84,10 +84,11 @@ class EstimatorSettings:
     mhe_shrink_steps: int = 2
     mhe_max_merge: int = 4
     mhe_bucket_steps: int = 25
-    mhe_sqp_iterations: int = 1
+    mhe_sqp_iterations: int = 3
     mhe_qp_max_iter: int = 200
     mhe_qp_tol: float = 1e-5
-    mhe_arrival_theta: float = 0.1
+    mhe_trapezoid_q: float = 0.1
+    mhe_theta_drift: float = 0.05
     mhe_gate_m: float = 2.0
     mhe_gate_drift: float = 0.05
     mhe_max_retries: int = 2
@@ -170,7 +171,7 @@ def _check_mhe(s: EstimatorSettings) -> None:
             raise ValueError(f"{name}: must be >= 0, got {getattr(s, name)!r}")
     if s.mhe_steps_before >= s.mhe_steps:
         raise ValueError(f"mhe_steps_before: must be below mhe_steps ({s.mhe_steps}), got {s.mhe_steps_before!r}")
-    for name in ("mhe_qp_tol", "mhe_arrival_theta", "mhe_gate_m", "mhe_gate_drift"):
+    for name in ("mhe_qp_tol", "mhe_trapezoid_q", "mhe_theta_drift", "mhe_gate_m", "mhe_gate_drift"):
         value = getattr(s, name)
         if not 0 < value < float("inf"):
             raise ValueError(f"{name}: must be a positive finite number, got {value!r}")

@@ -1,28 +1,32 @@
 """The moving-horizon SU problem of one window, and its three solvers: SQP-RTI with OSQP, IPOPT and fatrop.
 
 The problem is the batch estimator's centre stage (:mod:`sumhe.estimator.batch`, stage 2) on a window of ``L``
-steps, with the noise bounds fixed and the first state held to an arrival box (``docs/mhe.md``)::
+steps, with the noise bounds fixed, and the first state held to an arrival box and an arrival cost
+(``docs/mhe.md``)::
 
-    min   sum_k |w_k / Q_k|^2 + sum_k |a_k e_k / R_k|^2 + |(x_0 - c) / alpha|^2
+    min   sum_k |w_k / Q_k|^2 + sum_k |a_k e_k / R_k|^2 + (z_0 - p)' W (z_0 - p)
     s.t.  w_k = x_{k+1} - T(x_k, x_{k+1}, h_k),  |w_k| <= Q_k                 (state noise, k < L - 1)
           e_k = y_k - h(x_k),                   |a_k e_k| <= R_k               (output noise; a_k: availability)
           lo <= x_k <= hi,  |x_0 - c| <= alpha                                  (state box (11), arrival box)
 
 ``T`` is the model's transition (:mod:`sumhe.model.su`), ``Q_k = q' S_k`` and ``R_k = r' C_k`` the state and
 output noise bounds of each step (half-widths of the uniform noises, so the weights are their variances up to the
-common factor 3), ``c``, ``alpha`` the arrival box. The CAN bias and scale states are one variable per window.
+common factor 3); ``z_0`` is the first state (the CAN bias and scale included, one variable each per window),
+``p``, ``W`` the arrival cost, ``c``, ``alpha`` the arrival box.
 
-Everything that changes from epoch to epoch (data, availability, bounds, step lengths, arrival box) is a number
-handed to a solver built once per window capacity ``C`` (a bucket of sizes): steps ``L .. C-1`` are padding whose
-rows are free. The three solvers:
+Everything that changes from epoch to epoch (data, availability, bounds, step lengths, arrival) is a number handed
+to a solver built once per window capacity ``C`` (a bucket of sizes): steps ``L .. C-1`` are padding whose rows
+are free. The three solvers:
 
 * :class:`SqpSolver` (``"sqp"``): real-time iteration. The constraints are linearised at the previous solution
   shifted by one step (the new step predicted with the newest CAN data), giving one QP per epoch (or a few, by
-  ``mhe_sqp_iterations``), solved by OSQP. The noises are lifted into variables scaled by their bounds,
-  ``w_k = Q_k v_k``, ``e_k = R_k u_k``, so that ``P`` is a constant diagonal, every bound is a box on a
-  variable, and only ``A``'s values (the Jacobians from one compiled CasADi function, and the bounds), ``l``,
-  ``u`` and ``q`` change: OSQP is set up once per bucket and re-solved with ``update(q, l, u, Ax)``, warm-started
-  with the shifted primal and dual solution;
+  ``mhe_sqp_iterations``). Its least-squares objective without the inequalities has block-banded normal
+  equations, solved by a banded Cholesky factorisation in O(N) (a Kalman smoother's cost); if that point is
+  inside every box it solves the QP (the problem is convex). Otherwise OSQP solves the QP: the noises are lifted
+  into variables scaled by their bounds, ``w_k = Q_k v_k``, ``e_k = R_k u_k``, every row is divided by its bound,
+  so that ``P`` is fixed but for the arrival block, every bound is a box on a variable, and only ``A``'s values
+  (the Jacobians from one compiled CasADi function), ``P``'s arrival block, ``l``, ``u`` and ``q`` change: OSQP is
+  set up once per bucket and re-solved with ``update``, warm-started with its duals shifted by the window's slide;
 * :class:`NlpSolver` (``"ipopt"``, ``"fatrop"``): the same problem as an NLP in the stage-wise form of an optimal
   control problem (states ``x_k``, controls ``v_k = w_k / Q_k``, dynamics ``x_{k+1} = F(x_k, Q_k v_k)``, the CAN
   states copied per stage), solved to convergence each epoch, warm-started with the shifted primal and dual
@@ -35,6 +39,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -42,8 +47,8 @@ import casadi as ca
 import numpy as np
 import osqp
 import scipy.sparse as sp
-from scipy.linalg import solveh_banded
 from numpy.typing import NDArray
+from scipy.linalg import solveh_banded
 
 from sumhe.errors import SolverError
 from sumhe.model.su import SuModel, wrap_angle
@@ -51,13 +56,14 @@ from sumhe.model.su import SuModel, wrap_angle
 log = logging.getLogger(__name__)
 
 OSQP_OK = (osqp.SolverStatus.OSQP_SOLVED, osqp.SolverStatus.OSQP_SOLVED_INACCURATE)
-OSQP_INFEASIBLE = (osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE, osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE_INACCURATE)
 NLP_OK = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
-STEP_TOL = 1e-4
-"""An SQP iteration whose largest state change is below this (m, rad, m/s, rad/s) ends the iterations."""
+STEP_TOL = 0.01
+"""An SQP iteration that turns no azimuth by more than this (rad) ends the iterations: the model is nonlinear
+through the azimuth (positions enter linearly, speed bilinearly with the scale), so the real-time iteration does
+one QP per epoch unless a transient, e.g. the azimuth found when driving off, needs more."""
 BOX_TOL = 1e-9
 """Slack allowed on the boxes when the banded (unconstrained) solution is checked against them."""
-REGULARISATION = 1e-9
+REGULARISATION = 1e-6
 """Added to the normal matrix's diagonal: directions no data fixes (an azimuth at standstill) stay put."""
 
 
@@ -67,8 +73,8 @@ class WindowProblem:
 
     ``x`` (C x m): the start point and linearisation point (CAN bias/scale columns constant); ``h`` (C-1) step
     lengths (s); ``y``, ``avail``, ``out_bound`` (C x n): outputs, availability and bounds R; ``state_bound``
-    (C-1 x m_dynamic): bounds Q; ``lo``, ``hi`` (m): the state box; ``centre``, ``half`` (m): the arrival box of
-    the first state (``inf`` half-widths: no information).
+    (C-1 x m_dynamic): bounds Q; ``lo``, ``hi`` (m): the state box; ``box_centre``, ``box_half`` (m): the arrival
+    box of the first state (``inf`` half-widths: none); ``prior``, ``weight`` (m, m x m): the arrival cost.
     """
 
     n_steps: int
@@ -80,19 +86,29 @@ class WindowProblem:
     state_bound: NDArray[np.float64]
     lo: NDArray[np.float64]
     hi: NDArray[np.float64]
-    centre: NDArray[np.float64]
-    half: NDArray[np.float64]
+    box_centre: NDArray[np.float64]
+    box_half: NDArray[np.float64]
+    prior: NDArray[np.float64]
+    weight: NDArray[np.float64]
 
     @property
     def capacity(self) -> int:
         return int(self.x.shape[0])
 
+    def first_box(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Bounds of the first state: the state box intersected with the arrival box."""
+        return (
+            np.maximum(self.lo, self.box_centre - self.box_half),
+            np.minimum(self.hi, self.box_centre + self.box_half),
+        )
+
 
 @dataclass(frozen=True)
 class SolveResult:
-    """A solver's answer: the trajectory ``x`` (C x m), whether it is usable, the solver's status, its
-    iterations (ADMM iterations summed over the QPs, or NLP iterations), the QPs solved, the objective, and
-    the time (s) spent evaluating the model and its Jacobians, assembling the QP and in the solver."""
+    """A solver's answer: the trajectory ``x`` (C x m), whether it is usable, the solver's status (``"banded"``
+    when the banded solve was the answer), its iterations (OSQP's ADMM iterations summed over the QPs, or the NLP
+    iterations), the QPs solved (SQP iterations, banded or OSQP), the objective, and the time (s) spent
+    evaluating the model and its Jacobians, assembling and in the solver."""
 
     x: NDArray[np.float64]
     success: bool
@@ -103,11 +119,6 @@ class SolveResult:
     eval_s: float = 0.0
     assemble_s: float = 0.0
     solve_s: float = 0.0
-    theta_info: NDArray[np.float64] | None = None
-
-    @property
-    def infeasible(self) -> bool:
-        return "infeasible" in self.status.lower()
 
 
 class WindowSolver(Protocol):
@@ -134,26 +145,35 @@ def residual_functions(model: SuModel) -> tuple[ca.Function, ca.Function]:
     return ca.Function("w", [xp, xn, h], [w]), ca.Function("e", [x, y], [e])
 
 
+def step_jacobians(
+    model: SuModel,
+) -> Callable[[NDArray, NDArray, float, NDArray], tuple[NDArray, NDArray, NDArray, NDArray, NDArray]]:
+    """``(xp, xn, h, y) -> (w, dw/dxp, dw/dxn, e(xp), de/dxp)`` as numpy arrays: one step's noises and their
+    Jacobians (the arrival cost's update); one CasADi call with one dense output, split here."""
+    fw, fe = residual_functions(model)
+    m, md, n = model.n_states, model.n_dynamic, model.n_outputs
+    xp, xn, h, y = ca.SX.sym("xp", m), ca.SX.sym("xn", m), ca.SX.sym("h"), ca.SX.sym("y", n)
+    w, e = fw(xp, xn, h), fe(xp, y)
+    parts = [w, ca.jacobian(w, xp), ca.jacobian(w, xn), e, ca.jacobian(e, xp)]
+    shapes = [(md,), (md, m), (md, m), (n,), (n, m)]
+    f = ca.Function("step_jac", [xp, xn, h, y], [ca.vertcat(*[ca.vec(ca.densify(q)) for q in parts])])
+    ends = np.cumsum([int(np.prod(sh)) for sh in shapes])
+
+    def evaluate(xp_: NDArray, xn_: NDArray, h_: float, y_: NDArray) -> tuple[NDArray, ...]:
+        flat = f(xp_, xn_, h_, y_).full().reshape(-1)
+        chunks = np.split(flat, ends[:-1])
+        return tuple(c.reshape(sh[::-1]).T if len(sh) == 2 else c for c, sh in zip(chunks, shapes, strict=True))
+
+    return evaluate  # type: ignore[return-value]
+
+
 def _free(mask: NDArray[np.bool_], lo: NDArray, hi: NDArray) -> tuple[NDArray, NDArray]:
     """``lo``, ``hi`` where ``mask``, (-inf, inf) elsewhere."""
     return np.where(mask, lo, -np.inf), np.where(mask, hi, np.inf)
 
 
-def _arrival_weights(half: NDArray[np.float64]) -> NDArray[np.float64]:
-    """1 / alpha^2 of the arrival term (0 where the box is infinite)."""
-    with np.errstate(divide="ignore"):
-        return np.where(np.isfinite(half) & (half > 0), 1.0 / np.square(half), 0.0)
-
-
 class SqpSolver:
-    """Real-time iteration on a structure fixed per capacity (module docstring).
-
-    Each QP is first solved without its inequalities: the normal equations of the least-squares objective are
-    block-banded (state ``k`` meets only states ``k - 1`` and ``k + 1``, plus the window's CAN bias and scale),
-    so a banded Cholesky factorisation solves them in O(N), a Kalman smoother's cost. If that point lies inside
-    every box it is the QP's solution (the problem is convex); otherwise OSQP solves the QP (``banded=False``:
-    always OSQP).
-    """
+    """Real-time iteration on a structure fixed per capacity (module docstring): banded solve, else OSQP."""
 
     name = "sqp"
 
@@ -175,7 +195,6 @@ class SqpSolver:
         self.nz = C * md + self.nt
         self.nw, self.ne = md * (C - 1), n * C
         self.nv = nv = self.nz + self.nw + self.ne
-        nr = self.nw + self.ne
         fw, fe = residual_functions(model)
         Xd, th = ca.SX.sym("x", md, C), ca.SX.sym("theta", self.nt)
         H, Y = ca.SX.sym("h", 1, C - 1), ca.SX.sym("y", n, C)
@@ -188,39 +207,11 @@ class SqpSolver:
         self._rows, self._cols = rows, cols
         self._row_step = np.concatenate([np.repeat(np.arange(C - 1), md), np.repeat(np.arange(C), n)])
         self._z_step = np.concatenate([np.repeat(np.arange(C), md), np.zeros(self.nt, dtype=np.int64)])
+        # the first state's variables: x_0 (dynamic) then the CAN states, in the order of the model's states
+        self._first = np.concatenate([np.arange(md), self.nz - self.nt + np.arange(self.nt)])
         self._setup_banded()
-        # OSQP: A = [J / B, -I; I] (rows divided by their bound B = Q or R; lifted noises v = w / Q, u = e / R)
-        a_rows = np.concatenate([rows, np.arange(nr), nr + np.arange(nv)])
-        a_cols = np.concatenate([cols, self.nz + np.arange(nr), np.arange(nv)])
-        self._perm = np.lexsort((a_rows, a_cols))
-        indptr = np.searchsorted(a_cols[self._perm], np.arange(nv + 1))
-        A = sp.csc_matrix((np.ones(len(self._perm)), a_rows[self._perm], indptr), shape=(nr + nv, nv))
-        self._a_values = np.concatenate([np.zeros(len(rows)), -np.ones(nr), np.ones(nv)])
-        self._p_diag = np.concatenate([np.zeros(self.nz), np.full(nr, 2.0)])
-        P = sp.csc_matrix((self._p_diag.copy(), np.arange(nv), np.arange(nv + 1)), shape=(nv, nv))
-        # blocks of OSQP's rows (offset, width per step, steps) for shifting the duals
-        self._blocks = [(0, md, C - 1), (self.nw, n, C), (nr, md, C), (nr + C * md, self.nt, 1)]
-        self._blocks += [(nr + self.nz, md, C - 1), (nr + self.nz + self.nw, n, C)]
-        self._osqp = osqp.OSQP()
-        self._osqp.setup(
-            P,
-            np.zeros(nv),
-            A,
-            np.full(nr + nv, -np.inf),
-            np.full(nr + nv, np.inf),
-            verbose=False,
-            eps_abs=tol,
-            eps_rel=tol,
-            eps_prim_inf=1e-6,
-            eps_dual_inf=1e-6,
-            max_iter=max_iter,
-            polishing=False,
-            check_termination=5,
-            warm_starting=True,
-        )
+        self._setup_osqp(max_iter, tol)
         self._y_prev: NDArray[np.float64] | None = None
-        self._theta_info: NDArray[np.float64] | None = None
-        self.banded_solves = 0
         log.debug("SQP MHE problem, %d steps: %d variables, built in %.1f ms", C, nv, 1e3 * (time.perf_counter() - t0))
 
     def _setup_banded(self) -> None:
@@ -240,39 +231,87 @@ class SqpSolver:
         ci, cj = cols[pa], cols[pb]
         xx, xt, tt = (ci < nx) & (cj < nx), (ci < nx) & (cj >= nx), (ci >= nx) & (cj >= nx)
         self._bw = int(np.max(cj[xx] - ci[xx], initial=0))
+        if self._bw < self.md - 1:
+            raise SolverError(f"MHE problem: band {self._bw} narrower than a state ({self.md})")
         self._pairs = (pa, pb)
         self._xx = (xx, (self._bw + ci[xx] - cj[xx]) * nx + cj[xx])
         self._xt = (xt, ci[xt] * nt + (cj[xt] - nx))
         self._tt = (tt, (ci[tt] - nx) * nt + (cj[tt] - nx))
 
+    def _setup_osqp(self, max_iter: int, tol: float) -> None:
+        """OSQP on the lifted QP: A = [J / B, -I; I] (rows divided by their bound B, lifted noises v = w / Q,
+        u = e / R), P = 2 I on the lifted noises plus the arrival block on the first state."""
+        nv, nr, nz = self.nv, self.nw + self.ne, self.nz
+        a_rows = np.concatenate([self._rows, np.arange(nr), nr + np.arange(nv)])
+        a_cols = np.concatenate([self._cols, nz + np.arange(nr), np.arange(nv)])
+        self._perm = np.lexsort((a_rows, a_cols))
+        indptr = np.searchsorted(a_cols[self._perm], np.arange(nv + 1))
+        A = sp.csc_matrix((np.ones(len(self._perm)), a_rows[self._perm], indptr), shape=(nr + nv, nv))
+        self._a_values = np.concatenate([np.zeros(len(self._rows)), -np.ones(nr), np.ones(nv)])
+        # P pattern: the diagonal and the upper triangle of the first state's block
+        fi, fj = np.meshgrid(self._first, self._first, indexing="ij")
+        upper = fi < fj
+        p_rows = np.concatenate([np.arange(nv), fi[upper]])
+        p_cols = np.concatenate([np.arange(nv), fj[upper]])
+        self._p_perm = np.lexsort((p_rows, p_cols))
+        self._p_block = (np.flatnonzero(upper.reshape(-1)), self._first)
+        p_ind = np.searchsorted(p_cols[self._p_perm], np.arange(nv + 1))
+        self._p_base = np.concatenate([np.zeros(nz), np.full(nr, 2.0), np.zeros(int(upper.sum()))])
+        P = sp.csc_matrix((self._p_base[self._p_perm] + (p_rows == p_cols)[self._p_perm], p_rows[self._p_perm], p_ind))
+        # blocks of OSQP's rows (offset, width per step, steps) for shifting the duals
+        C, md, n, nt = self.capacity, self.md, self.n, self.nt
+        self._blocks = [(0, md, C - 1), (self.nw, n, C), (nr, md, C), (nr + C * md, nt, 1)]
+        self._blocks += [(nr + nz, md, C - 1), (nr + nz + self.nw, n, C)]
+        self._osqp = osqp.OSQP()
+        self._osqp.setup(
+            P,
+            np.zeros(nv),
+            A,
+            np.full(nr + nv, -np.inf),
+            np.full(nr + nv, np.inf),
+            verbose=False,
+            eps_abs=tol,
+            eps_rel=tol,
+            eps_prim_inf=1e-6,
+            eps_dual_inf=1e-6,
+            max_iter=max_iter,
+            polishing=False,
+            check_termination=5,
+            warm_starting=True,
+        )
+
     def _banded_step(
-        self, js: NDArray, rs: NDArray, weight: NDArray, d: NDArray, delta: NDArray, L: int
+        self, js: NDArray, rs: NDArray, weight: NDArray, W: NDArray, delta: NDArray, L: int
     ) -> NDArray[np.float64] | None:
-        """The minimiser of ``sum weight (J dz / B + r / B)^2 + sum d (dz - delta)^2`` over the first ``L`` steps
-        and the CAN states (None if the normal matrix is singular); ``js = J / B`` entries, ``rs = r / B``."""
+        """The minimiser of ``sum weight (J dz / B + r / B)^2 + (dz_0 - delta)' W (dz_0 - delta)`` over the first
+        ``L`` steps and the CAN states (None if the normal matrix is singular); ``js = J / B``, ``rs = r / B``,
+        ``dz_0`` the first state's variables."""
         md, nt, nx, bw = self.md, self.nt, self.capacity * self.md, self._bw
         pa, pb = self._pairs
         prod = weight[self._rows[pa]] * js[pa] * js[pb]
         xx, xx_at = self._xx
         band = np.bincount(xx_at, prod[xx], minlength=(bw + 1) * nx).reshape(bw + 1, nx)
         xt, xt_at = self._xt
-        Nxt = np.bincount(xt_at, prod[xt], minlength=nx * nt).reshape(nx, nt)
+        Nxt = np.bincount(xt_at, prod[xt], minlength=nx * nt).astype(float).reshape(nx, nt)
         tt, tt_at = self._tt
-        Ntt = np.bincount(tt_at, prod[tt], minlength=nt * nt).reshape(nt, nt)
+        Ntt = np.bincount(tt_at, prod[tt], minlength=nt * nt).astype(float).reshape(nt, nt)
         Ntt = np.triu(Ntt) + np.triu(Ntt, 1).T
-        grad = np.bincount(self._cols, js * (weight * rs)[self._rows], minlength=self.nz)
-        b = d * delta - grad
+        b = -np.bincount(self._cols, js * (weight * rs)[self._rows], minlength=self.nz)
+        # the arrival cost on the first state
+        b[self._first] += W @ delta
+        for j in range(md):
+            band[bw - j : bw + 1, j] += W[: j + 1, j]
+        Nxt[:md] += W[:md, md:]
+        Ntt += W[md:, md:] + REGULARISATION * np.eye(nt)
         n_live = L * md
         band = band[:, :n_live]
-        band[bw] += d[:n_live] + REGULARISATION
-        Ntt += np.diag(d[nx:] + REGULARISATION)
+        band[bw] += REGULARISATION
         try:
             sol = solveh_banded(band, np.column_stack([b[:n_live], Nxt[:n_live]]), check_finite=False)
             schur = Ntt - Nxt[:n_live].T @ sol[:, 1:]
             dtheta = np.linalg.solve(schur, b[nx:] - Nxt[:n_live].T @ sol[:, 0])
         except np.linalg.LinAlgError:
             return None
-        self._theta_info = np.diag(schur) - d[nx:] - REGULARISATION
         dz = np.zeros(self.nz)
         dz[:n_live] = sol[:, 0] - sol[:, 1:] @ dtheta
         dz[nx:] = dtheta
@@ -293,22 +332,18 @@ class SqpSolver:
     def solve(self, problem: WindowProblem, shift: int | None, iterations: int | None = None) -> SolveResult:
         """Run the SQP iterations (``iterations`` QPs at most, default the solver's) from ``problem.x``; OSQP is
         warm-started with its previous duals shifted by ``shift`` steps (None: cold)."""
-        md, nt, nz, C, L = self.md, self.nt, self.nz, self.capacity, problem.n_steps
+        md, nz, C, L = self.md, self.nz, self.capacity, problem.n_steps
         x = problem.x.copy()
         bound = np.concatenate([problem.state_bound.reshape(-1), problem.out_bound.reshape(-1)])
         active = np.concatenate([self._row_step[: self.nw] < L - 1, problem.avail.reshape(-1)])
         active[self.nw :] &= self._row_step[self.nw :] < L
         weight = active.astype(float)
-        wa = _arrival_weights(problem.half)
-        d = np.zeros(nz)
-        d[:md], d[nz - nt :] = wa[:md], wa[md:]
-        lo = np.maximum(problem.lo, problem.centre - problem.half)
-        hi = np.minimum(problem.hi, problem.centre + problem.half)
-        box_lo = np.concatenate([lo[:md], np.tile(problem.lo[:md], C - 1), lo[md:]])
-        box_hi = np.concatenate([hi[:md], np.tile(problem.hi[:md], C - 1), hi[md:]])
+        W = problem.weight
+        lo0, hi0 = problem.first_box()
+        box_lo = np.concatenate([lo0[:md], np.tile(problem.lo[:md], C - 1), lo0[md:]])
+        box_hi = np.concatenate([hi0[:md], np.tile(problem.hi[:md], C - 1), hi0[md:]])
         z_live = self._z_step < L
         status, cost, success = "not solved", np.inf, False
-        self._theta_info = None
         iters = qp_solves = 0
         t_eval = t_asm = t_solve = 0.0
         for it in range(iterations or self.iterations):
@@ -318,40 +353,41 @@ class SqpSolver:
             res, jac = res.full().reshape(-1), jac.full().reshape(-1)
             t1 = time.perf_counter()
             js, rs = jac / bound[self._rows], res / bound
-            delta = np.zeros(nz)
-            delta[:md] = (problem.centre - x[0])[:md]
-            delta[nz - nt :] = (problem.centre - x[0])[md:]
-            delta = np.where(d > 0, delta, 0.0)
-            dz = self._banded_step(js, rs, weight, d, delta, L) if self.banded else None
+            delta = problem.prior - x[0]
+            dz = self._banded_step(js, rs, weight, W, delta, L) if self.banded else None
             if dz is not None:
                 after = np.bincount(self._rows, js * dz[self._cols], minlength=len(rs)) + rs
-                inside = np.all(np.abs(after[active]) <= 1.0 + BOX_TOL)
                 moved = (zbar + dz)[z_live]
-                if inside and np.all(moved >= box_lo[z_live] - BOX_TOL) and np.all(moved <= box_hi[z_live] + BOX_TOL):
-                    t2 = time.perf_counter()
-                    t_asm += t2 - t1
-                    t_eval += t1 - t0
-                    self.banded_solves += 1
+                if (
+                    np.all(np.abs(after[active]) <= 1.0 + BOX_TOL)
+                    and np.all(moved >= box_lo[z_live] - BOX_TOL)
+                    and np.all(moved <= box_hi[z_live] + BOX_TOL)
+                ):
+                    t_eval, t_asm = t_eval + t1 - t0, t_asm + time.perf_counter() - t1
+                    qp_solves += 1
                     self._y_prev = np.zeros(self.nw + self.ne + self.nv)
                     status, success, cost = "banded", True, float(np.sum(after[active] ** 2))
                     self._apply(x, dz, L)
-                    if np.max(np.abs(dz[: L * md]), initial=0.0) < STEP_TOL:
+                    if self._turned(dz, L) < STEP_TOL:
                         break
                     continue
             row_lo, row_hi = _free(active, -rs, -rs)
             z_lo, z_hi = _free(z_live, box_lo - zbar, box_hi - zbar)
             v_lo, v_hi = _free(active, -np.ones(len(rs)), np.ones(len(rs)))
-            p_diag = self._p_diag.copy()
-            p_diag[:nz] = 2.0 * d
+            p_values = self._p_base.copy()
+            p_values[self._first] = 2.0 * np.diag(W)
+            p_values[nz + len(rs) :] = 2.0 * W.reshape(-1)[self._p_block[0]]
+            q = np.zeros(self.nv)
+            q[self._first] = -2.0 * W @ delta
             a_values = self._a_values.copy()
             a_values[: len(js)] = js
             v0 = np.concatenate([np.zeros(nz), np.where(active, rs, 0.0)])
             t2 = time.perf_counter()
             self._osqp.update(
-                q=np.concatenate([-2.0 * d * delta, np.zeros(len(rs))]),
+                q=q,
                 l=np.concatenate([row_lo, z_lo, v_lo]),
                 u=np.concatenate([row_hi, z_hi, v_hi]),
-                Px=p_diag,
+                Px=p_values[self._p_perm],
                 Ax=a_values[self._perm],
             )
             self._osqp.warm_start(x=v0, y=self._shifted_duals(shift if it == 0 else 0))
@@ -370,12 +406,15 @@ class SqpSolver:
             self._y_prev = np.asarray(out.y, dtype=float).copy()
             dz = out.x[:nz]
             self._apply(x, dz, L)
-            lifted = out.x[nz:]
-            cost = float(np.sum(lifted[active] ** 2))
-            if np.max(np.abs(dz[: L * md]), initial=0.0) < STEP_TOL:
+            cost = float(np.sum(out.x[nz:][active] ** 2))
+            if self._turned(dz, L) < STEP_TOL:
                 break
-        info = self._theta_info if status == "banded" else None
-        return SolveResult(x, success, status, iters, qp_solves, cost, t_eval, t_asm, t_solve, info)
+        return SolveResult(x, success, status, iters, qp_solves, cost, t_eval, t_asm, t_solve)
+
+    def _turned(self, dz: NDArray[np.float64], L: int) -> float:
+        """The largest change of an azimuth state over the first ``L`` steps (rad)."""
+        angles = dz[: L * self.md].reshape(L, self.md)[:, list(self.model.angle_states)]
+        return float(np.max(np.abs(angles), initial=0.0))
 
     def _apply(self, x: NDArray[np.float64], dz: NDArray[np.float64], L: int) -> None:
         md = self.md
@@ -402,10 +441,10 @@ class NlpSolver:
         step = ca.Function("F", [xs, ws, h], [ca.vertcat(*model.transition(xs, guess, h, ca)) + noise])
         H, Y, A = ca.SX.sym("h", C - 1), ca.SX.sym("y", n, C), ca.SX.sym("a", n, C)
         R, Q = ca.SX.sym("r", n, C), ca.SX.sym("q", md, C - 1)
-        c, wa = ca.SX.sym("c", m), ca.SX.sym("wa", m)
+        prior, Wsqrt = ca.SX.sym("p", m), ca.SX.sym("w", m, m)
         X = [ca.SX.sym(f"x{k}", m) for k in range(C)]
         V = [ca.SX.sym(f"v{k}", md) for k in range(C - 1)]
-        z, g, f = [], [], ca.sumsqr(wa * (X[0] - c))
+        z, g, f = [], [], ca.sumsqr(Wsqrt @ (X[0] - prior))
         equality: list[bool] = []
         for k in range(C):
             z.append(X[k])
@@ -418,7 +457,7 @@ class NlpSolver:
             g.append(e)
             equality += [False] * n
             f += ca.sumsqr(e)
-        p = ca.vertcat(H, ca.vec(Y), ca.vec(A), ca.vec(R), ca.vec(Q), c, wa)
+        p = ca.vertcat(H, ca.vec(Y), ca.vec(A), ca.vec(R), ca.vec(Q), prior, ca.vec(Wsqrt))
         nlp = {"x": ca.vertcat(*z), "p": p, "f": f, "g": ca.vertcat(*g)}
         opts: dict[str, object] = {"print_time": False, "error_on_fail": False}
         if solver == "ipopt":
@@ -440,54 +479,56 @@ class NlpSolver:
         self._rows = m + n
         self._lbg = np.where(np.array(equality), 0.0, -1.0)
         self._ubg = np.where(np.array(equality), 0.0, 1.0)
-        self._res = ca.Function(
-            "mhe_res",
-            [ca.vertcat(*X), H],
-            [ca.vertcat(*[fw(X[k], X[k + 1], H[k]) for k in range(C - 1)])],
-        )
-        self._last: tuple[NDArray, NDArray, NDArray] | None = None
+        noises = ca.horzcat(*[fw(X[k], X[k + 1], H[k]) for k in range(C - 1)])
+        self._res = ca.Function("mhe_res", [ca.horzcat(*X), H], [noises])
+        self._last: tuple[NDArray, NDArray] | None = None
         log.debug("%s MHE problem for %d steps built in %.1f ms", solver, C, 1e3 * (time.perf_counter() - t0))
 
-    def _shift(self, vec: NDArray[np.float64], width: int, shift: int, total: int) -> NDArray[np.float64]:
-        out = np.zeros(total)
-        keep = total - shift * width
+    @staticmethod
+    def _shift(vec: NDArray[np.float64], width: int, shift: int) -> NDArray[np.float64]:
+        out = np.zeros(len(vec))
+        keep = len(vec) - shift * width
         if keep > 0:
-            out[:keep] = vec[shift * width : shift * width + keep]
+            out[:keep] = vec[shift * width :]
         return out
 
     def solve(self, problem: WindowProblem, shift: int | None, iterations: int | None = None) -> SolveResult:
         """Solve the NLP from ``problem.x`` to convergence (``iterations`` is ignored); multipliers of the previous
         solve shifted by ``shift`` steps (None: cold)."""
-        m, md, n, C, L = self.m, self.md, self.n, self.capacity, problem.n_steps
+        m, md, C, L = self.m, self.md, self.capacity, problem.n_steps
         t0 = time.perf_counter()
-        Q = np.where(np.arange(C - 1)[:, None] < L - 1, problem.state_bound, 1.0)
+        live_w = np.arange(C - 1)[:, None] < L - 1
+        Q = np.where(live_w, problem.state_bound, 1.0)
         avail = problem.avail & (np.arange(C)[:, None] < L)
-        w = self._res(problem.x.reshape(-1), problem.h).full().reshape(C - 1, md)
-        v = np.where(np.arange(C - 1)[:, None] < L - 1, w / Q, 0.0)
-        z0 = np.concatenate([np.concatenate([problem.x[k], v[k]]) if k < C - 1 else problem.x[k] for k in range(C)])
-        lo = np.maximum(problem.lo, problem.centre - problem.half)
-        hi = np.minimum(problem.hi, problem.centre + problem.half)
+        w = self._res(problem.x.T, problem.h).full().T
+        v = np.where(live_w, w / Q, 0.0)
+        z0 = np.concatenate([np.concatenate([problem.x[:-1], v], axis=1).reshape(-1), problem.x[-1]])
+        lo0, hi0 = problem.first_box()
         lbx, ubx = np.full(len(z0), -np.inf), np.full(len(z0), np.inf)
         for k in range(L):
             s = k * self._stage
-            lbx[s : s + m] = lo if k == 0 else problem.lo
-            ubx[s : s + m] = hi if k == 0 else problem.hi
+            lbx[s : s + m] = lo0 if k == 0 else problem.lo
+            ubx[s : s + m] = hi0 if k == 0 else problem.hi
             if k < L - 1:
                 lbx[s + m : s + m + md], ubx[s + m : s + m + md] = -1.0, 1.0
-        p = np.concatenate([
-            problem.h,
-            problem.y.reshape(-1),
-            avail.astype(float).reshape(-1),
-            problem.out_bound.reshape(-1),
-            Q.reshape(-1),
-            problem.centre,
-            np.sqrt(_arrival_weights(problem.half)),
-        ])
+        eigval, eigvec = np.linalg.eigh(0.5 * (problem.weight + problem.weight.T))
+        w_sqrt = (eigvec * np.sqrt(np.maximum(eigval, 0.0))) @ eigvec.T
+        p = np.concatenate(
+            [
+                problem.h,
+                problem.y.reshape(-1),
+                avail.astype(float).reshape(-1),
+                problem.out_bound.reshape(-1),
+                Q.reshape(-1),
+                problem.prior,
+                w_sqrt.reshape(-1, order="F"),
+            ]
+        )
         args: dict[str, object] = {"x0": z0, "p": p, "lbx": lbx, "ubx": ubx, "lbg": self._lbg, "ubg": self._ubg}
         if shift is not None and self._last is not None:
-            _, lam_x, lam_g = self._last
-            args["lam_x0"] = self._shift(lam_x, self._stage, shift, len(z0))
-            args["lam_g0"] = self._shift(lam_g, self._rows, shift, len(self._lbg))
+            lam_x, lam_g = self._last
+            args["lam_x0"] = self._shift(lam_x, self._stage, shift)
+            args["lam_g0"] = self._shift(lam_g, self._rows, shift)
         t1 = time.perf_counter()
         sol = self._nlp(**args)
         t2 = time.perf_counter()
@@ -495,17 +536,15 @@ class NlpSolver:
         status = str(stats.get("return_status", "unknown"))
         success = bool(stats.get("success", False)) or status in NLP_OK
         zs = sol["x"].full().reshape(-1)
-        if not np.all(np.isfinite(zs)):
-            success = False
-        self._last = (zs, sol["lam_x"].full().reshape(-1), sol["lam_g"].full().reshape(-1)) if success else None
+        success = success and bool(np.all(np.isfinite(zs)))
+        self._last = (sol["lam_x"].full().reshape(-1), sol["lam_g"].full().reshape(-1)) if success else None
         x = problem.x.copy()
         if success:
-            for k in range(C):
-                x[k] = zs[k * self._stage : k * self._stage + m]
+            x[:-1] = zs[: (C - 1) * self._stage].reshape(C - 1, self._stage)[:, :m]
+            x[-1] = zs[(C - 1) * self._stage :]
             x[:, md:] = x[0, md:]
-        return SolveResult(
-            x, success, status, int(stats.get("iter_count", -1)), 0, float(sol["f"]), 0.0, t1 - t0, t2 - t1
-        )
+        iterations_done = int(stats.get("iter_count", -1))
+        return SolveResult(x, success, status, iterations_done, 0, float(sol["f"]), 0.0, t1 - t0, t2 - t1)
 
 
 def make_solver(model: SuModel, capacity: int, name: str, max_iter: int, tol: float, iterations: int) -> WindowSolver:

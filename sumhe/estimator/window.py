@@ -10,10 +10,11 @@ missing; ``docs/mhe.md``):
 * while GNSS is out, and until ``after`` (N_A) GNSS epochs have come back, the window keeps at least ``before``
   (N_B) GNSS epochs from before the newest outage: it stops sliding and grows instead (while the outage is shorter
   than N - N_B steps the N newest steps already hold them, and nothing changes);
-* at most ``max_steps`` (N_max) steps: beyond, interior steps without GNSS are removed, which merges two steps into
-  one of the summed length (the state noise bounds scale with the step length), the shortest merged step first and
-  the oldest first among equals, so the outage is coarsened from its old end on; a merged step is at most
-  ``max_merge`` nominal periods long. Only when no step can be merged are the oldest steps dropped;
+* at most ``max_steps`` (N_max) steps: beyond, steps without GNSS older than the newest N are removed, which
+  merges two steps into one of the summed length (the state noise bounds scale with the step length), two equal
+  steps first (so steps are 1, 2, 4, ... periods long), the shortest merged step first and the oldest first among
+  equals, so the outage is coarsened behind its newest N steps, which stay at the GNSS period; a merged step is
+  at most ``max_merge`` nominal periods long. Only when no step can be merged are the oldest steps dropped;
 * when the window may shrink again it drops ``1 + shrink`` of its oldest steps per epoch (it shrinks back
   progressively, by ``shrink`` steps per epoch, not in one jump).
 """
@@ -28,6 +29,8 @@ from numpy.typing import NDArray
 from sumhe.estimator.settings import EstimatorSettings
 
 MERGE_TOL = 1e-6
+EQUAL_STEPS = 0.25
+"""Two steps whose lengths differ by less than this fraction of the shorter are of equal length."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -94,15 +97,23 @@ def outage_anchor(gps: NDArray[np.bool_], policy: WindowPolicy) -> int | None:
     return int(gps_before[-policy.before])
 
 
-def _merge_candidates(gps: NDArray[np.bool_], t: NDArray[np.float64], cap: float) -> NDArray[np.float64]:
-    """Length (s) of the step each interior index would make by its removal; inf where it may not be removed."""
-    span = np.full(len(t), np.inf)
+def _merge_choice(gps: NDArray[np.bool_], t: NDArray[np.float64], cap: float, fine: int) -> int | None:
+    """The step whose removal coarsens the window best, None if none may go. A step may go if it has no GNSS, is
+    not one of the newest ``fine`` steps and merges its two neighbouring steps into one no longer than ``cap``;
+    preferred are steps between two steps of equal length (the outage's steps then stay 1, 2, 4, ... periods
+    long, which pack best), then the shortest merged step, then the oldest."""
     if len(t) < 3:
-        return span
-    merged = t[2:] - t[:-2]
+        return None
+    h = np.diff(t)
+    merged = h[1:] + h[:-1]
     ok = ~gps[1:-1] & (merged <= cap)
-    span[1:-1] = np.where(ok, merged, np.inf)
-    return span
+    ok[max(0, len(t) - 1 - fine) :] = False
+    if not ok.any():
+        return None
+    unequal = np.abs(h[1:] - h[:-1]) > EQUAL_STEPS * np.minimum(h[1:], h[:-1])
+    candidates = np.flatnonzero(ok)
+    order = np.lexsort((candidates, merged[candidates], unequal[candidates]))
+    return int(candidates[order[0]]) + 1
 
 
 def plan_window(gps: NDArray[np.bool_], t: NDArray[np.float64], period: float, policy: WindowPolicy) -> Plan:
@@ -123,10 +134,8 @@ def plan_window(gps: NDArray[np.bool_], t: NDArray[np.float64], period: float, p
     removed: list[int] = []
     index = np.arange(len(t_kept))
     while len(t_kept) > policy.max_steps:
-        span = _merge_candidates(gps_kept, t_kept, cap)
-        # round so that equal spans tie exactly and the oldest wins
-        i = int(np.argmin(np.round(span / period, 6)))
-        if not np.isfinite(span[i]):
+        i = _merge_choice(gps_kept, np.round(t_kept / period, 6) * period, cap, policy.steps)
+        if i is None:
             break
         removed.append(int(index[i]))
         gps_kept, t_kept, index = np.delete(gps_kept, i), np.delete(t_kept, i), np.delete(index, i)

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import math
 import os
 import tempfile
 import time
@@ -24,6 +23,7 @@ from typing import Any
 import can
 import numpy as np
 
+from sumhe.bench import metrics
 from sumhe.config import Config, load_config
 from sumhe.estimator.registry import make_estimator
 from sumhe.geo import LocalFrame
@@ -54,24 +54,17 @@ def position_errors(records: list[dict[str, Any]], truth: Truth, frame: LocalFra
     """Horizontal error (m) of each JSON estimate against the truth at its time, and its ``gps`` flag."""
     if not records:
         return np.zeros(0), np.zeros(0, dtype=object)
-    t = np.array([r["t"] for r in records])
-    enu = frame.to_enu(np.array([r["lat"] for r in records]), np.array([r["lon"] for r in records]), frame.alt0_m)
-    at = truth.at(t)
-    err = np.hypot(enu[:, 0] - at.east, enu[:, 1] - at.north)
+    err = metrics.geodetic_errors(
+        [r["t"] for r in records], [r["lat"] for r in records], [r["lon"] for r in records], truth, frame
+    )
     return err, np.array([r["gps"] for r in records], dtype=object)
-
-
-def _stats(err: np.ndarray) -> tuple[float, float, float]:
-    if err.size == 0:
-        return (math.nan, math.nan, math.nan)
-    return (float(np.mean(err)), float(np.percentile(err, 95)), float(np.max(err)))
 
 
 def summarise(records: list[dict[str, Any]], truth: Truth, frame: LocalFrame) -> ErrorSummary:
     err, gps = position_errors(records, truth, frame)
     ok = err[gps == "ok"]
     out = err[gps != "ok"]
-    return ErrorSummary(int(ok.size), int(out.size), _stats(ok), _stats(out))
+    return ErrorSummary(int(ok.size), int(out.size), metrics.mean_p95_max(ok), metrics.mean_p95_max(out))
 
 
 def demo_config(channel: str, pty_link: Path, udp_port: int, latency_s: float, estimator: str | None) -> Config:

@@ -1,0 +1,115 @@
+"""Pure metrics of the benchmarks: position and heading errors against a truth, split by outage, summaries,
+latency percentiles (also from merged histograms) and throughput.
+
+Units: metres, radians (degrees only where a name says ``_deg``), seconds, milliseconds where named ``_ms``.
+No function here reads files, clocks or estimators; each takes arrays and returns arrays or numbers.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from sumhe.geo import LocalFrame
+from sumhe.sim.truth import Truth
+
+FloatArray = NDArray[np.float64]
+
+LATENCY_EDGES_MS = np.logspace(-4.0, 5.0, 9 * 100 + 1)
+"""Bin edges (ms) of latency histograms: 0.1 us to 100 s, 100 bins per decade (percentiles to within 2.3 %)."""
+
+
+def mean_p95_max(values: ArrayLike) -> tuple[float, float, float]:
+    """Mean, 95th percentile and maximum of ``values`` (NaN, NaN, NaN when empty)."""
+    v = np.asarray(values, dtype=float).ravel()
+    if v.size == 0:
+        return math.nan, math.nan, math.nan
+    return float(np.mean(v)), float(np.percentile(v, 95)), float(np.max(v))
+
+
+def horizontal_errors(t: ArrayLike, east: ArrayLike, north: ArrayLike, truth: Truth) -> FloatArray:
+    """Horizontal distance (m) of each estimate (east/north, m, in the truth's frame) from the truth at its time
+    ``t`` (s; the truth interpolated linearly, clamped at its ends)."""
+    at = truth.at(np.asarray(t, dtype=float))
+    return np.asarray(np.hypot(np.asarray(east, dtype=float) - at.east, np.asarray(north, dtype=float) - at.north))
+
+
+def angle_errors(estimated_rad: ArrayLike, true_rad: ArrayLike) -> FloatArray:
+    """Absolute angle differences (rad) wrapped to [0, pi]: 359 deg against 1 deg is 2 deg."""
+    d = np.asarray(estimated_rad, dtype=float) - np.asarray(true_rad, dtype=float)
+    return np.asarray(np.abs((d + math.pi) % (2.0 * math.pi) - math.pi))
+
+
+def heading_errors(t: ArrayLike, azimuth_rad: ArrayLike, truth: Truth) -> FloatArray:
+    """Azimuth errors (rad, in [0, pi]) of estimates at times ``t`` (s) against the truth's azimuth."""
+    return angle_errors(azimuth_rad, truth.at(np.asarray(t, dtype=float)).azimuth)
+
+
+def interval_index(t: ArrayLike, intervals: Sequence[tuple[float, float]]) -> NDArray[np.intp]:
+    """For each time ``t`` (s), the index of the half-open interval ``[start, end)`` holding it, or -1.
+    Intervals must not overlap."""
+    tq = np.asarray(t, dtype=float)
+    out = np.full(tq.shape, -1, dtype=np.intp)
+    for i, (start, end) in enumerate(intervals):
+        out[(tq >= start) & (tq < end)] = i
+    return out
+
+
+def split_by_interval(
+    t: ArrayLike, values: ArrayLike, intervals: Sequence[tuple[float, float]], after: float = -math.inf
+) -> tuple[list[FloatArray], FloatArray]:
+    """``values`` at times ``t`` split into one array per interval (outages) and one of the rest from ``after``
+    on (with GPS; the warm-up before ``after`` left out)."""
+    tq = np.asarray(t, dtype=float)
+    v = np.asarray(values, dtype=float)
+    index = interval_index(tq, intervals)
+    inside = [v[index == i] for i in range(len(intervals))]
+    return inside, v[(index < 0) & (tq >= after)]
+
+
+def percentiles(values: ArrayLike, qs: Sequence[float] = (50.0, 99.0)) -> tuple[float, ...]:
+    """The ``qs`` percentiles of ``values`` (NaN each when empty)."""
+    v = np.asarray(values, dtype=float).ravel()
+    if v.size == 0:
+        return tuple(math.nan for _ in qs)
+    return tuple(float(p) for p in np.percentile(v, qs))
+
+
+def latency_histogram(ms: ArrayLike) -> NDArray[np.int64]:
+    """Counts of latencies (ms) in the bins of :data:`LATENCY_EDGES_MS` (values beyond the edges go to the end
+    bins). Histograms of several runs add up; :func:`histogram_percentile` reads percentiles back."""
+    v = np.clip(np.asarray(ms, dtype=float).ravel(), LATENCY_EDGES_MS[0], LATENCY_EDGES_MS[-1])
+    counts, _ = np.histogram(v, bins=LATENCY_EDGES_MS)
+    return counts.astype(np.int64)
+
+
+def histogram_percentile(counts: ArrayLike, q: float) -> float:
+    """The ``q`` percentile (ms) of a :func:`latency_histogram`: the geometric centre of the bin where the
+    cumulative count reaches ``q`` % (NaN for an empty histogram)."""
+    c = np.asarray(counts, dtype=float)
+    total = c.sum()
+    if total <= 0:
+        return math.nan
+    k = int(np.searchsorted(np.cumsum(c), q / 100.0 * total, side="left"))
+    k = min(k, len(c) - 1)
+    return float(math.sqrt(LATENCY_EDGES_MS[k] * LATENCY_EDGES_MS[k + 1]))
+
+
+def throughput(span_s: float, wall_s: float) -> float:
+    """How many times faster than real time: seconds of data (``span_s``) per second of computing (``wall_s``);
+    NaN when either is not positive."""
+    if not (span_s > 0.0 and wall_s > 0.0):
+        return math.nan
+    return span_s / wall_s
+
+
+def geodetic_errors(
+    t: ArrayLike, lat_deg: ArrayLike, lon_deg: ArrayLike, truth: Truth, frame: LocalFrame
+) -> FloatArray:
+    """Horizontal distance (m) of estimates given as WGS84 latitude/longitude (deg) at times ``t`` (s) from the
+    truth, whose east/north are in ``frame`` (the estimates are put in it at the frame's height)."""
+    enu = frame.to_enu(np.asarray(lat_deg, dtype=float), np.asarray(lon_deg, dtype=float), frame.alt0_m)
+    return horizontal_errors(t, enu[..., 0], enu[..., 1], truth)

@@ -1,0 +1,316 @@
+"""The moving-horizon SU estimator (sumhe.estimator.mhe, sqp) on simulated drives: contract, gate, window,
+re-acquisition, fallbacks, warm starts, the three solvers."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from sumhe.bench.mhe import drive_stream, run_stream
+from sumhe.config import Config
+from sumhe.errors import ConfigError
+from sumhe.estimator.base import Estimator, LocalFix, StateEstimate
+from sumhe.estimator.batch import model_for, state_box
+from sumhe.estimator.bounds import noise_bounds
+from sumhe.estimator.grid import build_grid
+from sumhe.estimator.mhe import MovingHorizonEstimator
+from sumhe.estimator.registry import make_estimator
+from sumhe.estimator.settings import EstimatorSettings
+from sumhe.estimator.sqp import NlpSolver, SqpSolver, WindowProblem
+from sumhe.messages import CanSample, GnssFix
+from sumhe.sim import SimSettings, simulate
+from sumhe.sim.drive import Drive
+
+SETTINGS = EstimatorSettings(can_delay_s=0.02)
+
+
+@pytest.fixture(scope="module")
+def drive() -> Drive:
+    return simulate(SimSettings(scenario="urban", seed=4, duration_s=40.0, outages=((25.0, 4.0),)))
+
+
+@pytest.fixture(scope="module")
+def stream(drive: Drive) -> list[LocalFix | CanSample]:
+    return drive_stream(drive)
+
+
+def errors(drive: Drive, estimates: list[StateEstimate]) -> np.ndarray:
+    """Horizontal errors (m) of the estimates against the truth."""
+    truth = drive.truth.at(np.array([e.t for e in estimates]))
+    return np.hypot([e.east_m for e in estimates] - truth.east, [e.north_m for e in estimates] - truth.north)
+
+
+def test_registry_builds_it_and_it_is_an_estimator() -> None:
+    est = make_estimator("mhe", Config(estimator=SETTINGS))
+    assert isinstance(est, MovingHorizonEstimator)
+    assert isinstance(est, Estimator)
+    assert EstimatorSettings().name == "mhe"
+
+
+def test_su7_is_refused() -> None:
+    with pytest.raises(ConfigError, match="su5"):
+        MovingHorizonEstimator(dataclasses.replace(SETTINGS, model="su7"))
+
+
+def test_contract_one_estimate_per_epoch_and_per_speed_sample(drive: Drive, stream: list) -> None:
+    est = MovingHorizonEstimator(SETTINGS)
+    first_valid = next(i for i, s in enumerate(stream) if isinstance(s, LocalFix) and s.valid)
+    epochs = speed = 0
+    for i, item in enumerate(stream):
+        out = est.push(item)
+        if i < first_valid:
+            assert out == [], "nothing before the first valid fix"
+            continue
+        if isinstance(item, LocalFix):
+            assert [e.t for e in out if e.mode != "can"][-1] == item.t
+            epochs += 1
+        elif item.quantity == "speed":
+            can = [e for e in out if e.mode == "can"]
+            assert len(can) == 1 and can[0].t == pytest.approx(item.t - SETTINGS.can_delay_s)
+            speed += 1
+        else:
+            assert all(e.mode != "can" for e in out)
+    stats = est.stats()
+    # the silent outage's 40 epochs are taken as missed epochs; every fix and missed epoch gave one estimate
+    assert stats["missed_epochs"] >= 38
+    assert stats["epochs"] == epochs + stats["missed_epochs"]
+    assert stats["outage_epochs"] == stats["missed_epochs"]
+    assert stats.get("fallbacks", 0) == 0
+    assert speed > 1500
+
+
+def test_accuracy_on_a_drive_with_an_outage(drive: Drive, stream: list) -> None:
+    est = MovingHorizonEstimator(SETTINGS)
+    run = run_stream(est, stream)
+    ep = [e for e in run.estimates if e.mode != "can"]
+    err = errors(drive, ep)
+    gps = np.array([e.gps for e in ep])
+    fixes = [s for s in stream if isinstance(s, LocalFix) and s.valid]
+    truth = drive.truth.at(np.array([f.t for f in fixes]))
+    fix_err = np.hypot([f.east_m for f in fixes] - truth.east, [f.north_m for f in fixes] - truth.north)
+    # no worse than the fixes themselves (their error is a slow random walk the estimator cannot see)
+    assert np.mean(err[gps == "ok"][50:]) < np.mean(fix_err[50:])
+    assert np.max(err[gps == "outage"]) < np.max(fix_err) + 1.0
+    can = [e for e in run.estimates if e.mode == "can"]
+    assert np.mean(errors(drive, can)[200:]) < np.mean(fix_err[50:]) + 0.1
+    t, x = est.smoothed()
+    assert len(t) == len(x) == est.stats()["window"]
+    assert x.shape[1] == est.model.n_states
+
+
+def test_window_grows_through_an_outage_and_shrinks_back(stream: list) -> None:
+    est = MovingHorizonEstimator(SETTINGS)
+    windows = [e.window for e in run_stream(est, stream).estimates if e.mode != "can"]
+    assert max(windows) == SETTINGS.mhe_steps_before + 40 + SETTINGS.mhe_steps_after - 1
+    assert windows[-1] == SETTINGS.mhe_steps
+
+
+@pytest.mark.parametrize(
+    "changes",
+    [{"yaw_rate_bias": False, "speed_scale": False}, {"discretisation": "euler"}, {"mhe_sqp_iterations": 1}],
+)
+def test_model_variants_run(drive: Drive, stream: list, changes: dict[str, object]) -> None:
+    est = MovingHorizonEstimator(dataclasses.replace(SETTINGS, **changes))  # type: ignore[arg-type]
+    out = [e for e in run_stream(est, stream).estimates if e.mode != "can"]
+    assert {e.mode for e in out} <= {"init", "mhe", "mhe-widened"}
+    assert np.max(errors(drive, out[50:])) < 4.0
+
+
+def test_a_50_m_jump_is_rejected_and_the_estimate_stays(drive: Drive, stream: list) -> None:
+    jumped = [i for i, s in enumerate(stream) if isinstance(s, LocalFix) and s.valid][150]
+    bad = dataclasses.replace(stream[jumped], east_m=stream[jumped].east_m + 50.0)
+    est = MovingHorizonEstimator(SETTINGS)
+    out = run_stream(est, [*stream[:jumped], bad, *stream[jumped + 1 : jumped + 2000]]).estimates
+    at_jump = [e for e in out if e.t == bad.t and e.mode != "can"]
+    assert [e.gps for e in at_jump] == ["rejected"]
+    after = [e for e in out if e.t >= bad.t]
+    assert np.max(errors(drive, after)) < 3.0
+    assert est.stats()["gps_rejected"] == 1
+    assert all(e.gps == "ok" for e in after if e.mode != "can" and e.t > bad.t)
+
+
+def test_multipath_jumps_are_kept_out() -> None:
+    drive = simulate(
+        SimSettings(scenario="urban", seed=3, duration_s=110.0, multipath_per_min=3.0, gps_error="gaussian")
+    )
+    stream = drive_stream(drive)
+    fixes = [s for s in stream if isinstance(s, LocalFix) and s.valid]
+    truth = drive.truth.at(np.array([f.t for f in fixes]))
+    jumped = np.hypot([f.east_m for f in fixes] - truth.east, [f.north_m for f in fixes] - truth.north) > 5.0
+    assert jumped.sum() > 50  # the drive has multipath episodes
+    est = MovingHorizonEstimator(SETTINGS)
+    out = run_stream(est, stream).estimates
+    err = errors(drive, out)
+    assert np.max(err) < 3.0
+    # the vehicle stands still at the start: its azimuth is unknown, and must not wander off meanwhile
+    epochs = [e for e in out if e.mode != "can"]
+    still = drive.truth.at(np.array([e.t for e in epochs])).speed < 0.05
+    turn = np.abs(np.angle(np.exp(1j * np.diff([e.azimuth_rad for e in epochs]))))
+    assert still[:20].all() and np.max(turn[still[1:] & still[:-1]]) < 0.01
+    assert est.stats()["gps_rejected"] >= 0.9 * jumped.sum()
+
+
+def test_gnss_is_reacquired_within_a_second_after_a_60_s_outage() -> None:
+    drive = simulate(SimSettings(scenario="highway", seed=5, duration_s=95.0, outages=((20.0, 60.0),)))
+    est = MovingHorizonEstimator(SETTINGS)
+    out = [e for e in run_stream(est, drive_stream(drive)).estimates if e.mode != "can"]
+    back = drive.settings.start_unix_s + 80.0
+    first_second = [e.gps for e in out if back <= e.t < back + 1.0]
+    assert first_second.count("ok") >= 5
+    assert all(e.gps == "ok" for e in out if e.t >= back + 1.0)
+    assert max(e.window for e in out) == SETTINGS.mhe_max_steps
+    assert np.mean(errors(drive, [e for e in out if e.t >= back + 2.0])) < 2.0
+
+
+def test_an_injected_solver_failure_falls_back_to_the_prediction(drive: Drive, stream: list) -> None:
+    # allowances of 1 cm on 1 m GNSS errors: the unconstrained point leaves the boxes, and OSQP gets 1 iteration
+    failing = dataclasses.replace(SETTINGS, r_cap_sigmas=0.01, mhe_qp_max_iter=1, mhe_max_retries=1)
+    est = MovingHorizonEstimator(failing)
+    out = run_stream(est, stream[:3000]).estimates
+    epochs = [e for e in out if e.mode != "can"]
+    modes = {e.mode for e in epochs}
+    assert "predict" in modes
+    assert est.stats()["fallbacks"] > 0
+    assert all(math.isfinite(e.east_m) and math.isfinite(e.north_m) for e in out)
+    fixes = sum(1 for s in stream[:3000] if isinstance(s, LocalFix)) - 1
+    assert len(epochs) >= fixes
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        CanSample(t=math.nan, quantity="speed", value=1.0),
+        CanSample(t=1.0, quantity="speed", value=math.nan),
+        CanSample(t=1.0, quantity="yaw_rate", value=1e9),
+        LocalFix(t=math.inf, valid=True, east_m=0.0, north_m=0.0),
+        LocalFix(t=1e12, valid=True, east_m=math.nan, north_m=0.0),
+        "not a sample",
+    ],
+)
+def test_bad_samples_never_raise(stream: list, bad: object) -> None:
+    est = MovingHorizonEstimator(SETTINGS)
+    run_stream(est, stream[:2000])
+    counters = ("bad_samples", "bad_fixes", "dropped_backwards")
+    before = sum(est.stats().get(k, 0) for k in counters)
+    assert est.push(bad) == []  # type: ignore[arg-type]
+    assert sum(est.stats().get(k, 0) for k in counters) == before + 1  # type: ignore[misc]
+    more = run_stream(est, stream[2000:2600]).estimates
+    assert more and all(math.isfinite(e.east_m) for e in more)
+
+
+def test_samples_back_in_time_are_dropped_and_counted(stream: list) -> None:
+    est = MovingHorizonEstimator(SETTINGS)
+    run_stream(est, stream[:2000])
+    last_fix = next(s for s in reversed(stream[:2000]) if isinstance(s, LocalFix))
+    assert est.push(dataclasses.replace(last_fix, t=last_fix.t - 1.0)) == []
+    assert est.push(CanSample(t=last_fix.t - 5.0, quantity="speed", value=3.0)) == []
+    assert est.stats()["dropped_backwards"] == 2
+
+
+def test_invalid_fixes_are_outage_epochs(stream: list) -> None:
+    est = MovingHorizonEstimator(SETTINGS)
+    run_stream(est, stream[:2000])
+    t = max(s.t for s in stream[:2000]) + 0.05
+    out = est.push(LocalFix(t=t, valid=False))
+    assert [e.gps for e in out] == ["outage"]
+    assert est.stats()["outage_epochs"] >= 1
+
+
+def test_reset_starts_over_at_the_next_fix(stream: list) -> None:
+    est = MovingHorizonEstimator(SETTINGS)
+    run_stream(est, stream[:2000])
+    est.reset()
+    assert est.stats()["window"] == 0
+    assert est.push(CanSample(t=stream[2000].t, quantity="speed", value=5.0)) == []
+
+
+def _window_problems(drive: Drive) -> tuple[WindowProblem, WindowProblem]:
+    """Two consecutive 50-step windows of a drive (the second starts one step later), built like the batch
+    estimator's centre stage; the second's start point is left to the caller."""
+    settings = SETTINGS
+    model = model_for(settings)
+    fixes, cans = drive.fixes(), drive.can_samples()
+    out = []
+    for k0 in (100, 101):
+        t0, t1 = fixes[k0].t - 0.05, fixes[k0 + 49].t + 0.05
+        samples = sorted(
+            [f for f in fixes if t0 <= f.t <= t1] + [c for c in cans if t0 <= c.t <= t1], key=lambda s: s.t
+        )
+        samples = [s for s in samples if isinstance(s, GnssFix | CanSample)]
+        grid = build_grid(samples, model, settings, drive.frame)
+        b = noise_bounds(model, grid, settings)
+        lo, hi = state_box(model, 1, settings)
+        x = np.zeros((grid.n_steps, model.n_states))
+        x[:, :2] = grid.y[:, :2]
+        x[:, 3], x[:, 6] = np.nan_to_num(grid.can_speed), 1.0
+        weight = np.zeros((model.n_states, model.n_states))
+        out.append(
+            WindowProblem(
+                grid.n_steps,
+                x,
+                grid.h,
+                grid.y,
+                grid.avail,
+                b.r_hi * b.r_scale,
+                b.q_hi * b.q_scale,
+                lo[0],
+                hi[0],
+                x[0],
+                np.full(model.n_states, np.inf),
+                x[0],
+                weight,
+            )
+        )
+    return out[0], out[1]
+
+
+def test_osqp_warm_started_with_its_duals_needs_fewer_iterations(drive: Drive) -> None:
+    first, _ = _window_problems(drive)
+    solver = SqpSolver(model_for(SETTINGS), first.capacity, max_iter=4000, tol=1e-6, iterations=5, banded=False)
+    solved = solver.solve(first, None)
+    again = dataclasses.replace(first, x=solved.x)
+    warm = solver.solve(again, 0, iterations=1)
+    cold = solver.solve(again, None, iterations=1)
+    assert warm.success and cold.success
+    assert warm.iterations < cold.iterations
+
+
+def test_banded_solve_equals_osqp(drive: Drive) -> None:
+    first, _ = _window_problems(drive)
+    model = model_for(SETTINGS)
+    banded = SqpSolver(model, first.capacity, iterations=5).solve(first, None)
+    qp = SqpSolver(model, first.capacity, max_iter=20000, tol=1e-9, iterations=5, banded=False).solve(first, None)
+    assert banded.status == "banded" and qp.success
+    assert np.max(np.abs(banded.x - qp.x)) < 1e-4
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("solver", ["ipopt", "fatrop"])
+def test_warm_start_reduces_nlp_iterations(drive: Drive, solver: str) -> None:
+    first, second = _window_problems(drive)
+    nlp = NlpSolver(model_for(SETTINGS), first.capacity, solver, 200, 1e-8)
+    solved = nlp.solve(first, None)
+    assert solved.success
+    # warm: the previous solution shifted by one step (and, for IPOPT, its multipliers); cold: the rough start
+    warm = nlp.solve(dataclasses.replace(second, x=np.vstack([solved.x[1:], solved.x[-1:]])), 1)
+    cold = nlp.solve(second, None)
+    assert warm.success and cold.success
+    assert warm.iterations < cold.iterations
+    assert np.max(np.abs(warm.x[:, :2] - cold.x[:, :2])) < 1e-4
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("solver", ["ipopt", "fatrop"])
+def test_the_nlp_solvers_agree_with_the_sqp(drive: Drive, stream: list, solver: str) -> None:
+    part = stream[:12000]
+    ref = [e for e in run_stream(MovingHorizonEstimator(SETTINGS), part).estimates if e.mode != "can"]
+    est = MovingHorizonEstimator(dataclasses.replace(SETTINGS, mhe_solver=solver))
+    out = [e for e in run_stream(est, part).estimates if e.mode != "can"]
+    assert len(out) == len(ref)
+    diff = [math.hypot(a.east_m - b.east_m, a.north_m - b.north_m) for a, b in zip(out, ref, strict=True)]
+    # the same problem: once the vehicle drives (at standstill the azimuth is free and the solvers may differ)
+    assert max(diff[70:]) < 0.01
+    assert est.stats().get("fallbacks", 0) == 0
