@@ -22,6 +22,18 @@ def _lines(n: int, t0: float = T0) -> list[TimedLine]:
     return out
 
 
+async def _collect(source: SerialNmeaSource, n: int, timeout_s: float = 5.0) -> list:
+    """Up to ``n`` fixes from a running source, waiting at most ``timeout_s``."""
+    out = []
+    end = time.monotonic() + timeout_s
+    while len(out) < n and time.monotonic() < end:
+        try:
+            out.append(await anext(source))
+        except SourceTimeout:
+            continue
+    return out
+
+
 def test_read_nmea_log_keeps_prefixed_lines_only(tmp_path):
     p = tmp_path / "d.nmea"
     p.write_bytes(b"(1.5) $GPGGA,x*00\r\n$GPRMC,no-prefix*00\r\n(2.25) $GPRMC,y*00\n")
@@ -66,16 +78,6 @@ def test_pty_reopen_keeps_the_link_and_the_reader_resumes(tmp_path):
             got += await _collect(source, 3)
         return got
 
-    async def _collect(source, n):
-        out = []
-        end = time.monotonic() + 5
-        while len(out) < n and time.monotonic() < end:
-            try:
-                out.append(await anext(source))
-            except SourceTimeout:
-                continue
-        return out
-
     try:
         fixes = asyncio.run(scenario())
     finally:
@@ -96,14 +98,7 @@ def test_nmea_over_tcp_is_read_through_a_socket_url():
             await asyncio.sleep(0.5)  # connect
             for line in _lines(4):
                 server.write(line.raw + b"\r\n")
-            out = []
-            end = time.monotonic() + 5
-            while len(out) < 4 and time.monotonic() < end:
-                try:
-                    out.append(await anext(source))
-                except SourceTimeout:
-                    continue
-            return out
+            return await _collect(source, 4)
 
     try:
         fixes = asyncio.run(scenario())
