@@ -214,9 +214,9 @@ def _draw_map(
 ) -> None:
     if truth is not None:
         ax.plot(truth.east, truth.north, color="black", lw=1.0, label="truth")
-    for tr in tracks:
+    for i, tr in enumerate(tracks):
         enu = frame.to_enu(tr.lat, tr.lon, frame.alt0_m)
-        ax.plot(enu[:, 0], enu[:, 1], lw=0.8, label=tr.label)
+        ax.plot(enu[:, 0], enu[:, 1], lw=0.8, color=_colour(i), label=tr.label)
     ref = tracks[0]
     ref_enu = frame.to_enu(ref.lat, ref.lon, frame.alt0_m)
     for start, end in spans:
@@ -236,18 +236,23 @@ def _draw_map(
 def _draw_panel(ax: Any, name: str, tracks: Sequence[Track], truth: Truth | None, frame: LocalFrame, t0: float) -> None:
     if name == "error":
         assert truth is not None
-        for tr in tracks:
+        for i, tr in enumerate(tracks):
             t, err = track_errors(tr, truth, frame)
-            ax.plot(t - t0, err, lw=0.8, label=tr.label)
+            ax.plot(t - t0, err, lw=0.8, color=_colour(i), label=tr.label)
         ax.set(ylabel="horizontal error (m)", title="error against the truth")
     elif name == "window":
-        for tr in tracks:
+        for i, tr in enumerate(tracks):
             if np.any(tr.window > 0):
-                ax.step(tr.t - t0, tr.window, where="post", lw=0.8, label=tr.label)
+                ax.step(tr.t - t0, tr.window, where="post", lw=0.8, color=_colour(i), label=tr.label)
         ax.set(ylabel="window (steps)", title="estimator window length")
     else:
-        for tr in tracks:
+        for i, tr in enumerate(tracks):
             if tr.has_bounds:
-                line = ax.plot(tr.t - t0, tr.bound_east, lw=0.8, label=f"{tr.label} east")[0]
-                ax.plot(tr.t - t0, tr.bound_north, lw=0.8, ls="--", color=line.get_color(), label=f"{tr.label} north")
+                ax.plot(tr.t - t0, tr.bound_east, lw=0.8, color=_colour(i), label=f"{tr.label} east")
+                ax.plot(tr.t - t0, tr.bound_north, lw=0.8, ls="--", color=_colour(i), label=f"{tr.label} north")
         ax.set(ylabel="half-width (m)", title="feasible-set bounds of the newest position")
+
+
+def _colour(index: int) -> str:
+    """The same colour for an estimator in every panel (matplotlib's default cycle)."""
+    return f"C{index % 10}"

@@ -1,5 +1,6 @@
 """``sumhe bench`` (peers): outage placement, isolation of runs, failures recorded, recorded drives, the CLI."""
 
+import dataclasses
 import itertools
 import json
 import math
@@ -92,15 +93,12 @@ def test_outages_are_labelled_by_the_truths_motion_and_remove_only_the_fixes_ins
     drive = simulate(SimSettings(scenario="urban", seed=5, duration_s=90.0))
     t0 = drive.settings.start_unix_s
     speed = drive.truth.speed
-    stopped = drive.truth.t[np.argmax(speed < 0.2)] - t0  # urban drives start from a stop sign or light
+    assert speed.min() < 0.2, "an urban drive has a stop"
+    stopped = drive.truth.t[np.argmax(speed < 0.2)] - t0
     outages = peers.place_outages(drive.truth, [(max(stopped - 1.0, 0.0), 2.0)], t0)
     assert outages[0].motion == "stop"
     fix = GnssFix(t=t0 + 10.0, time_utc=None, lat_deg=50.0, lon_deg=14.0, alt_m=0.0, quality=1, valid=True)
-    samples = [
-        fix,
-        GnssFix(**{**{k: getattr(fix, k) for k in fix.__slots__}, "t": t0 + 20.0}),
-        CanSample(t0 + 10.5, "speed", 1.0),
-    ]
+    samples = [fix, dataclasses.replace(fix, t=t0 + 20.0), CanSample(t0 + 10.5, "speed", 1.0)]
     kept = peers.without_fixes_in(samples, [Outage(t0 + 10.0, 5.0, "straight")])
     assert kept == samples[1:]
 
@@ -110,6 +108,8 @@ def test_settings_are_validated():
         PeersSettings(scenarios=("moon",))
     with pytest.raises(ValueError, match="duration_s"):
         PeersSettings(duration_s=60.0)
+    with pytest.raises(ValueError, match="at most 3600"):
+        PeersSettings(duration_s=4000.0)
     with pytest.raises(ValueError, match="seeds"):
         PeersSettings(seeds=(-1,))
     assert PeersSettings().names() == estimator_names()

@@ -54,7 +54,9 @@ def test_compose_commands_parse_and_configs_exist():
         config = argv[argv.index("--config") + 1]
         assert (REPO / "configs" / Path(config).name).is_file()
     text = (DOCKER / "compose.yaml").read_text()
-    assert text.count("network_mode: host") == 2, "CAN interfaces live in the host's network namespace"
+    services = len(re.findall(r"^  \w+:$", text.split("volumes:")[0], re.M))
+    hosts = len(re.findall(r"^\s+network_mode: host$", text, re.M))
+    assert hosts == services == 2, "both containers use the host's network namespace, where CAN interfaces live"
     for step in ("modprobe vcan", "ip link add dev vcan0 type vcan", "NET_ADMIN"):
         assert step in text
 

@@ -49,3 +49,12 @@ def test_su_batch_smooths_a_drive_through_an_outage():
     assert {e.gps for e, o in zip(out, in_outage, strict=True) if o} == {"outage"}
     assert np.max(err[in_outage]) < 3.0
     assert np.mean(err[~in_outage]) < 2.0
+
+
+def test_a_live_service_refuses_the_offline_smoother(tmp_path, capsys):
+    from sumhe.cli import main
+
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[can]\ninterface = "virtual"\n[gps]\nport = "/nonexistent"\n')
+    assert main(["run", "--config", str(cfg), "--estimator", "su-batch", "--duration", "0.1"]) == 1
+    assert "sumhe replay" in capsys.readouterr().err

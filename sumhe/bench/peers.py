@@ -61,11 +61,13 @@ T = TypeVar("T")
 
 MEMORY_METHOD = (
     "peak RSS growth of one run: resource.getrusage(RUSAGE_SELF).ru_maxrss of the forked process that runs the "
-    "estimator on one drive, minus its RSS before the estimator is built (max over drives; includes the "
-    "estimator's own solver libraries' heap, not the drive's samples)"
+    "estimator on one drive, minus its RSS before the estimator is built (max over drives; includes all the run "
+    "allocates: the estimator, its solver libraries' heap, the estimates collected; not the drive's samples, which "
+    "the process inherits)"
 )
 RECORDED_FILES = ("drive.log", "drive.nmea", "truth.csv")
 MOTION_ORDER = ("straight", "bend", "sharp", "stop")
+MAX_DURATION_S = 3600.0
 
 
 class BenchRunError(SumheError):
@@ -79,7 +81,7 @@ class PeersSettings:
 
     scenarios: tuple[str, ...] = SCENARIO_NAMES
     gps_errors: tuple[str, ...] = ("walk", "gaussian")
-    seeds: tuple[int, ...] = (1, 2)
+    seeds: tuple[int, ...] = (1, 2, 3)
     duration_s: float = 240.0
     outage_lengths_s: tuple[float, ...] = (5.0, 10.0, 30.0, 55.0)
     recover_s: float = 15.0
@@ -102,6 +104,10 @@ class PeersSettings:
         for name in ("duration_s", "recover_s", "warm_up_s", "timeout_s"):
             if not getattr(self, name) > 0.0:
                 raise ValueError(f"{name}: must be positive, got {getattr(self, name)!r}")
+        if self.duration_s > MAX_DURATION_S:
+            raise ValueError(
+                f"duration_s: at most {MAX_DURATION_S:g} s (the simulator's limit), got {self.duration_s!r}"
+            )
         needed = self.warm_up_s + sum(self.outage_lengths_s) + self.recover_s * len(self.outage_lengths_s)
         if (self.scenarios and self.gps_errors and self.seeds) and self.duration_s < needed:
             raise ValueError(f"duration_s: {self.duration_s:g} s cannot hold the outages, need {needed:g} s")
@@ -262,13 +268,14 @@ def _recorded_frame(directory: Path, truth: Truth) -> LocalFrame:
 
 
 def drives(ps: PeersSettings, base: Config) -> Iterable[BenchDrive]:
-    """Every drive of the bench, built when needed (simulated, then recorded)."""
+    """Every drive of the bench, built when needed: the recorded ones first (a bad recording stops the bench
+    before it has run for long), then the simulated ones."""
+    for directory in ps.recordings:
+        yield recorded_drive(directory, ps, base)
     for scenario in ps.scenarios:
         for gps_error in ps.gps_errors:
             for seed in ps.seeds:
                 yield simulated_drive(scenario, gps_error, seed, ps, base)
-    for directory in ps.recordings:
-        yield recorded_drive(directory, ps, base)
 
 
 # ---- one run -------------------------------------------------------------------------------------------------------

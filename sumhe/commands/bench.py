@@ -79,8 +79,8 @@ def add_peers_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--estimators", metavar="A,B", help="comma-separated estimators (default: every registered)")
     parser.add_argument("--scenarios", metavar="A,B", help="simulated scenarios (default urban,highway,offroad)")
     parser.add_argument("--gps-errors", metavar="A,B", help="simulated GPS error models (default walk,gaussian)")
-    parser.add_argument("--seeds", metavar="1,2", help="simulation seeds (default 1,2)")
-    parser.add_argument("--duration", type=float, metavar="S", help="length of each simulated drive (s)")
+    parser.add_argument("--seeds", metavar="1,2,3", help="simulation seeds (default 1,2,3)")
+    parser.add_argument("--duration", type=float, metavar="S", help="length of each simulated drive (default 240 s)")
     parser.add_argument(
         "--drive", action="append", default=[], metavar="DIR", help="a recorded drive: drive.log, drive.nmea, truth.csv"
     )

@@ -6,7 +6,7 @@ import argparse
 import asyncio
 
 from sumhe.config import load_config
-from sumhe.estimator.registry import make_estimator
+from sumhe.estimator.registry import check_live, make_estimator
 from sumhe.io.can_source import CanBusSource
 from sumhe.io.serial import SerialNmeaSource
 from sumhe.service.app import Service, install_signal_handlers
@@ -20,7 +20,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 async def serve(args: argparse.Namespace) -> None:
     config = load_config(args.config)
-    estimator = make_estimator(args.estimator or config.estimator.name, config)
+    name = args.estimator or config.estimator.name
+    check_live(name)
+    estimator = make_estimator(name, config)
     sources = {"can": CanBusSource.from_config(config), "gps": SerialNmeaSource(config.gps)}
     stop = asyncio.Event()
     install_signal_handlers(stop)

@@ -26,13 +26,15 @@ samples since, so the position sent is that of the newest CAN sample. ``docs/mhe
   scale is seen over the whole drive, not just over one window. The CAN bias and scale may drift by
   ``mhe_theta_drift`` of their limits per square-root minute.
 * Gate: a fix whose distance to the prediction exceeds its position allowance + ``mhe_gate_m`` +
-  ``mhe_gate_drift`` x the distance driven since the last fix used is rejected (``gps="rejected"``) and left out of
+  ``mhe_gate_drift`` x the distance driven since the last fix used (twice that distance while no azimuth has been
+  measured since the start: the prediction may point anywhere) is rejected (``gps="rejected"``) and left out of
   the window, so one multipath jump cannot widen the bounds. The gate widens with the distance driven, so after
   a long outage the first good fixes are taken; fixes rejected for ``GATE_RESET_S`` (30 s) without a break restart
   the estimator at the newest fix.
 * Failures: a failed or infeasible solve is retried with Q, R and the arrival box widened by ``widen_factor``
-  (001 algorithm 3.3), at most ``mhe_max_retries`` times; then the epoch's estimate is the model prediction with
-  ``mode="predict"``. An estimate is never skipped because of the solver.
+  (001 algorithm 3.3), at most ``mhe_max_retries`` times. If it still fails and the epoch brought a fix, the fix
+  is an outlier the gate let in: it is rejected and the window solved again. Otherwise the epoch's estimate is
+  the model prediction with ``mode="predict"``. An estimate is never skipped because of the solver.
 
 Modes: ``"init"`` (first fix), ``"mhe"`` (solved), ``"mhe-widened"`` (solved after widening), ``"predict"``
 (solver failed: model prediction), ``"can"`` (between epochs: the newest solution moved on with CAN data).
@@ -198,6 +200,7 @@ class MovingHorizonEstimator:
         self._t_prop = -math.inf
         self._status: GpsStatus = "outage"
         self._since_fix_m = 0.0
+        self._heading_known = False
         self._rejected_since: float | None = None
         self._used_fixes = 0
         self._capacity: int | None = None
@@ -357,6 +360,7 @@ class MovingHorizonEstimator:
             x[md:] = self._theta0
         self._box_centre, self._prior, self._weight = x.copy(), x.copy(), weight
         y, avail, allow = self._outputs(fix.t, s.step_s, fix)
+        self._heading_known = bool(avail[self._jangle])
         self._window.append(fix.t, y, avail, allow, x)
         self._started = True
         self._last_epoch = fix.t
@@ -397,25 +401,46 @@ class MovingHorizonEstimator:
             self._arrival(min(plan.drop, len(win) - 1))
         win.apply(plan)
         x_new, mode = self._solve(None if plan.merge else plan.drop)
+        if mode == "predict" and status == "ok":
+            # the window cannot take the fix even with widened bounds: an outlier the gate let in; drop it
+            self._count("rejected_by_solver", "fix at %.2f rejected: no trajectory of the window reaches it", t)
+            win.avail[-1, list(self.model.gps_outputs)] = False
+            status = self._status = "rejected"
+            self._counts["gps_ok"] -= 1
+            self._counts["gps_rejected"] += 1
+            x_new, mode = self._solve(None)
+        if mode == "predict":
+            self._count(
+                "fallbacks", "MHE solve failed %d times: the model prediction", self.settings.mhe_max_retries + 1
+            )
+        self._gate_done(t, status)
+        self._heading_known |= status == "ok" and bool(win.avail[-1, self._jangle])
         win.x[:] = x_new
         self._set_prop(x_new[-1], t)
         return self._estimate(list(x_new[-1]), t, status, mode)
 
     def _gate(self, fix: LocalFix, x_pred: NDArray[np.float64]) -> bool:
-        """Whether ``fix`` passes the gate (module docstring); updates the gate's bookkeeping."""
+        """Whether ``fix`` passes the gate (module docstring)."""
         s = self.settings
         sig_e, sig_n = self._fix_sigma(fix)
-        radius = s.r_cap_sigmas * max(sig_e, sig_n) + s.mhe_gate_m + s.mhe_gate_drift * self._since_fix_m
+        # the prediction may be off by a fraction of the distance driven since the last fix used, or by twice
+        # that distance while the azimuth has never been measured (it may point anywhere)
+        drift = s.mhe_gate_drift if self._heading_known else 2.0
+        radius = s.r_cap_sigmas * max(sig_e, sig_n) + s.mhe_gate_m + drift * self._since_fix_m
         miss = math.hypot(fix.east_m - x_pred[self._ie], fix.north_m - x_pred[self._in])
         if miss <= radius or self._used_fixes < max(self.policy.before, 2):
+            return True
+        log.debug("fix at %.2f rejected: %.1f m from the prediction (gate %.1f m)", fix.t, miss, radius)
+        return False
+
+    def _gate_done(self, t: float, status: GpsStatus) -> None:
+        """The gate's bookkeeping once the epoch is solved: a fix used, or one more rejected."""
+        if status == "ok":
             self._since_fix_m = 0.0
             self._rejected_since = None
             self._used_fixes += 1
-            return True
-        if self._rejected_since is None:
-            self._rejected_since = fix.t
-        log.debug("fix at %.2f rejected: %.1f m from the prediction (gate %.1f m)", fix.t, miss, radius)
-        return False
+        elif status == "rejected" and self._rejected_since is None:
+            self._rejected_since = t
 
     def _fix_sigma(self, fix: LocalFix) -> tuple[float, float]:
         """1-sigma error (east, north) of a fix (m): the receiver's GST, else by quality/HDOP, else the default."""
@@ -553,7 +578,6 @@ class MovingHorizonEstimator:
                     self._counts["widened"] += 1
                 return result.x[:L], "mhe-widened" if attempt else "mhe"
             self._count("failed_solves", "MHE solve failed (%s)", result.status)
-        self._count("fallbacks", "MHE solve failed %d times: reporting the model prediction", s.mhe_max_retries + 1)
         return win.x.copy(), "predict"
 
     # ---- the arrival box and cost -----------------------------------------------------------------------------

@@ -41,9 +41,21 @@ def _plugins() -> dict[str, str]:
     return {ep.name: ep.value for ep in entry_points(group=ENTRY_POINT_GROUP) if ep.name not in ESTIMATORS}
 
 
-def estimator_names() -> tuple[str, ...]:
-    """Every estimator name known (built-in first, then entry points)."""
-    return (*ESTIMATORS, *sorted(_plugins()))
+OFFLINE: frozenset[str] = frozenset({"su-batch"})
+"""Offline smoothers: they answer at the end of a recorded drive (``finish()``), never live."""
+
+
+def estimator_names(live_only: bool = False) -> tuple[str, ...]:
+    """Every estimator name known (built-in first, then entry points); ``live_only`` leaves out the offline ones."""
+    names = (*ESTIMATORS, *sorted(_plugins()))
+    return tuple(n for n in names if n not in OFFLINE) if live_only else names
+
+
+def check_live(name: str) -> None:
+    """ConfigError when ``name`` is an offline smoother, which a live service cannot run."""
+    if name in OFFLINE:
+        live = ", ".join(estimator_names(live_only=True))
+        raise ConfigError(f"estimator.name: {name!r} smooths recorded drives (sumhe replay); live: {live}")
 
 
 def estimator_class(name: str) -> Any:

@@ -25,7 +25,7 @@ import numpy as np
 
 from sumhe.bench import metrics
 from sumhe.config import Config, load_config
-from sumhe.estimator.registry import make_estimator
+from sumhe.estimator.registry import check_live, make_estimator
 from sumhe.geo import LocalFrame
 from sumhe.io.can import REFERENCE_E2E, REFERENCE_SIGNALS, read_log
 from sumhe.io.can_source import CanBusSource
@@ -132,6 +132,7 @@ async def run_live(
         bus = can.Bus(interface="virtual", channel=config.can.channel, preserve_timestamps=True)
         player = Player(frames, lines, bus, pty, speed=speed, clock=clock)
         sources = {"can": CanBusSource.from_config(config), "gps": SerialNmeaSource(config.gps, clock=clock)}
+        check_live(config.estimator.name)
         service = Service(
             config,
             make_estimator(config.estimator.name, config),
