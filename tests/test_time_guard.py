@@ -63,15 +63,23 @@ def test_gnss_clock_skew_against_can_is_counted_but_the_fix_is_used():
     assert g.stats.skew == 1 and g.stats.last_skew_s == pytest.approx(2.0)
 
 
-def test_reorder_releases_in_time_order_after_the_hold():
+def test_reorder_releases_in_time_order_hold_after_each_timestamp():
     r = Reorder(hold_s=0.1)
-    r.put(can(T0 + 0.2), now=0.0)
-    r.put(fix(T0 + 0.1), now=0.05)  # stamped earlier, arrived later (receiver latency)
-    assert r.release(now=0.09) == ([], 0.0)
-    assert r.next_due() == pytest.approx(0.15)  # the earliest-stamped sample gates the rest
-    released, lag = r.release(now=0.2)
-    assert [s.t for s in released] == [T0 + 0.1, T0 + 0.2]
-    assert lag == pytest.approx(0.1)  # the first was due at 0.1
+    r.put(can(T0 + 0.20), now=T0 + 0.20)
+    r.put(fix(T0 + 0.10), now=T0 + 0.25)  # stamped earlier than it arrived (receiver latency)
+    r.put(can(T0 + 0.26), now=T0 + 0.26)
+    assert r.next_due() == pytest.approx(T0 + 0.20)  # the fix, due 0.1 s after its own time
+    released, lag = r.release(now=T0 + 0.31)
+    assert [s.t for s in released] == [T0 + 0.10, T0 + 0.20]  # time order; the later CAN sample still held
+    assert lag == pytest.approx(0.11, abs=1e-6)
+    assert [s.t for s in r.release(now=T0 + 0.36)[0]] == [T0 + 0.26]
+
+
+def test_reorder_never_holds_a_future_dated_sample_longer_than_the_hold():
+    r = Reorder(hold_s=0.1)
+    r.put(can(T0 + 100.0), now=T0)
+    assert r.next_due() == pytest.approx(T0 + 0.1)
+    assert len(r.release(now=T0 + 0.1)[0]) == 1
 
 
 def test_newest_epoch_only_skips_older_epochs_but_keeps_can():

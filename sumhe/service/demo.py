@@ -32,7 +32,7 @@ from sumhe.io.can_source import CanBusSource
 from sumhe.io.replay import log_samples
 from sumhe.io.serial import SerialNmeaSource
 from sumhe.io.udp import estimate_to_json
-from sumhe.service.app import REORDER_MARGIN_S, Service, install_signal_handlers
+from sumhe.service.app import Service, install_signal_handlers
 from sumhe.service.pipeline import Pipeline
 from sumhe.service.player import Player, Pty, read_nmea_log
 from sumhe.sim import Truth, bundled_drive_dir, load_settings, load_truth
@@ -137,8 +137,8 @@ async def run_live(
             config,
             make_estimator(config.estimator.name, config),
             sources,
-            hold_s=(latency + REORDER_MARGIN_S) / speed,
             clock=clock,
+            clock_rate=speed,
         )
         stop = asyncio.Event()
         install_signal_handlers(stop)
