@@ -203,19 +203,21 @@ class Service:
                 self.stats.skipped_epochs += skipped
                 log.warning("estimator behind: %d GNSS epochs skipped (%d so far)", skipped, self.stats.skipped_epochs)
             self.stats.batches += 1
-            estimates = await asyncio.to_thread(self._push_all, batch)
+            estimates, epoch_ms = await asyncio.to_thread(self._push_all, batch)
+            self.stats.solve_ms.extend(epoch_ms)
             for est in estimates:
                 self._send(est)
 
-    def _push_all(self, batch: list[Sample]) -> list[Estimate]:
-        """Push a batch (in the worker thread); the update time of each GNSS epoch goes to the solve figures."""
+    def _push_all(self, batch: list[Sample]) -> tuple[list[Estimate], list[float]]:
+        """Push a batch (in the worker thread): the estimates, and the update time (ms) of each GNSS epoch."""
         out: list[Estimate] = []
+        epoch_ms: list[float] = []
         for sample in batch:
             t0 = time.perf_counter()
             out.extend(self.pipeline.push(sample))
             if isinstance(sample, GnssFix) and self.pipeline.stats.first_fix_t is not None:
-                self.stats.solve_ms.append((time.perf_counter() - t0) * 1000.0)
-        return out
+                epoch_ms.append((time.perf_counter() - t0) * 1000.0)
+        return out, epoch_ms
 
     def _send(self, est: Estimate) -> None:
         self.stats.latency_ms.append((self.clock() - est.t) * 1000.0)
