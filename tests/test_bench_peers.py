@@ -99,8 +99,15 @@ def test_outages_are_labelled_by_the_truths_motion_and_remove_only_the_fixes_ins
     assert outages[0].motion == "stop"
     fix = GnssFix(t=t0 + 10.0, time_utc=None, lat_deg=50.0, lon_deg=14.0, alt_m=0.0, quality=1, valid=True)
     samples = [fix, dataclasses.replace(fix, t=t0 + 20.0), CanSample(t0 + 10.5, "speed", 1.0)]
-    kept = peers.without_fixes_in(samples, [Outage(t0 + 10.0, 5.0, "straight")])
+    outage = Outage(t0 + 10.0, 5.0, "straight")
+    kept = peers.without_fixes_in(samples, [outage])
     assert kept == samples[1:]
+    # the outage lasts, for the scores, until the first valid fix after it
+    assert outage.scored_span == (t0 + 10.0, t0 + 15.0)
+    no_fix = dataclasses.replace(fix, t=t0 + 15.05, valid=False)
+    (back,) = peers.with_gps_back([outage], [CanSample(t0 + 15.0, "speed", 1.0), no_fix, *kept])
+    assert back.gps_back_s == t0 + 20.0 and back.scored_span == (t0 + 10.0, t0 + 20.0)
+    assert peers.with_gps_back([outage], samples[:1])[0].scored_span == (t0 + 10.0, t0 + 15.0)
 
 
 def test_settings_are_validated():

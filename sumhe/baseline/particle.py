@@ -1,17 +1,13 @@
 """Bootstrap particle filter on the shared model (``pf``), vectorised over particles, seeded.
 
 Each particle is a full state of :mod:`.kinematics`. CAN speed and yaw rate drive the particles as inputs
-(odometry, as the INS drives the particles in paper 004): per particle ``v = (CAN speed + e_v) / k`` and
-``omega = CAN yaw rate + e_w - b`` (both 0 at standstill), then the midpoint step, then random-walk noise on
-position, azimuth, bias and scale with the densities of :class:`~sumhe.baseline.kinematics.Noise`. Each
-particle's input errors ``e_v``, ``e_w`` are first-order Gauss-Markov processes (correlation time
-``INPUT_ERROR_TAU_S``, sigmas ``can_speed_mps`` and ``can_yaw_rate_rps``): they spread the cloud along the track
-as the speed random walk spreads the Kalman filters' covariance, without which a cloud that fell behind the
-fixes (a wrong early scale estimate) cannot catch up with them. The speed and yaw-rate random walks of
-:class:`~sumhe.baseline.kinematics.Noise` are not used. GNSS position and course weight the particles with Gaussian
+(odometry, as the INS drives the particles in paper 004): per particle ``v = CAN speed / k`` and
+``omega = CAN yaw rate - b`` (0 at standstill), then the midpoint step, then random-walk noise on position,
+azimuth, bias and scale with the densities of :class:`~sumhe.baseline.kinematics.Noise` (its speed, yaw-rate
+and CAN measurement noises are not used). GNSS position and course weight the particles with Gaussian
 likelihoods; systematic resampling when the effective sample size falls below half the particles, with
-Liu-West kernel shrinkage of the static bias and scale (without it their particles collapse onto a few values). The gate
-works on the particle cloud's mean and covariance; a re-acquisition shifts the cloud onto the fix.
+Liu-West kernel shrinkage of the static bias and scale (without it their particles collapse onto a few values).
+The gate works on the particle cloud's mean and covariance; a re-acquisition shifts the cloud onto the fix.
 """
 
 from __future__ import annotations
@@ -30,8 +26,6 @@ from sumhe.model.su import wrap_angle
 
 RESAMPLE_ESS = 0.5
 """Resample when the effective sample size is below this share of the particles."""
-INPUT_ERROR_TAU_S = 1.0
-"""Correlation time of each particle's CAN speed and yaw-rate errors (first-order Gauss-Markov)."""
 LIU_WEST_DISCOUNT = 0.98
 """Discount factor of the Liu-West kernel (Liu and West 2001) for the static rows at resampling: the resampled
 bias and scale of each particle are shrunk towards their mean by ``a = (3 d - 1) / (2 d)`` and jittered with
@@ -82,31 +76,23 @@ class ParticleFilter(RecursiveEstimator):
         if self.layout.k is not None:
             dens[self.layout.k] = self.noise.scale_rw
         self._density = dens
-        self._input_sigma = np.array([self.noise.can_speed_mps, self.noise.can_yaw_rate_rps])
-        self._input_error = np.zeros((2, self.particles))
 
     def _start(self, x0: FloatArray, P0: FloatArray) -> None:
         self.X = x0[:, None] + np.linalg.cholesky(P0) @ self.rng.standard_normal((len(x0), self.particles))
-        self._input_error = self._input_sigma[:, None] * self.rng.standard_normal((2, self.particles))
         if not self._heading_known:
             self.X[PHI] = self.rng.uniform(-math.pi, math.pi, self.particles)
         self.w = np.full(self.particles, 1.0 / self.particles)
 
     def _set_inputs(self, inputs: Inputs) -> None:
-        """Speed and yaw rate of every particle from the CAN inputs, its own scale and bias and input errors."""
+        """Speed and yaw rate of every particle from the CAN inputs and its own scale and bias."""
         speed = inputs.speed if inputs.speed is not None else 0.0
-        self.X[V] = (speed + self._input_error[0]) / kin.speed_scale(self.X, self.layout)
-        if inputs.standstill:
-            self.X[V] = 0.0
+        self.X[V] = speed / kin.speed_scale(self.X, self.layout)
         if inputs.standstill or inputs.yaw_rate is None:
             self.X[OMEGA] = 0.0
         else:
-            self.X[OMEGA] = inputs.yaw_rate + self._input_error[1] - kin.yaw_rate_bias(self.X, self.layout)
+            self.X[OMEGA] = inputs.yaw_rate - kin.yaw_rate_bias(self.X, self.layout)
 
     def _predict(self, dt: float, inputs: Inputs) -> None:
-        decay = math.exp(-dt / INPUT_ERROR_TAU_S)
-        drive = math.sqrt(1.0 - decay * decay) * self._input_sigma[:, None]
-        self._input_error = decay * self._input_error + drive * self.rng.standard_normal((2, self.particles))
         self._set_inputs(inputs)
         self.X = kin.step(self.X, dt)
         self.X += (self._density * math.sqrt(dt))[:, None] * self.rng.standard_normal(self.X.shape)
@@ -140,7 +126,6 @@ class ParticleFilter(RecursiveEstimator):
         var = np.square(self.X[rows] - mean[:, None]) @ self.w
         keep = systematic_resample(self.w, self.rng)
         self.X = self.X[:, keep]
-        self._input_error = self._input_error[:, keep]
         a = (3.0 * LIU_WEST_DISCOUNT - 1.0) / (2.0 * LIU_WEST_DISCOUNT)
         jitter = np.sqrt((1.0 - a * a) * var)[:, None] * self.rng.standard_normal((len(rows), self.particles))
         self.X[rows] = a * self.X[rows] + (1.0 - a) * mean[:, None] + jitter

@@ -224,16 +224,7 @@ SEARCH_FACTORS = (0.25, 0.5, 2.0, 4.0)
 SEARCH_PARAMETERS: dict[str, tuple[str, ...]] = {
     "ekf": ("pos_rw", "heading_rw", "speed_rw", "yaw_rate_rw", "bias_rw", "gps_scale", "course_rad"),
     "ukf": ("pos_rw", "heading_rw", "yaw_rate_rw", "gps_scale"),
-    "pf": (
-        "pos_rw",
-        "heading_rw",
-        "bias_rw",
-        "scale_rw",
-        "gps_scale",
-        "course_rad",
-        "can_speed_mps",
-        "can_yaw_rate_rps",
-    ),
+    "pf": ("pos_rw", "heading_rw", "bias_rw", "scale_rw", "gps_scale", "course_rad"),
     "imm": (
         "straight.yaw_rate_rw",
         "straight.heading_rw",

@@ -81,11 +81,13 @@ class MheBenchSettings:
 
 @dataclass(frozen=True, slots=True)
 class Run:
-    """One estimator on one drive: the estimates and the GNSS-epoch update times (ms)."""
+    """One estimator on one drive: the estimates, the GNSS-epoch update times (ms), the wall-clock and the CPU time
+    of the process (s; on a shared machine the CPU time is what one core of its own would take)."""
 
     estimates: list[StateEstimate]
     epoch_ms: NDArray[np.float64]
     wall_s: float
+    cpu_s: float
 
 
 def environment() -> str:
@@ -93,8 +95,8 @@ def environment() -> str:
     threads = ", ".join(f"{v}={os.environ.get(v, 'unset')}" for v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"))
     return (
         f"{platform.python_implementation()} {platform.python_version()} on {platform.machine()}, "
-        f"{os.cpu_count()} CPUs; {threads}; numpy {np.__version__}, casadi {casadi.__version__}, "
-        f"osqp {osqp.__version__}"
+        f"{os.cpu_count()} CPUs (load average {os.getloadavg()[0]:.1f}: timings suffer when it exceeds the CPUs); "
+        f"{threads}; numpy {np.__version__}, casadi {casadi.__version__}, osqp {osqp.__version__}"
     )
 
 
@@ -126,7 +128,7 @@ def run_stream(
     """Push every sample; the estimates, and the update time of each GNSS epoch (ms, the push that made it)."""
     out: list[StateEstimate] = []
     epoch_ms: list[float] = []
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for item in stream:
         ta = time.perf_counter()
         produced = estimator.push(item)
@@ -136,7 +138,7 @@ def run_stream(
             out.append(e)
             if on_estimate is not None:
                 on_estimate(e)
-    return Run(out, np.array(epoch_ms), time.perf_counter() - t0)
+    return Run(out, np.array(epoch_ms), time.perf_counter() - t0, time.process_time() - c0)
 
 
 def position_errors(drive: Drive, estimates: Sequence[StateEstimate]) -> tuple[NDArray, NDArray]:
@@ -360,6 +362,9 @@ def replay_run(duration_s: float, base: EstimatorSettings) -> dict[str, float]:
         "span_s": span,
         "wall_s": run.wall_s,
         "speed": span / run.wall_s,
+        "cpu_s": run.cpu_s,
+        "cpu_speed": span / run.cpu_s,
+        "load": os.getloadavg()[0],
         "samples": float(len(stream)),
         "estimates": float(len(run.estimates)),
         "epoch_p50": float(np.percentile(run.epoch_ms, 50)),
@@ -383,7 +388,7 @@ def run_benchmark(bs: MheBenchSettings, progress: Progress | None = None) -> lis
         f"step {s.step_s} s"
     )
     lines.append("")
-    lines.append("latency per GNSS epoch, window full (ms):")
+    lines.append(f"latency per GNSS epoch, window full (ms; load average {os.getloadavg()[0]:.1f}):")
     head = ("solver", "N", "epochs", "p50", "p99", "max", "iter/solve")
     lines.append("  {:8s} {:>4s} {:>6s} {:>8s} {:>8s} {:>8s} {:>10s} banded".format(*head))
     for solver in bs.solvers:
@@ -418,9 +423,10 @@ def run_benchmark(bs: MheBenchSettings, progress: Progress | None = None) -> lis
     r = replay_run(bs.replay_s, s)
     lines.append(
         f"replay: {r['span_s']:.0f} s of simulated data ({r['samples']:.0f} samples, {r['estimates']:.0f} "
-        f"estimates) in {r['wall_s']:.1f} s = {r['speed']:.0f}x real time on one core; epoch update p50 "
-        f"{r['epoch_p50']:.2f} ms, p99 {r['epoch_p99']:.2f} ms; banded solves {100 * r['banded']:.0f} %, "
-        f"fallbacks {r['fallbacks']:.0f}"
+        f"estimates) in {r['wall_s']:.1f} s = {r['speed']:.0f}x real time ({r['cpu_s']:.1f} s of CPU = "
+        f"{r['cpu_speed']:.0f}x on a core of its own; load average {r['load']:.1f} on {os.cpu_count()} CPUs); "
+        f"epoch update p50 {r['epoch_p50']:.2f} ms, p99 {r['epoch_p99']:.2f} ms; "
+        f"banded solves {100 * r['banded']:.0f} %, fallbacks {r['fallbacks']:.0f}"
     )
     return lines
 

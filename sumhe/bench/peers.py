@@ -15,11 +15,12 @@ then ``pipeline.finish()``. The config has a fixed datum at the truth's frame; o
 delay is calibrated (``estimator.can_delay_s`` = the simulator's delay) for every estimator alike.
 
 Figures, per estimator over all drives: position error of every estimate (GNSS epochs and CAN rate) inside the
-outages (all, per length, per motion) and outside them after the warm-up (with GPS); azimuth error while the
-truth moves faster than ``heading_min_speed_mps``; the time of each ``pipeline.push`` (per pushed sample, and for
-pushes of a GNSS fix: per epoch); throughput = seconds of data / seconds of push + finish; peak memory (see
-:data:`MEMORY_METHOD`). Each run (one estimator on one drive) runs in a forked process with a time limit: an
-estimator that raises, crashes or hangs is recorded as a failed run and the bench goes on.
+outages (all, per length, per motion; an outage lasts until the first fix after it) and outside them after the
+warm-up (with GPS); azimuth error while the truth moves faster than ``heading_min_speed_mps``; the time of each
+``pipeline.push`` (per pushed sample, and for pushes of a GNSS fix: per epoch); throughput = seconds of data /
+seconds of push + finish; peak memory (see :data:`MEMORY_METHOD`). Each run (one estimator on one drive) runs in a
+forked process with a time limit: an estimator that raises, crashes or hangs is recorded as a failed run and the
+bench goes on.
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ from sumhe.bench import metrics
 from sumhe.bench.protocol import label_motion
 from sumhe.config import Config, DatumSettings
 from sumhe.errors import ConfigError, SumheError
-from sumhe.estimator.registry import estimator_names, make_estimator
+from sumhe.estimator.registry import estimator_class, estimator_names, make_estimator
 from sumhe.geo import LocalFrame
 from sumhe.io.fixtime import stamp_fix
 from sumhe.io.replay import log_samples, merge_by_time
@@ -135,15 +136,23 @@ class PeersSettings:
 
 @dataclass(frozen=True, slots=True)
 class Outage:
-    """One placed outage: ``start_s`` (s, the drive's clock), ``length_s`` and the truth's motion during it."""
+    """One placed outage: ``start_s`` (s, the drive's clock), ``length_s`` and the truth's motion during it;
+    ``gps_back_s``: the time of the first fix after it (NaN until known, see :func:`with_gps_back`)."""
 
     start_s: float
     length_s: float
     motion: str
+    gps_back_s: float = math.nan
 
     @property
     def end_s(self) -> float:
         return self.start_s + self.length_s
+
+    @property
+    def scored_span(self) -> tuple[float, float]:
+        """Where estimates count as made without GPS: from the start until the first fix after the outage (the
+        CAN-rate estimates between the outage's end and that fix have no fix yet either)."""
+        return self.start_s, self.gps_back_s if math.isfinite(self.gps_back_s) else self.end_s
 
 
 @dataclass(frozen=True, eq=False)
@@ -206,6 +215,16 @@ def without_fixes_in(samples: Iterable[Sample], outages: Sequence[Outage]) -> li
     return [s for s in samples if not (isinstance(s, GnssFix) and metrics.interval_index([s.t], spans)[0] >= 0)]
 
 
+def with_gps_back(outages: Sequence[Outage], samples: Sequence[Sample]) -> tuple[Outage, ...]:
+    """The outages with ``gps_back_s`` set from the valid fixes of ``samples`` (the outage's end when none follows)."""
+    fix_t = np.array(sorted(s.t for s in samples if isinstance(s, GnssFix) and s.valid))
+    out = []
+    for o in outages:
+        k = int(np.searchsorted(fix_t, o.end_s))
+        out.append(dataclasses.replace(o, gps_back_s=float(fix_t[k]) if k < len(fix_t) else o.end_s))
+    return tuple(out)
+
+
 def drive_config(base: Config, frame: LocalFrame, can_delay_s: float | None = None) -> Config:
     """``base`` with the datum fixed at ``frame`` (estimates come out in the truth's frame) and, when given, the
     calibrated CAN sensor delay."""
@@ -228,7 +247,7 @@ def simulated_drive(scenario: str, gps_error: str, seed: int, ps: PeersSettings,
     samples = without_fixes_in(merge_by_time(drive.can_samples(), fixes), outages)
     name = f"{scenario}-{gps_error}-{seed}"
     scored_from = sim.start_unix_s + ps.warm_up_s
-    return BenchDrive(name, "simulated", samples, drive.truth, config, outages, scored_from)
+    return BenchDrive(name, "simulated", samples, drive.truth, config, with_gps_back(outages, samples), scored_from)
 
 
 def recorded_drive(directory: str | Path, ps: PeersSettings, base: Config) -> BenchDrive:
@@ -256,6 +275,7 @@ def recorded_drive(directory: str | Path, ps: PeersSettings, base: Config) -> Be
     if len(outages) < len(ps.outage_lengths_s):
         log.warning("%s: %.0f s of truth hold only %d of the outages", d, duration, len(outages))
     kept = without_fixes_in(samples, outages)
+    outages = with_gps_back(outages, kept)
     return BenchDrive(d.name or str(d), "recorded", kept, truth, config, outages, t0 + ps.warm_up_s)
 
 
@@ -353,7 +373,7 @@ def run_estimator(name: str, drive: BenchDrive, heading_min_speed_mps: float = 2
     finite = np.isfinite(t) & np.isfinite(east) & np.isfinite(north) & np.isfinite(track)
     t, east, north, track = t[finite], east[finite], north[finite], track[finite]
     err = metrics.horizontal_errors(t, east, north, drive.truth)
-    spans = [(o.start_s, o.end_s) for o in drive.outages]
+    spans = [o.scored_span for o in drive.outages]
     inside, with_gps = metrics.split_by_interval(t, err, spans, after=drive.scored_from)
     moving = (t >= drive.scored_from) & (drive.truth.at(t).speed >= heading_min_speed_mps)
     heading = metrics.heading_errors(t[moving], track[moving], drive.truth)
@@ -451,6 +471,11 @@ def run_bench(ps: PeersSettings, base: Config, progress: Progress | None = None)
     """Run every estimator of ``ps`` on every drive, each run isolated (:func:`call_isolated`)."""
     t0 = time.perf_counter()
     names = ps.names()
+    for name in names:  # import each estimator's module here, once: every run (a fork) uses the same code
+        try:
+            estimator_class(name)
+        except ConfigError as e:
+            log.warning("%s", e)  # each of its runs records the failure
     results: list[RunResult] = []
     seen: list[DriveInfo] = []
     for drive in drives(ps, base):
@@ -586,7 +611,12 @@ def summarise(report: BenchReport, command: str = "sumhe bench") -> dict[str, An
                 "kind": d.kind,
                 "span_s": d.span_s,
                 "outages": [
-                    {"start_s": round(o.start_s - d.t0, 2), "length_s": o.length_s, "motion": o.motion}
+                    {
+                        "start_s": round(o.start_s - d.t0, 2),
+                        "length_s": o.length_s,
+                        "motion": o.motion,
+                        "gps_back_s": round(o.scored_span[1] - d.t0, 2),
+                    }
                     for o in d.outages
                 ],
             }
@@ -720,7 +750,8 @@ def markdown(summary: Mapping[str, Any]) -> str:
         "## How the figures are measured",
         "",
         "- Position error: horizontal distance of every estimate (GNSS epochs and CAN rate; offline smoothers: "
-        "every grid step) from the truth at its time, inside the outages / outside them after a "
+        "every grid step) from the truth at its time, inside the outages (from the first missing fix to the first "
+        "fix after) / outside them after a "
         f"{summary['settings']['warm_up_s']:g} s warm-up (with GPS).",
         f"- Heading: azimuth error, wrapped, while the truth moves faster than "
         f"{summary['settings']['heading_min_speed_mps']:g} m/s.",

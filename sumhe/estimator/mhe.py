@@ -533,14 +533,23 @@ class MovingHorizonEstimator:
     def _problem(self, capacity: int, Q: NDArray, R: NDArray, widen: float) -> WindowProblem:
         win, L = self._window, len(self._window)
         pad = capacity - L
+        if pad == 0:
+            x, h, y, avail = win.x, np.diff(win.t), win.y, win.avail
+        else:
+            x = np.vstack([win.x, np.repeat(win.x[-1:], pad, axis=0)])
+            h = np.concatenate([np.diff(win.t), np.full(pad, self.period_s)])
+            y = np.vstack([win.y, np.zeros((pad, self._n))])
+            avail = np.vstack([win.avail, np.zeros((pad, self._n), dtype=bool)])
+            Q = np.vstack([Q, np.ones((pad, self._md))])
+            R = np.vstack([R, np.ones((pad, self._n))])
         return WindowProblem(
             n_steps=L,
-            x=np.vstack([win.x, np.repeat(win.x[-1:], pad, axis=0)]),
-            h=np.concatenate([np.diff(win.t), np.full(pad, self.period_s)]),
-            y=np.vstack([win.y, np.zeros((pad, self._n))]),
-            avail=np.vstack([win.avail, np.zeros((pad, self._n), dtype=bool)]),
-            out_bound=np.vstack([R * widen, np.ones((pad, self._n))]),
-            state_bound=np.vstack([Q * widen, np.ones((pad, self._md))]),
+            x=x,
+            h=h,
+            y=y,
+            avail=avail,
+            out_bound=R * widen,
+            state_bound=Q * widen,
             lo=self._lo,
             hi=self._hi,
             box_centre=self._box_centre,

@@ -202,7 +202,7 @@ class SqpSolver:
         res = ca.vertcat(ca.vec(fw.map(C - 1)(X[:, :-1], X[:, 1:], H)), ca.vec(fe.map(C)(X, Y)))
         z = ca.vertcat(ca.vec(Xd), th)
         J = ca.jacobian(res, z)
-        self._lin = ca.Function("mhe_lin", [z, H, Y], [res, J.nz[:]])
+        self._lin = ca.Function("mhe_lin", [z, H, Y], [ca.vertcat(res, J.nz[:])])
         rows, cols = (np.asarray(a, dtype=np.int64) for a in J.sparsity().get_triplet())
         self._rows, self._cols = rows, cols
         self._row_step = np.concatenate([np.repeat(np.arange(C - 1), md), np.repeat(np.arange(C), n)])
@@ -349,8 +349,8 @@ class SqpSolver:
         for it in range(iterations or self.iterations):
             t0 = time.perf_counter()
             zbar = np.concatenate([x[:, :md].reshape(-1), x[0, md:]])
-            res, jac = self._lin(zbar, problem.h, problem.y.T)
-            res, jac = res.full().reshape(-1), jac.full().reshape(-1)
+            lin = self._lin(zbar, problem.h, problem.y.T).full().reshape(-1)
+            res, jac = lin[: self.nw + self.ne], lin[self.nw + self.ne :]
             t1 = time.perf_counter()
             js, rs = jac / bound[self._rows], res / bound
             delta = problem.prior - x[0]
