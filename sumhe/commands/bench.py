@@ -27,6 +27,11 @@ BENCHMARKS: dict[str, tuple[str, str, str]] = {
         "sumhe.commands.bench:add_mhe_arguments",
         "sumhe.commands.bench:run_mhe",
     ),
+    "live": (
+        "the daemon in real time against a player process: output rate, end-to-end latency, CPU use",
+        "sumhe.commands.bench:add_live_arguments",
+        "sumhe.commands.bench:run_live",
+    ),
     "protocol": (
         "paper 000's outage protocol: batch SU methods side by side (as sumhe protocol)",
         "sumhe.commands.protocol:add_arguments",
@@ -185,4 +190,16 @@ def run_peers(args: argparse.Namespace) -> int:
         (out / "peers.json").write_text(json.dumps(summary, indent=1, allow_nan=False) + "\n", encoding="utf-8")
         (out / "peers.md").write_text(markdown(summary), encoding="utf-8")
         print(f"wrote {out / 'peers.json'} and {out / 'peers.md'}", file=sys.stderr)
+    return 0
+
+
+def add_live_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--duration", type=float, default=60.0, metavar="S", help="length of the drive (default 60 s)")
+    parser.add_argument("--estimator", default="mhe", metavar="NAME", help="estimator the daemon runs (default mhe)")
+
+
+def run_live(args: argparse.Namespace) -> int:
+    from sumhe.bench.live import format_live, run_live
+
+    print(format_live(run_live(args.duration, args.estimator)), flush=True)
     return 0
