@@ -75,6 +75,12 @@ MAX_DATA_GAP_S = 10.0
 GATE_RESET_S = 30.0
 """Valid fixes rejected for this long without a break (longer than a multipath episode): the estimate is what is
 wrong; restart at the newest fix."""
+REACQUIRE_FIXES = 5
+"""After an outage, this many rejected fixes in a row that agree with each other (their offsets from the
+prediction differ by less than the gate's base radius) mean the prediction drifted, not the fixes: restart at the
+newest fix (0.5 s at 10 Hz). Mid-drive, a consistent offset is more likely multipath: ``GATE_RESET_S`` applies."""
+REACQUIRE_AFTER_M = 30.0
+"""Distance driven without a fix used (m) from which a rejection streak counts as "after an outage"."""
 PRIOR_POSITION_M = 1000.0
 """Half-width of the weak prior on the first position (m) at a start."""
 CAN_KEEP_S = 2.0
@@ -202,6 +208,8 @@ class MovingHorizonEstimator:
         self._since_fix_m = 0.0
         self._heading_known = False
         self._rejected_since: float | None = None
+        self._reject_offsets: list[tuple[float, float]] = []
+        self._reject_after_outage = False
         self._used_fixes = 0
         self._capacity: int | None = None
         self._push_t0 = time.perf_counter()
@@ -385,6 +393,10 @@ class MovingHorizonEstimator:
                 self._count("gate_resets", "fixes rejected for %.0f s: restarting at the newest fix", GATE_RESET_S)
                 self._restart()
                 return self._begin(fix)
+            if status == "rejected" and self._reacquire(fix, x_pred):
+                self._count("reacquired", "GNSS re-acquired after an outage: %d agreeing fixes", REACQUIRE_FIXES)
+                self._restart()
+                return self._begin(fix)
         y, avail, allow = self._outputs(t, h_prev, fix if status == "ok" else None)
         # the previous step's CAN outputs again, now that the samples of its second half-interval are in
         i = len(win) - 1
@@ -433,11 +445,25 @@ class MovingHorizonEstimator:
         log.debug("fix at %.2f rejected: %.1f m from the prediction (gate %.1f m)", fix.t, miss, radius)
         return False
 
+    def _reacquire(self, fix: LocalFix, x_pred: NDArray[np.float64]) -> bool:
+        """Whether a rejected fix completes a streak after an outage that says the prediction is what is wrong
+        (:data:`REACQUIRE_FIXES`); records the fix's offset from the prediction."""
+        if not self._reject_offsets:
+            self._reject_after_outage = self._since_fix_m > REACQUIRE_AFTER_M
+        self._reject_offsets.append((fix.east_m - float(x_pred[self._ie]), fix.north_m - float(x_pred[self._in])))
+        if not self._reject_after_outage or len(self._reject_offsets) < REACQUIRE_FIXES:
+            return False
+        recent = np.array(self._reject_offsets[-REACQUIRE_FIXES:])
+        spread = float(np.max(np.hypot(*(recent - recent.mean(axis=0)).T)))
+        sig_e, sig_n = self._fix_sigma(fix)
+        return spread <= self.settings.r_cap_sigmas * max(sig_e, sig_n) + self.settings.mhe_gate_m
+
     def _gate_done(self, t: float, status: GpsStatus) -> None:
         """The gate's bookkeeping once the epoch is solved: a fix used, or one more rejected."""
         if status == "ok":
             self._since_fix_m = 0.0
             self._rejected_since = None
+            self._reject_offsets.clear()
             self._used_fixes += 1
         elif status == "rejected" and self._rejected_since is None:
             self._rejected_since = t
