@@ -56,7 +56,7 @@ from sumhe.baseline.kinematics import (
     chi2_threshold,
     step,
 )
-from sumhe.estimator.base import LocalFix, StateEstimate
+from sumhe.estimator.base import LocalFix, StateEstimate, has_usable_position
 from sumhe.estimator.settings import EstimatorSettings
 from sumhe.messages import CanSample, GpsStatus
 
@@ -326,11 +326,8 @@ class RecursiveEstimator(ABC):
         return out
 
     def _usable(self, fix: LocalFix) -> bool:
-        if not fix.valid:
-            return False
-        sigma_ok = fix.sigma_m is None or (math.isfinite(fix.sigma_m) and fix.sigma_m > 0)
-        if math.isfinite(fix.east_m) and math.isfinite(fix.north_m) and sigma_ok:
-            return True
+        if has_usable_position(fix) or not fix.valid:
+            return fix.valid
         self._count("bad_fixes", "valid fix without a usable position or sigma taken as no fix")
         return False
 

@@ -93,6 +93,12 @@ class Estimator(Protocol):
         """Counters and figures for the status line (e.g. solves, failures, rejected fixes, window)."""
 
 
+def has_usable_position(fix: LocalFix) -> bool:
+    """A fix flagged valid whose position is finite and whose sigma, if given, is finite and positive."""
+    sigma_ok = fix.sigma_m is None or (math.isfinite(fix.sigma_m) and fix.sigma_m > 0)
+    return fix.valid and math.isfinite(fix.east_m) and math.isfinite(fix.north_m) and sigma_ok
+
+
 def fix_sigma_m(fix: GnssFix) -> float | None:
     """The receiver's own 1-sigma horizontal accuracy (m): GST lat/lon sigmas, else HDOP x UERE."""
     if fix.sigma_lat_m is not None and fix.sigma_lon_m is not None:

@@ -56,7 +56,7 @@ from numpy.typing import NDArray
 
 from sumhe.config import Config
 from sumhe.errors import ConfigError
-from sumhe.estimator.base import LocalFix, StateEstimate
+from sumhe.estimator.base import LocalFix, StateEstimate, has_usable_position
 from sumhe.estimator.batch import model_for, state_box
 from sumhe.estimator.bounds import q_caps
 from sumhe.estimator.grid import CAN_USED, GGA_RTK_FIXED, GGA_RTK_FLOAT, gps_sigma_m
@@ -309,11 +309,8 @@ class MovingHorizonEstimator:
         return out
 
     def _usable(self, fix: LocalFix) -> bool:
-        if not fix.valid:
-            return False
-        sigma_ok = fix.sigma_m is None or (math.isfinite(fix.sigma_m) and fix.sigma_m > 0)
-        if math.isfinite(fix.east_m) and math.isfinite(fix.north_m) and sigma_ok:
-            return True
+        if has_usable_position(fix) or not fix.valid:
+            return fix.valid
         self._count("bad_fixes", "valid fix without a usable position or sigma taken as no fix")
         return False
 
