@@ -6,7 +6,6 @@ import struct
 import can
 import cantools
 import pytest
-from canframes import REF_DBC, TOYOTA_DBC, encode, ref_db, speed_frame, toyota_db, yaw_frame
 
 from sumhe.config import SignalSpec, load_config
 from sumhe.errors import ConfigError, SourceError
@@ -21,6 +20,8 @@ from sumhe.io.can import (
     read_log,
     si_factor,
 )
+
+from canframes import REF_DBC, TOYOTA_DBC, encode, ref_db, speed_frame, toyota_db, yaw_frame
 
 DEG = math.pi / 180
 

@@ -10,13 +10,14 @@ from pathlib import Path
 import can
 import can.interfaces.virtual
 import pytest
-from canframes import speed_frame, yaw_frame
 
 from sumhe.config import CanSettings, load_config
 from sumhe.errors import ConfigError
 from sumhe.io.can import REFERENCE_E2E, REFERENCE_SIGNALS
 from sumhe.io.can_source import CAN_ERR_BUSOFF, CanBusSource, CanFrameSource
 from sumhe.io.source import SourceTimeout
+
+from canframes import speed_frame, yaw_frame
 
 DEG = math.pi / 180
 _channels = itertools.count()

@@ -6,10 +6,11 @@ import sys
 
 import can
 import pytest
-from canframes import ROOT, TOYOTA_DBC, encode, ref_db, speed_frame, toyota_db, yaw_frame
 
 from sumhe.cli import main
 from sumhe.io.can import REFERENCE_E2E, REFERENCE_SIGNALS
+
+from canframes import ROOT, TOYOTA_DBC, encode, ref_db, speed_frame, toyota_db, yaw_frame
 
 if sys.version_info >= (3, 11):
     import tomllib
