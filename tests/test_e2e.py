@@ -76,7 +76,7 @@ def _configs(tmp: Path, can_kind: str, udp_port: int, latency: float) -> tuple[P
     signals = '[can.signals]\nspeed = "ESP_VEHICLE_SPEED.VEHICLE_SPEED"\nyaw_rate = "ESP_YAW_RATE.YAW_RATE"\n'
     service = tmp / "service.toml"
     service.write_text(
-        f"[can]\n{can_table}e2e = [\"ESP_YAW_RATE\", \"ESP_VEHICLE_SPEED\"]\n{signals}"
+        f'[can]\n{can_table}e2e = ["ESP_YAW_RATE", "ESP_VEHICLE_SPEED"]\n{signals}'
         f'[gps]\nport = "{tmp / "gps"}"\nlatency_s = {latency}\nreconnect_max_s = 0.5\nreceive_timeout_s = 1.0\n'
         f'[output]\nudp = ["127.0.0.1:{udp_port}"]\nformats = ["json", "nmea"]\nstatus_interval_s = 2.0\n'
     )

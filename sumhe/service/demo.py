@@ -228,10 +228,8 @@ def demo(speed: float, estimator: str | None, png: Path | None, say: Callable[[s
     span = (records[-1]["t"] - records[0]["t"]) if len(records) > 1 else 0.0
     if span > 0:
         say(f"output rate {len(records) / span:.1f} Hz of drive time")
-    say(
-        f"solve p50/p99 {status['solve_ms_p50']}/{status['solve_ms_p99']} ms, "
-        f"skipped epochs {status['skipped_epochs']}"
-    )
+    p50, p99, skipped = status["solve_ms_p50"], status["solve_ms_p99"], status["skipped_epochs"]
+    say(f"epoch update p50/p99 {p50}/{p99} ms, skipped epochs {skipped}")
     say("position error (m)           with GPS: mean / p95 / max      GPS out: mean / p95 / max")
     for name, recs in (("sumhe " + (estimator or "default"), records), ("dead reckoning", dr)):
         s = summarise(recs, truth, frame)
