@@ -329,3 +329,17 @@ def test_gnss_period_follows_the_epochs() -> None:
         ekf.push(LocalFix(t=1.1 + k * 0.2 + rng.uniform(0, 0.02), valid=False))
     assert "dropped_backwards" not in ekf.stats()
     assert ekf.period_s == pytest.approx(0.2, abs=0.002)
+
+
+@pytest.mark.parametrize("name", sorted(ESTIMATORS.keys() - {"mhe", "su-batch"}))
+@pytest.mark.parametrize("sigma", [1e-200, 1e200])
+def test_absurd_fix_sigmas_do_not_break_a_filter(name: str, sigma: float) -> None:
+    est = make_estimator(name, load_config())
+    samples = linear_stream(3.0)
+    for s in samples[:100]:
+        est.push(s)
+    t = samples[99].t
+    est.push(LocalFix(t=t + 0.001, valid=True, east_m=3.0, north_m=8.0, sigma_m=sigma))
+    out = [e for s in samples[100:] for e in est.push(s)]
+    out += est.finish() if hasattr(est, "finish") else []  # type: ignore[attr-defined]
+    assert out and all(math.isfinite(e.east_m) and math.isfinite(e.north_m) for e in out)

@@ -391,10 +391,11 @@ class RecursiveEstimator(ABC):
         self._started = True
 
     def _fix_sigma(self, fix: LocalFix) -> float:
-        """The fix's 1-sigma position error (m): its own (GST, HDOP), else by GGA quality, else the default."""
+        """The fix's 1-sigma position error (m) times ``gps_scale``: its own (GST, HDOP; at least the resolution
+        ``gps_resolution_m``), else by GGA quality, else the default."""
         s = self.settings
         if fix.sigma_m is not None:
-            sigma = fix.sigma_m
+            sigma = max(fix.sigma_m, s.gps_resolution_m)
         elif fix.quality == 4:
             sigma = s.gps_sigma_rtk_m
         elif fix.quality == 5:

@@ -49,19 +49,17 @@ TUNED_NOISE: dict[str, Noise] = {
         gps_scale=2.0,
     ),
     "pf": Noise(
-        pos_rw=0.003125,
-        heading_rw=1.5625e-05,
-        speed_rw=0.5,
-        yaw_rate_rw=0.009375,
+        pos_rw=0.000390625,
+        heading_rw=7.8125e-06,
         bias_rw=5e-05,
-        scale_rw=8e-05,
+        scale_rw=0.00032,
         gps_scale=2.0,
     ),
     "imm-straight": Noise(
         pos_rw=0.00078125,
         heading_rw=0.000125,
         speed_rw=0.5,
-        yaw_rate_rw=0.01875,
+        yaw_rate_rw=0.0046875,
         bias_rw=2.5e-05,
         gps_scale=2.0,
     ),
@@ -298,7 +296,7 @@ def build(name: str, settings: EstimatorSettings, values: dict[str, Any] | None 
         if any(getattr(models[1], f) < getattr(models[0], f) for f in IMM_TURN_FIELDS) or (
             models[1].yaw_rate_rw < IMM_MIN_CONTRAST * models[0].yaw_rate_rw
         ):
-            raise ValueError(f"the turning model needs {IMM_MIN_CONTRAST:g}x the straight one's yaw-rate noise")
+            raise ValueError(f"turning model quieter than the straight one ({IMM_MIN_CONTRAST:g}x in yaw rate)")
         return Imm(settings, models=models, sojourn_s=(values["sojourn_straight_s"], values["sojourn_turn_s"]))
     classes: dict[str, Callable[..., RecursiveEstimator]] = {
         "dead-reckoning": DeadReckoning,

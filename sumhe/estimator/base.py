@@ -33,6 +33,8 @@ from sumhe.messages import CanSample, Estimate, GnssFix, GpsStatus
 
 HDOP_UERE_M = 1.5
 """Receiver range error (m, 1 sigma) assumed when only HDOP describes a fix's accuracy."""
+MAX_FIX_SIGMA_M = 1000.0
+"""The largest 1-sigma accuracy (m) a usable fix may claim."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -94,8 +96,9 @@ class Estimator(Protocol):
 
 
 def has_usable_position(fix: LocalFix) -> bool:
-    """A fix flagged valid whose position is finite and whose sigma, if given, is finite and positive."""
-    sigma_ok = fix.sigma_m is None or (math.isfinite(fix.sigma_m) and fix.sigma_m > 0)
+    """A fix flagged valid whose position is finite and whose sigma, if given, is positive and at most
+    ``MAX_FIX_SIGMA_M`` (a larger one overflows a filter's variance and says the position is unknown anyway)."""
+    sigma_ok = fix.sigma_m is None or 0 < fix.sigma_m <= MAX_FIX_SIGMA_M
     return fix.valid and math.isfinite(fix.east_m) and math.isfinite(fix.north_m) and sigma_ok
 
 
