@@ -41,7 +41,7 @@ def _plugins() -> dict[str, str]:
     return {ep.name: ep.value for ep in entry_points(group=ENTRY_POINT_GROUP) if ep.name not in ESTIMATORS}
 
 
-OFFLINE: frozenset[str] = frozenset({"su-batch"})
+OFFLINE: frozenset[str] = frozenset({"su-batch", "rts-batch"})
 """Offline smoothers: they answer at the end of a recorded drive (``finish()``), never live."""
 
 
