@@ -31,6 +31,7 @@ import numpy as np
 import osqp
 from numpy.typing import NDArray
 
+from sumhe.bench.metrics import horizontal_errors, mean_p95_max
 from sumhe.config import Config, DatumSettings, GpsSettings
 from sumhe.errors import SumheError
 from sumhe.estimator.base import Estimator, FixConverter, LocalFix, StateEstimate
@@ -144,16 +145,9 @@ def run_stream(
 def position_errors(drive: Drive, estimates: Sequence[StateEstimate]) -> tuple[NDArray, NDArray]:
     """Times (s) and horizontal errors (m) of the estimates against the truth."""
     t = np.array([e.t for e in estimates])
-    truth = drive.truth.at(t)
     east = np.array([e.east_m for e in estimates])
     north = np.array([e.north_m for e in estimates])
-    return t, np.hypot(east - truth.east, north - truth.north)
-
-
-def _stats(values: NDArray[np.float64]) -> tuple[float, float, float]:
-    if len(values) == 0:
-        return math.nan, math.nan, math.nan
-    return float(np.mean(values)), float(np.percentile(values, 95)), float(np.max(values))
+    return t, horizontal_errors(t, east, north, drive.truth)
 
 
 # ---- latency -----------------------------------------------------------------------------------------------------
@@ -340,7 +334,7 @@ def multipath_report(bs: MheBenchSettings, say: Progress) -> list[str]:
     ]
     for name in names:
         if pooled[name]:
-            mean, p95, mx = _stats(np.concatenate(pooled[name]))
+            mean, p95, mx = mean_p95_max(np.concatenate(pooled[name]))
             lines.append(f"    {name:15s} mean {mean:6.2f}  p95 {p95:6.2f}  max {mx:6.2f}")
     return lines
 
@@ -469,7 +463,7 @@ def _accuracy_lines(bs: MheBenchSettings, gps_error: str, say: Progress) -> list
             if not pooled[n]:
                 lines.append(f"    {n:15s} not available")
                 continue
-            mean, p95, mx = _stats(np.concatenate(pooled[n]))
+            mean, p95, mx = mean_p95_max(np.concatenate(pooled[n]))
             means[n] = (mean, p95)
             lines.append(f"    {n:15s} mean {mean:6.2f}  p95 {p95:6.2f}  max {mx:6.2f}")
         for ref in bs.baselines:
