@@ -56,7 +56,7 @@ from sumhe.baseline.kinematics import (
     chi2_threshold,
     step,
 )
-from sumhe.estimator.base import LocalFix, StateEstimate, has_usable_position
+from sumhe.estimator.base import LocalFix, StateEstimate, bad_epoch_time, has_usable_position
 from sumhe.estimator.settings import EstimatorSettings
 from sumhe.messages import CanSample, GpsStatus
 
@@ -287,11 +287,9 @@ class RecursiveEstimator(ABC):
 
     def _push_fix(self, fix: LocalFix) -> list[StateEstimate]:
         t = fix.t
-        if not (isinstance(t, int | float) and math.isfinite(t)):
-            self._count("bad_samples", "GNSS epoch with a non-finite time")
-            return []
-        if self._last_epoch is not None and t <= self._last_epoch:
-            self._count("dropped_backwards", "GNSS epoch %.3f s back in time dropped", self._last_epoch - t)
+        bad = bad_epoch_time(t, self._last_epoch)
+        if bad is not None:
+            self._count(bad[0], bad[1], *bad[2])
             return []
         if self._started and t < self._t_state - MAX_FIX_LAG_S:
             self._count("late_fixes", "GNSS epoch %.2f s behind the CAN data dropped", self._t_state - t)

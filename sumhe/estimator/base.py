@@ -95,6 +95,16 @@ class Estimator(Protocol):
         """Counters and figures for the status line (e.g. solves, failures, rejected fixes, window)."""
 
 
+def bad_epoch_time(t: object, last_epoch: float | None) -> tuple[str, str, tuple[float, ...]] | None:
+    """Why a GNSS epoch at ``t`` cannot be taken, as (counter, log message, message args), or None when it can:
+    a non-finite time, or a time not after the previous epoch's."""
+    if not (isinstance(t, int | float) and math.isfinite(t)):
+        return "bad_samples", "GNSS epoch with a non-finite time", ()
+    if last_epoch is not None and t <= last_epoch:
+        return "dropped_backwards", "GNSS epoch %.3f s back in time dropped", (last_epoch - t,)
+    return None
+
+
 def has_usable_position(fix: LocalFix) -> bool:
     """A fix flagged valid whose position is finite and whose sigma, if given, is positive and at most
     ``MAX_FIX_SIGMA_M`` (a larger one overflows a filter's variance and says the position is unknown anyway)."""

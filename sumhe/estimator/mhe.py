@@ -56,7 +56,7 @@ from numpy.typing import NDArray
 
 from sumhe.config import Config
 from sumhe.errors import ConfigError
-from sumhe.estimator.base import LocalFix, StateEstimate, has_usable_position
+from sumhe.estimator.base import LocalFix, StateEstimate, bad_epoch_time, has_usable_position
 from sumhe.estimator.batch import model_for, state_box
 from sumhe.estimator.bounds import q_caps
 from sumhe.estimator.grid import CAN_USED, GGA_RTK_FIXED, GGA_RTK_FLOAT, gps_sigma_m
@@ -286,11 +286,9 @@ class MovingHorizonEstimator:
 
     def _push_fix(self, fix: LocalFix) -> list[StateEstimate]:
         t = fix.t
-        if not (isinstance(t, float | int) and math.isfinite(t)):
-            self._count("bad_samples", "GNSS epoch with a non-finite time")
-            return []
-        if self._last_epoch is not None and t <= self._last_epoch:
-            self._count("dropped_backwards", "GNSS epoch %.3f s back in time dropped", self._last_epoch - t)
+        bad = bad_epoch_time(t, self._last_epoch)
+        if bad is not None:
+            self._count(bad[0], bad[1], *bad[2])
             return []
         usable = self._usable(fix)
         if self._last_real_epoch is not None and 0.0 < t - self._last_real_epoch <= MAX_PERIOD_S:
