@@ -186,5 +186,7 @@ def test_settings_are_validated_naming_the_field() -> None:
     table = {"model": "su7", "objective": "caps", "yaw_rate_bias": False, "max_widenings": 3, "can_delay_s": 0.02}
     built = build_section(EstimatorSettings, table, "estimator")
     assert (built.model, built.objective, built.yaw_rate_bias, built.max_widenings) == ("su7", "caps", False, 3)
-    with pytest.raises(ValueError, match=r"estimator\.gps_time"):
-        build_section(EstimatorSettings, {"gps_time": "gps"}, "estimator")
+    with pytest.raises(ValueError, match=r"estimator\.objective"):
+        build_section(EstimatorSettings, {"objective": "maximum"}, "estimator")
+    with pytest.raises(ValueError, match=r"estimator\.gps_time"):  # GNSS time is the [gps] table's, not here
+        build_section(EstimatorSettings, {"gps_time": "utc"}, "estimator")

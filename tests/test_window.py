@@ -96,12 +96,17 @@ def test_window_container() -> None:
         win.append(float(k), np.array([k]), np.array([k % 2 == 0]), np.ones(1), np.array([k, -k]))
     with pytest.raises(ValueError, match="full"):
         win.append(9.0, np.zeros(1), np.zeros(1, dtype=bool), np.ones(1), np.zeros(2))
-    win.apply(Plan(drop=1, merge=(1,)))
+    win.offset[:, 0] = [0.0, 1.0, 2.0, 3.0]
+    assert win.apply(Plan(drop=1, merge=(1,))) == [1]  # step 3 now follows step 1: its offset needs setting
     assert win.t.tolist() == [1.0, 3.0]
+    assert win.offset[:, 0].tolist() == [1.0, 3.0]
     assert win.x[:, 1].tolist() == [-1.0, -3.0]
     assert win.gps.tolist() == [False, False]
     with pytest.raises(ValueError, match="not after"):
         win.append(3.0, np.zeros(1), np.zeros(1, dtype=bool), np.ones(1), np.zeros(2))
+    win.append(4.0, np.zeros(1), np.zeros(1, dtype=bool), np.ones(1), np.zeros(2))
+    assert win.offset[-1].tolist() == [0.0, 0.0]  # a new step has no offset
+    assert win.apply(Plan(drop=1)) == []
     win.clear()
     assert len(win) == 0
 

@@ -58,6 +58,49 @@ def interval_index(t: ArrayLike, intervals: Sequence[tuple[float, float]]) -> ND
     return out
 
 
+def offsets_before(
+    t_fix: ArrayLike,
+    east_fix: ArrayLike,
+    north_fix: ArrayLike,
+    truth: Truth,
+    starts: Sequence[float],
+    count: int,
+) -> FloatArray:
+    """The GNSS offset each outage starts from: the mean error (east, north; m) against the truth of the last
+    ``count`` fixes (times ``t_fix``, s) before each time of ``starts`` (NaN where there is none). With correlated
+    GNSS errors every estimator inherits it: nothing in GNSS or CAN data tells it from the truth."""
+    tf = np.asarray(t_fix, dtype=float)
+    at = truth.at(tf)
+    de = np.asarray(east_fix, dtype=float) - at.east
+    dn = np.asarray(north_fix, dtype=float) - at.north
+    out = np.full((len(starts), 2), math.nan)
+    for i, start in enumerate(starts):
+        k = int(np.searchsorted(tf, start))
+        if k:
+            out[i] = de[max(0, k - count) : k].mean(), dn[max(0, k - count) : k].mean()
+    return out
+
+
+def net_errors(
+    t: ArrayLike,
+    east: ArrayLike,
+    north: ArrayLike,
+    truth: Truth,
+    intervals: Sequence[tuple[float, float]],
+    offsets: ArrayLike,
+) -> FloatArray:
+    """Horizontal errors (m) of the estimates inside the ``intervals`` net of each interval's offset
+    (:func:`offsets_before`): what the estimator added to the error it started the outage with."""
+    tq = np.asarray(t, dtype=float)
+    index = interval_index(tq, intervals)
+    inside = index >= 0
+    at = truth.at(tq[inside])
+    off = np.asarray(offsets, dtype=float)[index[inside]]
+    de = np.asarray(east, dtype=float)[inside] - at.east - off[:, 0]
+    dn = np.asarray(north, dtype=float)[inside] - at.north - off[:, 1]
+    return np.asarray(np.hypot(de, dn))
+
+
 def split_by_interval(
     t: ArrayLike, values: ArrayLike, intervals: Sequence[tuple[float, float]], after: float = -math.inf
 ) -> tuple[list[FloatArray], FloatArray]:

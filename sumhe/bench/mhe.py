@@ -31,7 +31,7 @@ import numpy as np
 import osqp
 from numpy.typing import NDArray
 
-from sumhe.bench.metrics import horizontal_errors, mean_p95_max
+from sumhe.bench.metrics import horizontal_errors, interval_index, mean_p95_max, net_errors, offsets_before
 from sumhe.config import Config, DatumSettings, GpsSettings
 from sumhe.errors import SumheError
 from sumhe.estimator.base import Estimator, FixConverter, LocalFix, StateEstimate
@@ -247,13 +247,23 @@ def accuracy_drive(
             runs[name] = run_stream(make_estimator(name, config), stream)
         except SumheError as e:
             log.warning("baseline %s not available: %s", name, e)
+    fixes = [s for s in stream if isinstance(s, LocalFix) and s.valid]
+    offsets = offsets_before(
+        [f.t for f in fixes],
+        [f.east_m for f in fixes],
+        [f.north_m for f in fixes],
+        drive.truth,
+        [t0 for t0, _ in outages],
+        bs.before,
+    )
+    net: dict[str, NDArray] = {}
     for name, run in runs.items():
-        t, err = position_errors(drive, run.estimates)
-        inside = np.zeros(len(t), dtype=bool)
-        for t0, t1 in outages:
-            inside |= (t >= t0) & (t < t1)
-        errors[name] = err[inside]
-    result["errors"] = errors
+        t = np.array([e.t for e in run.estimates])
+        east, north = np.array([e.east_m for e in run.estimates]), np.array([e.north_m for e in run.estimates])
+        inside = interval_index(t, outages) >= 0
+        errors[name] = horizontal_errors(t[inside], east[inside], north[inside], drive.truth)
+        net[name] = net_errors(t, east, north, drive.truth, outages, offsets)
+    result["errors"], result["net"] = errors, net
     if length_s <= bs.batch_max_outage_s:
         smoothed, batch = _after_outage(drive, outages, capture, bs)
         result["smoothed"], result["batch"] = smoothed, batch
@@ -442,6 +452,7 @@ def _accuracy_lines(bs: MheBenchSettings, gps_error: str, say: Progress) -> list
     names = ["mhe", *bs.baselines]
     for length in bs.outage_lengths_s:
         pooled: dict[str, list[NDArray]] = {n: [] for n in names}
+        pooled_net: dict[str, list[NDArray]] = {n: [] for n in names}
         smoothed: list[float] = []
         batch: list[float] = []
         count = 0
@@ -449,29 +460,19 @@ def _accuracy_lines(bs: MheBenchSettings, gps_error: str, say: Progress) -> list
             for seed in bs.seeds:
                 say(f"accuracy {scenario} seed {seed} {gps_error} outages {length:.0f} s")
                 r = accuracy_drive(scenario, seed, gps_error, length, bs, say)
-                errs = r["errors"]
-                assert isinstance(errs, dict)
+                errs, net = r["errors"], r["net"]
+                assert isinstance(errs, dict) and isinstance(net, dict)
                 for n in names:
                     if n in errs:
                         pooled[n].append(errs[n])
+                        pooled_net[n].append(net[n])
                 smoothed += list(r["smoothed"])  # type: ignore[call-overload]
                 batch += list(r["batch"])  # type: ignore[call-overload]
                 count += len(outage_plan(bs.duration_s, length, bs.recover_s))
         lines.append(f"  outages of {length:.0f} s ({count} outages):")
-        means = {}
-        for n in names:
-            if not pooled[n]:
-                lines.append(f"    {n:15s} not available")
-                continue
-            mean, p95, mx = mean_p95_max(np.concatenate(pooled[n]))
-            means[n] = (mean, p95)
-            lines.append(f"    {n:15s} mean {mean:6.2f}  p95 {p95:6.2f}  max {mx:6.2f}")
-        for ref in bs.baselines:
-            if ref in means:
-                lines.append(
-                    f"    mhe / {ref}: mean {means['mhe'][0] / means[ref][0]:.2f}x, p95 "
-                    f"{means['mhe'][1] / means[ref][1]:.2f}x"
-                )
+        lines += _compare(pooled, bs.baselines, "")
+        lines.append(f"   net of the GNSS offset at the outage start (mean error of its last {bs.before} fixes):")
+        lines += _compare(pooled_net, bs.baselines, "  ")
         if smoothed:
             ok = [(a, b) for a, b in zip(smoothed, batch, strict=False) if math.isfinite(b)]
             if ok:
@@ -480,4 +481,24 @@ def _accuracy_lines(bs: MheBenchSettings, gps_error: str, say: Progress) -> list
                     f"    after the outage ({bs.after} epochs back): MHE smoothed window over the outage mean "
                     f"{sm:.2f} m vs batch {bt:.2f} m ({sm / bt:.2f}x, {len(ok)} outages)"
                 )
+    return lines
+
+
+def _compare(pooled: dict[str, list[NDArray]], baselines: Sequence[str], indent: str) -> list[str]:
+    """Mean/p95/max per estimator and the MHE's ratios to each baseline."""
+    lines = []
+    means = {}
+    for n, parts in pooled.items():
+        if not parts:
+            lines.append(f"    {indent}{n:15s} not available")
+            continue
+        mean, p95, mx = mean_p95_max(np.concatenate(parts))
+        means[n] = (mean, p95)
+        lines.append(f"    {indent}{n:15s} mean {mean:6.2f}  p95 {p95:6.2f}  max {mx:6.2f}")
+    for ref in baselines:
+        if ref in means and "mhe" in means:
+            lines.append(
+                f"    {indent}mhe / {ref}: mean {means['mhe'][0] / means[ref][0]:.2f}x, p95 "
+                f"{means['mhe'][1] / means[ref][1]:.2f}x"
+            )
     return lines

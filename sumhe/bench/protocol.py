@@ -30,11 +30,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from sumhe.config import GpsSettings
 from sumhe.errors import SumheError
 from sumhe.estimator.batch import SuResult, estimate_batch, estimate_lp, model_for
-from sumhe.estimator.grid import build_grid, fix_time
+from sumhe.estimator.grid import build_grid
 from sumhe.estimator.settings import EstimatorSettings
 from sumhe.geo import LocalFrame
+from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample, GnssFix, Sample
 from sumhe.sim import SimSettings, simulate
 from sumhe.sim.drive import Drive
@@ -152,8 +154,9 @@ def label_motion(speed: NDArray[np.float64], yaw_rate: NDArray[np.float64]) -> s
 
 def make_windows(drive: Drive, ps: ProtocolSettings, est: EstimatorSettings) -> list[Window]:
     """``ps.placements`` windows evenly spaced over the drive, outage fixes removed."""
-    fixes = drive.fixes(1)
-    second = [dataclasses.replace(f, antenna=2) for f in drive.fixes(2)] if ps.antennas == 2 else []
+    gps = GpsSettings()
+    fixes = [stamp_fix(f, gps) for f in drive.fixes(1)]
+    second = [stamp_fix(dataclasses.replace(f, antenna=2), gps) for f in drive.fixes(2)] if ps.antennas == 2 else []
     can = sorted(drive.can_samples(), key=lambda s: s.t)
     can_t = np.array([s.t for s in can])
     n = len(fixes) - ps.window
@@ -164,7 +167,7 @@ def make_windows(drive: Drive, ps: ProtocolSettings, est: EstimatorSettings) -> 
     for k0 in starts:
         sel = range(k0, k0 + ps.window)
         keep = [k for k in sel if not ps.before <= k - k0 < ps.before + ps.outage_epochs]
-        epoch_t = np.array([fix_time(fixes[k], est) for k in sel])
+        epoch_t = np.array([fixes[k].t for k in sel])
         gnss: list[Sample] = [fixes[k] for k in keep] + [second[k] for k in keep if second]
         lo, hi = np.searchsorted(can_t, [epoch_t[0] + est.can_delay_s - 0.04, epoch_t[-1] + est.can_delay_s + 0.04])
         samples = sorted(gnss + can[lo:hi], key=lambda s: s.t)
@@ -184,7 +187,7 @@ def dead_reckoning(
     east = np.interp(window.epoch_t, grid.t, grid.y[:, 0])
     north = np.interp(window.epoch_t, grid.t, grid.y[:, 1])
     fixes = [s for s in window.samples if isinstance(s, GnssFix) and s.antenna == 1 and s.valid]
-    before = [f for f in fixes if fix_time(f, est) <= window.epoch_t[window.outage][0]]
+    before = [f for f in fixes if f.t <= window.epoch_t[window.outage][0]]
     last, prev = before[-1], before[-2]
     p_last, p_prev = frame.to_enu([last.lat_deg, prev.lat_deg], [last.lon_deg, prev.lon_deg])[:, :2]
     if last.course_rad is not None and (last.speed_mps or 0.0) >= est.course_min_speed_mps:
@@ -192,7 +195,7 @@ def dead_reckoning(
     else:
         phi = math.atan2(p_last[0] - p_prev[0], p_last[1] - p_prev[1])
     can = [s for s in window.samples if isinstance(s, CanSample)]
-    t0 = fix_time(last, est)
+    t0 = last.t
     pos = _integrate(can, est.can_delay_s, t0, p_last, phi, window.epoch_t[window.outage])
     east[window.outage], north[window.outage] = pos[:, 0], pos[:, 1]
     return east, north

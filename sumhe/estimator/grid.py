@@ -1,6 +1,7 @@
 """From time-ordered samples to the estimator's time grid: outputs, availability and error allowances.
 
-The grid's steps are the GNSS epochs (:func:`fix_time`); gaps longer than 1.5 nominal
+The grid's steps are the GNSS epochs (the fixes' times ``t``: the time their position refers to, stamped once where
+fixes enter, :func:`sumhe.io.fixtime.stamp_fix`); gaps longer than 1.5 nominal
 periods (an outage) are filled with evenly spaced steps that carry only CAN outputs, and the grid reaches
 the first and last sample. CAN speed and yaw rate are averaged over each step's half-intervals (linear
 interpolation when no sample falls inside, nothing when the nearest sample is farther than
@@ -30,7 +31,6 @@ log = logging.getLogger(__name__)
 
 GGA_RTK_FIXED = 4
 GGA_RTK_FLOAT = 5
-MAX_CLOCK_OFFSET_S = 5.0
 CAN_USED = ("speed", "yaw_rate")
 
 
@@ -86,21 +86,6 @@ def check_samples(samples: Sequence[Sample]) -> None:
                 value = getattr(s, name)
                 if value is None or not math.isfinite(value):
                     raise EstimatorInputError(f"sample {i}: valid fix with {name} = {value!r}")
-
-
-def fix_time(fix: GnssFix, settings: EstimatorSettings) -> float:
-    """The time (s, service clock) a fix's position refers to.
-
-    With ``gps_time = "utc"`` the fix's UTC time of fix, when it has one within ``MAX_CLOCK_OFFSET_S`` of
-    its receive time (a service clock on UTC: live with NTP, replayed logs); otherwise, and with
-    ``"receive"``, the receive time minus ``gps_latency_s``. Receive times carry the receiver's latency and
-    serial jitter (tens of ms: decimetres at road speed).
-    """
-    if settings.gps_time == "utc" and fix.time_utc is not None:
-        utc = fix.time_utc.timestamp()
-        if abs(fix.t - utc) <= MAX_CLOCK_OFFSET_S:
-            return utc
-    return fix.t - settings.gps_latency_s
 
 
 def gps_sigma_m(fix: GnssFix, settings: EstimatorSettings) -> tuple[float, float]:
@@ -168,7 +153,8 @@ def build_grid(
     ``frame`` defaults to a local frame at the first valid fix. Fixes are projected into it at the datum's
     height ``frame.alt0_m`` (a level road; NMEA altitudes are above the geoid, not the ellipsoid, and mixing
     the two moves positions by ``dh * distance / R_earth``). Fixes of antenna 2 are used by ``su7`` only;
-    CAN times are moved back by ``settings.can_delay_s``.
+    Fix times ``t`` are their measurement times (:func:`sumhe.io.fixtime.stamp_fix`); CAN times are moved back
+    by ``settings.can_delay_s``.
     """
     check_samples(samples)
     fixes = [s for s in samples if isinstance(s, GnssFix)]
@@ -183,7 +169,7 @@ def build_grid(
     cans = [s for s in samples if isinstance(s, CanSample)]
     t_can = {q: np.array([s.t - settings.can_delay_s for s in cans if s.quantity == q]) for q in CAN_USED}
     v_can = {q: np.array([s.value for s in cans if s.quantity == q]) for q in CAN_USED}
-    epochs = np.array([fix_time(f, settings) for f in ant1])
+    epochs = np.array([f.t for f in ant1])
     t_all = np.concatenate([epochs, *t_can.values()])
     d_ep = np.diff(np.unique(epochs))
     period = float(np.median(d_ep)) if len(d_ep) else settings.step_s
@@ -196,7 +182,7 @@ def build_grid(
     for group, col in ((valid1, 0), ([f for f in ant2 if f.valid], 2)):
         if not group:
             continue
-        tf = np.array([fix_time(f, settings) for f in group])
+        tf = np.array([f.t for f in group])
         k = _nearest(t, tf, 0.5 * period)
         ok = k >= 0
         enu = frame.to_enu([f.lat_deg for f in group], [f.lon_deg for f in group], frame.alt0_m)
@@ -262,7 +248,7 @@ def _angle_output(
         avail[both, j] = True
         allow[both, j] = (allow[both, 0] + allow[both, 2]) * math.sqrt(2) / settings.antenna_distance_m + turn[both]
         return
-    k = _nearest(t, np.array([fix_time(f, settings) for f in fixes]), 0.5 * period)
+    k = _nearest(t, np.array([f.t for f in fixes]), 0.5 * period)
     for f, kk in zip(fixes, k, strict=True):
         if kk < 0:
             continue

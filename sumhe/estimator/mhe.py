@@ -406,7 +406,7 @@ class MovingHorizonEstimator:
         plan = plan_window(win.gps, win.t, self.period_s, self.policy)
         if plan.drop:
             self._arrival(min(plan.drop, len(win) - 1))
-        win.apply(plan)
+        self._merge_offsets(win.apply(plan))
         x_new, mode = self._solve(None if plan.merge else plan.drop)
         if mode == "predict" and status == "ok":
             # the window cannot take the fix even with widened bounds: an outlier the gate let in; drop it
@@ -425,6 +425,15 @@ class MovingHorizonEstimator:
         win.x[:] = x_new
         self._set_prop(x_new[-1], t)
         return self._estimate(list(x_new[-1]), t, status, mode)
+
+    def _merge_offsets(self, merged: list[int]) -> None:
+        """The offsets of the steps whose transitions now span merged steps: what the current trajectory moved
+        beyond one trapezoidal step over the merged span (the CAN data of the steps merged away: a varying yaw
+        rate is not linear over a long step), so the merge does not move the solution."""
+        win, md = self._window, self._md
+        for j in merged:
+            pred = self.model.transition(win.x[j - 1], win.x[j], float(win.t[j] - win.t[j - 1]))
+            win.offset[j, :md] = win.x[j, :md] - np.array(pred[:md])
 
     def _gate(self, fix: LocalFix, x_pred: NDArray[np.float64]) -> bool:
         """Whether ``fix`` passes the gate (module docstring)."""
@@ -554,6 +563,7 @@ class MovingHorizonEstimator:
     def _problem(self, capacity: int, Q: NDArray, R: NDArray, widen: float) -> WindowProblem:
         win, L = self._window, len(self._window)
         pad = capacity - L
+        offset = np.vstack([win.offset[1:, : self._md], np.zeros((pad, self._md))])
         if pad == 0:
             x, h, y, avail = win.x, np.diff(win.t), win.y, win.avail
         else:
@@ -577,6 +587,7 @@ class MovingHorizonEstimator:
             box_half=np.concatenate([self._alpha * widen, np.full(self._m - self._md, np.inf)]),
             prior=self._prior,
             weight=self._weight,
+            offset=offset,
         )
 
     def _solve(self, shift: int | None) -> tuple[NDArray[np.float64], str]:
@@ -626,6 +637,7 @@ class MovingHorizonEstimator:
         for k in range(drop):
             q = self._Q[k] if k < len(self._Q) else self._q_caps
             w, dwp, dwn, e, dep = self._step_jac(win.x[k], win.x[k + 1], float(win.t[k + 1] - win.t[k]), win.y[k])
+            w = w - win.offset[k + 1, :md]
             J = np.zeros((md, nx + nt))
             J[:, k * md : (k + 2) * md] = np.hstack([dwp[:, :md], dwn[:, :md]]) / q[:, None]
             J[:, nx:] = dwp[:, md:] / q[:, None]

@@ -12,7 +12,6 @@ from dataclasses import dataclass
 OBJECTIVES = ("linear", "log", "caps")
 CENTRES = ("lsq", "none")
 MODELS = ("su5", "su7")
-GPS_TIMES = ("utc", "receive")
 DISCRETISATIONS = ("trapezoid", "euler")
 
 
@@ -63,9 +62,8 @@ class EstimatorSettings:
     antenna_distance_m: float = 1.0
     antenna_tolerance_m2: float = 0.05
     antenna_lever: bool = True
-    # time base: GNSS epochs at the fix's UTC time ("utc") or at receive time minus latency ("receive")
-    gps_time: str = "utc"
-    gps_latency_s: float = 0.0
+    # CAN sensor delay (s): a CAN sample measures the vehicle this long before its timestamp. (GNSS fixes come
+    # stamped with their measurement time: the [gps] table's time, latency_s, max_clock_offset_s)
     can_delay_s: float = 0.0
     # grid and solvers
     step_s: float = 0.1
@@ -102,7 +100,6 @@ class EstimatorSettings:
         _one_of(self, "model", MODELS)
         _one_of(self, "objective", OBJECTIVES)
         _one_of(self, "centre", CENTRES)
-        _one_of(self, "gps_time", GPS_TIMES)
         _one_of(self, "discretisation", DISCRETISATIONS)
         for name in (
             "r_cap_sigmas",
@@ -134,7 +131,7 @@ class EstimatorSettings:
             value = getattr(self, name)
             if not value > 0 or value == float("inf"):
                 raise ValueError(f"{name}: must be a positive finite number, got {value!r}")
-        for name in ("centre_margin", "course_min_speed_mps", "max_reverse_speed_mps", "gps_latency_s", "can_delay_s"):
+        for name in ("centre_margin", "course_min_speed_mps", "max_reverse_speed_mps", "can_delay_s"):
             value = getattr(self, name)
             if not 0 <= value < float("inf"):
                 raise ValueError(f"{name}: must be >= 0 and finite, got {value!r}")

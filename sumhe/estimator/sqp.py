@@ -5,14 +5,17 @@ steps, with the noise bounds fixed, and the first state held to an arrival box a
 (``docs/mhe.md``)::
 
     min   sum_k |w_k / Q_k|^2 + sum_k |a_k e_k / R_k|^2 + (z_0 - p)' W (z_0 - p)
-    s.t.  w_k = x_{k+1} - T(x_k, x_{k+1}, h_k),  |w_k| <= Q_k                 (state noise, k < L - 1)
+    s.t.  w_k = x_{k+1} - T(x_k, x_{k+1}, h_k) - d_k,  |w_k| <= Q_k           (state noise, k < L - 1)
           e_k = y_k - h(x_k),                   |a_k e_k| <= R_k               (output noise; a_k: availability)
           lo <= x_k <= hi,  |x_0 - c| <= alpha                                  (state box (11), arrival box)
 
 ``T`` is the model's transition (:mod:`sumhe.model.su`), ``Q_k = q' S_k`` and ``R_k = r' C_k`` the state and
 output noise bounds of each step (half-widths of the uniform noises, so the weights are their variances up to the
 common factor 3); ``z_0`` is the first state (the CAN bias and scale included, one variable each per window),
-``p``, ``W`` the arrival cost, ``c``, ``alpha`` the arrival box.
+``p``, ``W`` the arrival cost, ``c``, ``alpha`` the arrival box. ``d_k`` is a known offset of the transition,
+zero but for a step merged from several (:mod:`sumhe.estimator.window`): there it is what the merged steps' own
+transitions added beyond one long trapezoidal step (the CAN data of the steps merged away), so that a merge
+changes the problem, not its solution.
 
 Everything that changes from epoch to epoch (data, availability, bounds, step lengths, arrival) is a number handed
 to a solver built once per window capacity ``C`` (a bucket of sizes): steps ``L .. C-1`` are padding whose rows
@@ -32,7 +35,8 @@ are free. The three solvers:
   states copied per stage), solved to convergence each epoch, warm-started with the shifted primal and dual
   solution; fatrop exploits the stage structure (``structure_detection = "auto"``). The implicit trapezoidal
   transition becomes explicit by substitution: ``T`` depends on ``x_{k+1}`` only through speed and yaw rate,
-  whose own rows do not depend on ``x_{k+1}``, so ``F(x, w) = T(x, T(x, x) + w) + w`` is exact.
+  whose own rows do not depend on ``x_{k+1}``, so ``F(x, w) = T(x, T(x, x) + w) + w`` is exact (with the
+  offset, ``F(x, w + d)``).
 """
 
 from __future__ import annotations
@@ -74,7 +78,8 @@ class WindowProblem:
     ``x`` (C x m): the start point and linearisation point (CAN bias/scale columns constant); ``h`` (C-1) step
     lengths (s); ``y``, ``avail``, ``out_bound`` (C x n): outputs, availability and bounds R; ``state_bound``
     (C-1 x m_dynamic): bounds Q; ``lo``, ``hi`` (m): the state box; ``box_centre``, ``box_half`` (m): the arrival
-    box of the first state (``inf`` half-widths: none); ``prior``, ``weight`` (m, m x m): the arrival cost.
+    box of the first state (``inf`` half-widths: none); ``prior``, ``weight`` (m, m x m): the arrival cost;
+    ``offset`` (C-1 x m_dynamic): the transitions' offsets d_k.
     """
 
     n_steps: int
@@ -90,6 +95,7 @@ class WindowProblem:
     box_half: NDArray[np.float64]
     prior: NDArray[np.float64]
     weight: NDArray[np.float64]
+    offset: NDArray[np.float64]
 
     @property
     def capacity(self) -> int:
@@ -351,6 +357,7 @@ class SqpSolver:
             zbar = np.concatenate([x[:, :md].reshape(-1), x[0, md:]])
             lin = self._lin(zbar, problem.h, problem.y.T).full().reshape(-1)
             res, jac = lin[: self.nw + self.ne], lin[self.nw + self.ne :]
+            res[: self.nw] -= problem.offset.reshape(-1)
             t1 = time.perf_counter()
             js, rs = jac / bound[self._rows], res / bound
             delta = problem.prior - x[0]
@@ -440,7 +447,7 @@ class NlpSolver:
         guess = ca.vertcat(*model.transition(xs, xs, h, ca)) + noise
         step = ca.Function("F", [xs, ws, h], [ca.vertcat(*model.transition(xs, guess, h, ca)) + noise])
         H, Y, A = ca.SX.sym("h", C - 1), ca.SX.sym("y", n, C), ca.SX.sym("a", n, C)
-        R, Q = ca.SX.sym("r", n, C), ca.SX.sym("q", md, C - 1)
+        R, Q, D = ca.SX.sym("r", n, C), ca.SX.sym("q", md, C - 1), ca.SX.sym("d", md, C - 1)
         prior, Wsqrt = ca.SX.sym("p", m), ca.SX.sym("w", m, m)
         X = [ca.SX.sym(f"x{k}", m) for k in range(C)]
         V = [ca.SX.sym(f"v{k}", md) for k in range(C - 1)]
@@ -450,14 +457,14 @@ class NlpSolver:
             z.append(X[k])
             if k < C - 1:
                 z.append(V[k])
-                g.append(X[k + 1] - step(X[k], Q[:, k] * V[k], H[k]))
+                g.append(X[k + 1] - step(X[k], Q[:, k] * V[k] + D[:, k], H[k]))
                 equality += [True] * m
                 f += ca.sumsqr(V[k])
             e = A[:, k] * fe(X[k], Y[:, k]) / R[:, k]
             g.append(e)
             equality += [False] * n
             f += ca.sumsqr(e)
-        p = ca.vertcat(H, ca.vec(Y), ca.vec(A), ca.vec(R), ca.vec(Q), prior, ca.vec(Wsqrt))
+        p = ca.vertcat(H, ca.vec(Y), ca.vec(A), ca.vec(R), ca.vec(Q), ca.vec(D), prior, ca.vec(Wsqrt))
         nlp = {"x": ca.vertcat(*z), "p": p, "f": f, "g": ca.vertcat(*g)}
         opts: dict[str, object] = {"print_time": False, "error_on_fail": False}
         if solver == "ipopt":
@@ -500,7 +507,7 @@ class NlpSolver:
         live_w = np.arange(C - 1)[:, None] < L - 1
         Q = np.where(live_w, problem.state_bound, 1.0)
         avail = problem.avail & (np.arange(C)[:, None] < L)
-        w = self._res(problem.x.T, problem.h).full().T
+        w = self._res(problem.x.T, problem.h).full().T - problem.offset
         v = np.where(live_w, w / Q, 0.0)
         z0 = np.concatenate([np.concatenate([problem.x[:-1], v], axis=1).reshape(-1), problem.x[-1]])
         lo0, hi0 = problem.first_box()
@@ -520,6 +527,7 @@ class NlpSolver:
                 avail.astype(float).reshape(-1),
                 problem.out_bound.reshape(-1),
                 Q.reshape(-1),
+                problem.offset.reshape(-1),
                 problem.prior,
                 w_sqrt.reshape(-1, order="F"),
             ]

@@ -151,8 +151,10 @@ class Window:
     """The steps of the horizon, oldest first, in preallocated arrays (views of the first ``len`` rows).
 
     Per step: time ``t`` (s), outputs ``y`` (n; the model's output units), ``avail`` (which outputs are present),
-    ``allow`` (each output's error allowance, its unit) and the trajectory ``x`` (m states: the current estimate,
-    or the prediction for a step not solved yet). ``gps_column`` is the output that says a step has GNSS.
+    ``allow`` (each output's error allowance, its unit), the trajectory ``x`` (m states: the current estimate,
+    or the prediction for a step not solved yet) and ``offset`` (m): the known part of the transition into the
+    step beyond the model's (zero but after a merge, see :meth:`apply`). ``gps_column`` is the output that says a
+    step has GNSS.
     """
 
     def __init__(self, capacity: int, n_states: int, n_outputs: int, gps_column: int = 0) -> None:
@@ -163,6 +165,7 @@ class Window:
         self._avail = np.zeros((capacity, n_outputs), dtype=bool)
         self._allow = np.ones((capacity, n_outputs))
         self._x = np.zeros((capacity, n_states))
+        self._offset = np.zeros((capacity, n_states))
         self.n = 0
 
     def __len__(self) -> int:
@@ -189,6 +192,10 @@ class Window:
         return self._x[: self.n]
 
     @property
+    def offset(self) -> NDArray[np.float64]:
+        return self._offset[: self.n]
+
+    @property
     def gps(self) -> NDArray[np.bool_]:
         """Steps with a GNSS position."""
         return self._avail[: self.n, self.gps_column]
@@ -204,11 +211,14 @@ class Window:
             raise ValueError(f"step at {t!r} s is not after the newest step at {self._t[self.n - 1]!r} s")
         i = self.n
         self._t[i], self._y[i], self._avail[i], self._allow[i], self._x[i] = t, y, avail, allow, x
+        self._offset[i] = 0.0
         self.n += 1
 
-    def apply(self, plan: Plan) -> None:
-        """Drop the oldest ``plan.drop`` steps, then remove the steps ``plan.merge``."""
-        arrays = (self._t, self._y, self._avail, self._allow, self._x)
+    def apply(self, plan: Plan) -> list[int]:
+        """Drop the oldest ``plan.drop`` steps, then remove the steps ``plan.merge``; the indices (after) of the
+        steps whose previous step changed by a merge: their transitions now span the merged steps, and the owner of
+        the model sets their offsets."""
+        arrays = (self._t, self._y, self._avail, self._allow, self._x, self._offset)
         if plan.drop:
             k = min(plan.drop, self.n)
             for a in arrays:
@@ -221,3 +231,4 @@ class Window:
             for a in arrays:
                 a[:n] = a[: self.n][keep]
             self.n = n
+        return sorted({i - rank for rank, i in enumerate(plan.merge)})
