@@ -55,7 +55,7 @@ def test_missing_outputs_drop_exactly_their_constraints() -> None:
     samples = S.window(S.Motion(), 2.0, gps_noise_m=0.02, seed=6)
     model = model_for(SETTINGS)
     grid = build_grid(samples, model, SETTINGS, S.FRAME)
-    nlp = build_nlp("su5", True, True, "trapezoid", 0.0, grid.n_steps, 300, 1e-8)
+    nlp = build_nlp("su5", True, True, "trapezoid", 0.0, True, grid.n_steps, 300, 1e-8)
     res = estimate_batch(samples, SETTINGS, frame=S.FRAME)
     N, m, n = grid.n_steps, model.n_states, model.n_outputs
     origin = np.mean(grid.y[grid.gps, :2], axis=0)

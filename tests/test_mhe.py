@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from sumhe.bench.mhe import drive_stream, run_stream
-from sumhe.config import Config
+from sumhe.config import Config, GpsSettings
 from sumhe.errors import ConfigError
 from sumhe.estimator.base import Estimator, LocalFix, StateEstimate
 from sumhe.estimator.batch import model_for, state_box
@@ -20,6 +20,7 @@ from sumhe.estimator.mhe import MovingHorizonEstimator
 from sumhe.estimator.registry import make_estimator
 from sumhe.estimator.settings import EstimatorSettings
 from sumhe.estimator.sqp import NlpSolver, SqpSolver, WindowProblem
+from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample, GnssFix
 from sumhe.sim import SimSettings, simulate
 from sumhe.sim.drive import Drive
@@ -251,7 +252,7 @@ def _window_problems(drive: Drive) -> tuple[WindowProblem, WindowProblem]:
     estimator's centre stage; the second's start point is left to the caller."""
     settings = SETTINGS
     model = model_for(settings)
-    fixes, cans = drive.fixes(), drive.can_samples()
+    fixes, cans = [stamp_fix(f, GpsSettings()) for f in drive.fixes()], drive.can_samples()
     out = []
     for k0 in (100, 101):
         t0, t1 = fixes[k0].t - 0.05, fixes[k0 + 49].t + 0.05

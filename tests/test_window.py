@@ -107,6 +107,11 @@ def test_window_container() -> None:
     win.append(4.0, np.zeros(1), np.zeros(1, dtype=bool), np.ones(1), np.zeros(2))
     assert win.offset[-1].tolist() == [0.0, 0.0]  # a new step has no offset
     assert win.apply(Plan(drop=1)) == []
+    for k in range(2):
+        win.append(5.0 + k, np.zeros(1), np.zeros(1, dtype=bool), np.ones(1), np.zeros(2))
+    assert win.t.tolist() == [3.0, 4.0, 5.0, 6.0]
+    assert win.apply(Plan(merge=(1, 2))) == [1]  # two neighbours merged away: one step spans them
+    assert win.t.tolist() == [3.0, 6.0]
     win.clear()
     assert len(win) == 0
 

@@ -33,6 +33,7 @@ class DeadReckoning(RecursiveEstimator):
 
     name = "dead-reckoning"
     gated = False
+    uses_gps_speed = False
 
     def __init__(self, settings: EstimatorSettings | None = None, noise: Noise | None = None) -> None:
         super().__init__(settings or EstimatorSettings(), noise or Noise())

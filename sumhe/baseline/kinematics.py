@@ -11,9 +11,9 @@ second order on a circle); ``dt`` may be negative, which is how a fix older than
 compared with it. Every function takes a state of shape ``(n,)`` or a stack of states ``(n, M)`` (sigma points,
 particles) unless it says otherwise.
 
-Measurements: a GNSS position (east, north) and azimuth (GPS course over ground or HDT heading) at ``lag``
-seconds before the state's time, and the CAN rows ``k v`` (speed) and ``omega + b`` (yaw rate), plus the
-standstill row ``omega = 0`` (a car at rest does not turn).
+Measurements: a GNSS position (east, north), azimuth (GPS course over ground or HDT heading) and speed over
+ground (Doppler, the speed v) at ``lag`` seconds before the state's time, and the CAN rows ``k v`` (speed) and
+``omega + b`` (yaw rate), plus the standstill row ``omega = 0`` (a car at rest does not turn).
 """
 
 from __future__ import annotations
@@ -33,7 +33,8 @@ FloatArray = NDArray[np.float64]
 E, N, PHI, V, OMEGA = range(5)
 POSITION = "position"
 AZIMUTH = "azimuth"
-FIX_ROWS = {POSITION: (E, N), AZIMUTH: (PHI,)}
+GPS_SPEED = "gps_speed"
+FIX_ROWS = {POSITION: (E, N), AZIMUTH: (PHI,), GPS_SPEED: (V,)}
 """State rows a GNSS measurement of each kind observes."""
 CAN_SPEED, CAN_YAW_RATE, STANDSTILL = "speed", "yaw_rate", "standstill"
 

@@ -44,6 +44,7 @@ import numpy as np
 
 from sumhe.baseline.kinematics import (
     AZIMUTH,
+    GPS_SPEED,
     OMEGA,
     PHI,
     POSITION,
@@ -57,6 +58,7 @@ from sumhe.baseline.kinematics import (
     step,
 )
 from sumhe.estimator.base import LocalFix, StateEstimate, bad_epoch_time, has_usable_position
+from sumhe.estimator.grid import GPS_SPEED_RESOLUTION_MPS, gps_speed
 from sumhe.estimator.settings import EstimatorSettings
 from sumhe.messages import CanSample, GpsStatus
 
@@ -138,11 +140,13 @@ class _NumericFailure(Exception):
 class RecursiveEstimator(ABC):
     """Base of the recursive baselines: implements the :class:`~sumhe.estimator.base.Estimator` protocol.
 
-    ``gated = False`` turns the innovation gate off (dead reckoning takes every fix as it is).
+    ``gated = False`` turns the innovation gate off (dead reckoning takes every fix as it is);
+    ``uses_gps_speed = False`` leaves the fixes' speed over ground out even with ``settings.gps_speed``.
     """
 
     name: ClassVar[str] = ""
     gated: ClassVar[bool] = True
+    uses_gps_speed: ClassVar[bool] = True
 
     def __init__(self, settings: EstimatorSettings, noise: Noise) -> None:
         self.settings = settings
@@ -151,6 +155,7 @@ class RecursiveEstimator(ABC):
         prob = noise.gate_prob if self.gated else 1.0
         self._pos_gate = Gate(chi2_threshold(prob, 2), noise.reacquire_s)
         self._az_gate = Gate(chi2_threshold(prob, 1), noise.reacquire_s)
+        self._sog_gate = Gate(chi2_threshold(prob, 1), noise.reacquire_s)
         self._counts: Counter[str] = Counter()
         self.reset()
 
@@ -175,6 +180,7 @@ class RecursiveEstimator(ABC):
         self._push_t0 = time.perf_counter()
         self._pos_gate.clear()
         self._az_gate.clear()
+        self._sog_gate.clear()
         self._reset_filter()
 
     def push(self, sample: LocalFix | CanSample) -> list[StateEstimate]:
@@ -423,18 +429,30 @@ class RecursiveEstimator(ABC):
         sigma = self._fix_sigma(fix)
         z = np.array([fix.east_m, fix.north_m])
         status = self._gated_update(POSITION, z, np.eye(2) * sigma**2, lag, self._pos_gate, fix.t, sigma)
-        angle = self._fix_angle(fix)
-        if angle is None or status == "rejected":
+        if status == "rejected":
             return status
+        self._angle_update(fix, lag)
+        s = self.settings
+        speed = gps_speed(fix.speed_mps, self._speed[1] if self._speed is not None else None, s)
+        if s.gps_speed and self.uses_gps_speed and speed is not None:
+            sigma_v = max(s.gps_speed_sigma_mps, GPS_SPEED_RESOLUTION_MPS)
+            R = np.array([[sigma_v**2]])
+            if self._gated_update(GPS_SPEED, np.array([speed]), R, lag, self._sog_gate, fix.t, sigma_v) == "rejected":
+                self._count("speed_rejected", "GNSS speed over ground rejected by the gate")
+        return status
+
+    def _angle_update(self, fix: LocalFix, lag: float) -> None:
+        angle = self._fix_angle(fix)
+        if angle is None:
+            return
         phi, sigma_phi = angle
         if not self._heading_known:
             self._init_heading(phi, sigma_phi)
             self._heading_known = True
-            return status
+            return
         R = np.array([[sigma_phi**2]])
         if self._gated_update(AZIMUTH, np.array([phi]), R, lag, self._az_gate, fix.t, sigma_phi) == "rejected":
             self._count("azimuth_rejected", "GNSS course/heading rejected by the gate")
-        return status
 
     def _gated_update(
         self, kind: str, z: FloatArray, R: FloatArray, lag: float, gate: Gate, t: float, sigma: float

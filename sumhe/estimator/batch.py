@@ -116,9 +116,14 @@ class SuResult:
 
 
 def model_for(settings: EstimatorSettings) -> SuModel:
-    """The SU model the settings select (``model``, ``yaw_rate_bias``, ``speed_scale``)."""
+    """The SU model the settings select (``model``, ``yaw_rate_bias``, ``speed_scale``, ``gps_speed``)."""
     return su_model(
-        settings.model, settings.yaw_rate_bias, settings.speed_scale, settings.discretisation, lever_m(settings)
+        settings.model,
+        settings.yaw_rate_bias,
+        settings.speed_scale,
+        settings.discretisation,
+        lever_m(settings),
+        settings.gps_speed,
     )
 
 
@@ -230,6 +235,7 @@ def estimate_batch(
         settings.speed_scale,
         settings.discretisation,
         lever_m(settings),
+        settings.gps_speed,
         grid.n_steps,
         settings.ipopt_max_iter,
         settings.ipopt_tol,

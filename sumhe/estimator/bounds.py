@@ -31,9 +31,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from sumhe.estimator.grid import Grid
+from sumhe.estimator.grid import GPS_SPEED_RESOLUTION_MPS, Grid
 from sumhe.estimator.settings import EstimatorSettings
-from sumhe.model.su import SCALE_STATE, SuModel, state_residuals
+from sumhe.model.su import GPS_SPEED_OUTPUT, SCALE_STATE, SuModel, state_residuals
 
 TOKEN_FLOOR = 1e-6
 
@@ -132,6 +132,8 @@ def r_floors(model: SuModel, settings: EstimatorSettings) -> NDArray[np.float64]
     res = settings.gps_resolution_m
     floors = [res] * (2 * model.antennas)
     floors.append(2.0 * res / settings.antenna_distance_m if model.antennas == 2 else 1e-4)
+    if GPS_SPEED_OUTPUT in model.outputs:
+        floors.append(GPS_SPEED_RESOLUTION_MPS)
     floors += [0.5 * settings.can_speed_resolution_mps, 0.5 * settings.can_yaw_rate_resolution_rps]
     return np.array(floors)
 

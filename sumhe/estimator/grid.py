@@ -25,13 +25,15 @@ from sumhe.errors import EstimatorInputError
 from sumhe.estimator.settings import EstimatorSettings
 from sumhe.geo import LocalFrame
 from sumhe.messages import CanSample, GnssFix, Sample
-from sumhe.model.su import SuModel, antenna_azimuth
+from sumhe.model.su import GPS_SPEED_OUTPUT, SuModel, antenna_azimuth
 
 log = logging.getLogger(__name__)
 
 GGA_RTK_FIXED = 4
 GGA_RTK_FLOAT = 5
 CAN_USED = ("speed", "yaw_rate")
+GPS_SPEED_RESOLUTION_MPS = 0.001 * 1852.0 / 3600.0
+"""NMEA's speed over ground resolution (0.001 knot)."""
 
 
 @dataclass(frozen=True)
@@ -86,6 +88,14 @@ def check_samples(samples: Sequence[Sample]) -> None:
                 value = getattr(s, name)
                 if value is None or not math.isfinite(value):
                     raise EstimatorInputError(f"sample {i}: valid fix with {name} = {value!r}")
+
+
+def gps_speed(speed_mps: float | None, can_speed: float | None, settings: EstimatorSettings) -> float | None:
+    """The speed a fix's speed over ground (m/s, >= 0) measures, with the sign of the CAN speed (reversing), or
+    None: no speed, or below ``course_min_speed_mps`` (at walking pace Doppler speeds are biased upwards)."""
+    if speed_mps is None or not math.isfinite(speed_mps) or speed_mps < settings.course_min_speed_mps:
+        return None
+    return -speed_mps if can_speed is not None and can_speed < 0.0 else speed_mps
 
 
 def gps_sigma_m(fix: GnssFix, settings: EstimatorSettings) -> tuple[float, float]:
@@ -193,6 +203,8 @@ def build_grid(
             allow[k[ok], col + c] = k_sig * np.maximum(sig[ok, c], settings.gps_resolution_m)
     can_speed, can_yaw = (can_on_grid(t_can[q], v_can[q], t, settings.can_max_gap_s) for q in CAN_USED)
     _angle_output(model, settings, t, y, avail, allow, valid1, can_speed, can_yaw, period)
+    if GPS_SPEED_OUTPUT in model.outputs:
+        _speed_output(model.outputs.index(GPS_SPEED_OUTPUT), settings, t, y, avail, allow, valid1, can_speed, period)
     has_bias = "yaw_rate_bias" in model.states
     has_scale = "speed_scale" in model.states
     i_v, i_w = n_out - 2, n_out - 1
@@ -219,6 +231,26 @@ def _nearest(t: NDArray[np.float64], tf: NDArray[np.float64], tol: float) -> NDA
     k = np.clip(np.searchsorted(t, tf), 1, len(t) - 1)
     k = np.where(np.abs(t[k - 1] - tf) <= np.abs(t[k] - tf), k - 1, k)
     return np.where(np.abs(t[k] - tf) <= tol + 1e-9, k, -1)
+
+
+def _speed_output(
+    j: int,
+    settings: EstimatorSettings,
+    t: NDArray[np.float64],
+    y: NDArray[np.float64],
+    avail: NDArray[np.bool_],
+    allow: NDArray[np.float64],
+    fixes: list[GnssFix],
+    can_speed: NDArray[np.float64],
+    period: float,
+) -> None:
+    """Fill the GNSS speed output ``j`` in place from the fixes' speed over ground (:func:`gps_speed`)."""
+    sigma = settings.r_cap_sigmas * max(settings.gps_speed_sigma_mps, GPS_SPEED_RESOLUTION_MPS)
+    for f, kk in zip(fixes, _nearest(t, np.array([f.t for f in fixes]), 0.5 * period), strict=True):
+        can = float(can_speed[kk]) if kk >= 0 and math.isfinite(can_speed[kk]) else None
+        value = gps_speed(f.speed_mps, can, settings) if kk >= 0 else None
+        if value is not None:
+            y[kk, j], avail[kk, j], allow[kk, j] = value, True, sigma
 
 
 def _angle_output(

@@ -2,7 +2,8 @@
 
 At every GNSS epoch (a fix, a "no fix", or an epoch GNSS missed) one step is appended to the window
 (:mod:`sumhe.estimator.window`): its CAN speed and yaw rate (the samples of the step's half-intervals averaged),
-the fix's position and course if the gate lets the fix in, and the step's start state, the previous newest state
+the fix's position, course and speed over ground (Doppler: it pins the CAN speed scale, which the positions'
+slow wander cannot) if the gate lets the fix in, and the step's start state, the previous newest state
 moved on by the model with the newest CAN data. The window is re-solved (:mod:`sumhe.estimator.sqp`) warm-started
 from the previous solution shifted by the steps the window slid; the newest state is the epoch's estimate.
 Between epochs, each CAN speed sample gives an estimate at its own time: the newest solution moved on with the CAN
@@ -59,12 +60,19 @@ from sumhe.errors import ConfigError
 from sumhe.estimator.base import LocalFix, StateEstimate, bad_epoch_time, has_usable_position
 from sumhe.estimator.batch import model_for, state_box
 from sumhe.estimator.bounds import q_caps
-from sumhe.estimator.grid import CAN_USED, GGA_RTK_FIXED, GGA_RTK_FLOAT, gps_sigma_m
+from sumhe.estimator.grid import (
+    CAN_USED,
+    GGA_RTK_FIXED,
+    GGA_RTK_FLOAT,
+    GPS_SPEED_RESOLUTION_MPS,
+    gps_sigma_m,
+    gps_speed,
+)
 from sumhe.estimator.settings import EstimatorSettings
 from sumhe.estimator.sqp import SolveResult, WindowProblem, WindowSolver, make_solver, step_jacobians
 from sumhe.estimator.window import Window, WindowPolicy, plan_window
 from sumhe.messages import CanSample, GpsStatus
-from sumhe.model.su import BIAS_STATE, SCALE_STATE, SuModel
+from sumhe.model.su import BIAS_STATE, GPS_SPEED_OUTPUT, SCALE_STATE, SuModel
 
 log = logging.getLogger(__name__)
 
@@ -157,6 +165,7 @@ class MovingHorizonEstimator:
         self._ik = model.index(SCALE_STATE) if SCALE_STATE in model.states else None
         self._jpos = model.gps_outputs[:2]
         self._jangle = model.angle_outputs[0]
+        self._jsog = model.outputs.index(GPS_SPEED_OUTPUT) if GPS_SPEED_OUTPUT in model.outputs else None
         self._jspeed, self._jyaw = self._n - 2, self._n - 1
         lo, hi = state_box(model, 1, s)
         self._lo, self._hi = lo[0], hi[0]
@@ -507,10 +516,15 @@ class MovingHorizonEstimator:
         k_sig = s.r_cap_sigmas
         for j, value, sigma in zip(self._jpos, (fix.east_m, fix.north_m), self._fix_sigma(fix), strict=True):
             y[j], avail[j], allow[j] = value, True, k_sig * max(sigma, s.gps_resolution_m)
-        angle = self._fix_angle(fix, y[self._jspeed] if avail[self._jspeed] else None)
+        can_speed = y[self._jspeed] if avail[self._jspeed] else None
+        angle = self._fix_angle(fix, can_speed)
         if angle is not None:
             turn = 0.5 * self.period_s * abs(y[self._jyaw])
             y[self._jangle], avail[self._jangle], allow[self._jangle] = angle[0], True, k_sig * angle[1] + turn
+        speed = gps_speed(fix.speed_mps, can_speed, s) if self._jsog is not None else None
+        if speed is not None:
+            sigma = max(s.gps_speed_sigma_mps, GPS_SPEED_RESOLUTION_MPS)
+            y[self._jsog], avail[self._jsog], allow[self._jsog] = speed, True, k_sig * sigma
         return y, avail, allow
 
     def _can_outputs(
@@ -691,6 +705,8 @@ class MovingHorizonEstimator:
             k_range = self._theta_range[self._ik - nt0] if self._ik is not None else 0.0
             k_low = (x[self._ik] - k_range) if self._ik is not None else 1.0
             out[self._iv] = (allow[self._jspeed] + abs(x[self._iv]) * k_range) / max(k_low, 1e-3)
+        if self._jsog is not None and avail[self._jsog]:
+            out[self._iv] = min(out[self._iv], allow[self._jsog])
         if avail[self._jyaw]:
             out[self._iw] = allow[self._jyaw] + (
                 2.0 * self._theta_range[self._ib - nt0] if self._ib is not None else 0.0

@@ -224,10 +224,12 @@ def build_nlp(
     speed_scale: bool,
     discretisation: str,
     lever_m: float,
+    gps_speed: bool,
     n_steps: int,
     max_iter: int,
     tol: float,
 ) -> SuNlp:
-    """The NLP for a model and window size, built on first use and cached (never rebuilt per window)."""
-    model = su_model(model_name, yaw_rate_bias, speed_scale, discretisation, lever_m)
+    """The NLP for a model (the arguments of :func:`~sumhe.model.su.su_model`) and window size, built on first
+    use and cached (never rebuilt per window)."""
+    model = su_model(model_name, yaw_rate_bias, speed_scale, discretisation, lever_m, gps_speed)
     return SuNlp(model, n_steps, max_iter, tol)

@@ -41,6 +41,8 @@ class EstimatorSettings:
     gps_sigma_m: float = 3.0
     gps_resolution_m: float = 0.001
     gps_speed_sigma_mps: float = 0.05
+    # the receiver's speed over ground (Doppler; RMC/VTG) as a measurement of the speed, above course_min_speed_mps
+    gps_speed: bool = True
     gps_heading_sigma_rad: float = 0.005
     course_min_speed_mps: float = 2.0
     use_heading: bool = True

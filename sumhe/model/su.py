@@ -36,6 +36,8 @@ SU5_STATES = ("px", "py", "phi", "v", "omega")
 SU5_OUTPUTS = ("px", "py", "course", "can_speed", "can_yaw_rate")
 BIAS_STATE = "yaw_rate_bias"
 SCALE_STATE = "speed_scale"
+GPS_SPEED_OUTPUT = "gps_speed"
+"""The receiver's speed over ground (Doppler), an output just before the CAN ones when the model has it."""
 
 
 def wrap_angle(a: Any, ns: Any = np) -> Any:
@@ -136,16 +138,22 @@ def can_outputs(v: Any, omega: Any, x: Any, bias_index: int | None, scale_index:
     return [speed, yaw_rate]
 
 
-def su7_output(x: Any, ns: Any = np, bias_index: int | None = None, scale_index: int | None = None) -> list[Any]:
-    """Paper (20) without noise: both antenna positions (m), their azimuth xi (rad), CAN speed and yaw rate."""
+def su7_output(
+    x: Any, ns: Any = np, bias_index: int | None = None, scale_index: int | None = None, gps_speed: bool = False
+) -> list[Any]:
+    """Paper (20) without noise: both antenna positions (m), their azimuth xi (rad), (the GNSS speed over ground,
+    m/s, with ``gps_speed``), CAN speed and yaw rate."""
     px1, py1, px2, py2 = (x[i] for i in range(4))
     xi = antenna_azimuth(px1, py1, px2, py2, ns)
-    return [px1, py1, px2, py2, xi, *can_outputs(x[5], x[6], x, bias_index, scale_index)]
+    return [px1, py1, px2, py2, xi, *[x[5]] * gps_speed, *can_outputs(x[5], x[6], x, bias_index, scale_index)]
 
 
-def su5_output(x: Any, ns: Any = np, bias_index: int | None = None, scale_index: int | None = None) -> list[Any]:
-    """Single-antenna outputs: GPS position (m), azimuth (course or heading, rad), CAN speed and yaw rate."""
-    return [x[0], x[1], x[2], *can_outputs(x[3], x[4], x, bias_index, scale_index)]
+def su5_output(
+    x: Any, ns: Any = np, bias_index: int | None = None, scale_index: int | None = None, gps_speed: bool = False
+) -> list[Any]:
+    """Single-antenna outputs: GPS position (m), azimuth (course or heading, rad), (the GNSS speed over ground,
+    m/s, with ``gps_speed``), CAN speed and yaw rate."""
+    return [x[0], x[1], x[2], *[x[3]] * gps_speed, *can_outputs(x[3], x[4], x, bias_index, scale_index)]
 
 
 @dataclass(frozen=True)
@@ -213,10 +221,12 @@ def su_model(
     speed_scale: bool = False,
     discretisation: str = "euler",
     lever_m: float = 0.0,
+    gps_speed: bool = False,
 ) -> SuModel:
     """The model ``"su7"`` (paper (19)-(20)) or ``"su5"`` (single antenna), with optional CAN-error states,
     discretised by ``"euler"`` (the paper's (19)) or ``"trapezoid"`` (:func:`trapezoid`); ``lever_m`` is
-    the antenna-2 lever arm of :func:`su7_step` (0: the paper's rigid translation)."""
+    the antenna-2 lever arm of :func:`su7_step` (0: the paper's rigid translation); ``gps_speed`` adds the
+    receiver's speed over ground as an output (:data:`GPS_SPEED_OUTPUT`, a GNSS output before the CAN ones)."""
     if name not in ("su7", "su5"):
         raise ValueError(f"model: unknown SU model {name!r} (su5, su7)")
     if discretisation not in ("euler", "trapezoid"):
@@ -230,7 +240,9 @@ def su_model(
     out = su7_output if name == "su7" else su5_output
 
     def output(x: Any, ns: Any = np) -> list[Any]:
-        return out(x, ns, bias_index, scale_index)
+        return out(x, ns, bias_index, scale_index, gps_speed)
+
+    speed_out = (GPS_SPEED_OUTPUT,) * gps_speed
 
     i_phi = states.index("phi")
     transition = trapezoid(step, i_phi, i_phi + 1, i_phi + 2) if discretisation == "trapezoid" else euler(step)
@@ -239,13 +251,13 @@ def su_model(
         return SuModel(
             name="su7",
             states=states,
-            outputs=SU7_OUTPUTS,
+            outputs=SU7_OUTPUTS[:5] + speed_out + SU7_OUTPUTS[5:],
             step=step,
             transition=transition,
             output=output,
             angle_states=(4,),
             angle_outputs=(4,),
-            gps_outputs=(0, 1, 2, 3, 4),
+            gps_outputs=(0, 1, 2, 3, 4, 5)[: 5 + gps_speed],
             q_power=(2, 2, 2, 2, 2, 1, 1),
             position=(0, 1),
             antennas=2,
@@ -254,13 +266,13 @@ def su_model(
     return SuModel(
         name="su5",
         states=states,
-        outputs=SU5_OUTPUTS,
+        outputs=SU5_OUTPUTS[:3] + speed_out + SU5_OUTPUTS[3:],
         step=step,
         transition=transition,
         output=output,
         angle_states=(2,),
         angle_outputs=(2,),
-        gps_outputs=(0, 1, 2),
+        gps_outputs=(0, 1, 2, 3)[: 3 + gps_speed],
         q_power=(2, 2, 2, 1, 1),
         position=(0, 1),
         antennas=1,
