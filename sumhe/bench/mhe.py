@@ -56,7 +56,7 @@ class MheBenchSettings:
 
     scenarios: tuple[str, ...] = ("urban", "highway", "offroad")
     seeds: tuple[int, ...] = (21, 22)
-    gps_errors: tuple[str, ...] = ("walk", "gaussian")
+    gps_errors: tuple[str, ...] = ("uniform", "gaussian", "walk")
     outage_lengths_s: tuple[float, ...] = (5.0, 10.0, 30.0)
     duration_s: float = 300.0
     recover_s: float = 20.0
