@@ -121,3 +121,21 @@ def test_demo_summary_splits_json_estimates_by_their_gps_flag():
     empty = summarise([], truth, frame)
     assert (empty.n_ok, empty.n_outage) == (0, 0)
     assert math.isnan(empty.ok[0])
+
+
+def test_errors_net_of_the_gnss_offset_each_outage_starts_from():
+    truth = straight_truth()
+    # fixes every 0.1 s, off by (+1, -2) m before 30 s and by (-3, 0) m after
+    t_fix = np.arange(0.0, 60.0, 0.1)
+    off = np.where(t_fix[:, None] < 30.0, [1.0, -2.0], [-3.0, 0.0])
+    at = truth.at(t_fix)
+    offsets = metrics.offsets_before(t_fix, at.east + off[:, 0], at.north + off[:, 1], truth, [20.0, 40.0, -5.0], 10)
+    np.testing.assert_allclose(offsets[:2], [[1.0, -2.0], [-3.0, 0.0]], atol=1e-9)
+    assert np.isnan(offsets[2]).all()  # no fix before it
+    # estimates that kept the offset of the outage's start are 0 m off net of it; one outside the outages is left out
+    t = np.array([21.0, 25.0, 41.0, 35.0])
+    est = truth.at(t)
+    east = est.east + np.array([1.0, 1.0, -3.0 + 4.0, 0.0])
+    north = est.north + np.array([-2.0, 1.0, 3.0, 0.0])
+    net = metrics.net_errors(t, east, north, truth, [(20.0, 30.0), (40.0, 50.0)], offsets[:2])
+    np.testing.assert_allclose(net, [0.0, 3.0, 5.0], atol=1e-9)

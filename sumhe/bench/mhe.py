@@ -47,6 +47,8 @@ from sumhe.sim.drive import Drive
 log = logging.getLogger(__name__)
 
 Progress = Callable[[str], None]
+PARTS = ("latency", "accuracy", "multipath", "replay")
+"""The benchmark's parts, in the order they run (latency first, on a machine the others have not yet heated)."""
 StreamItem = LocalFix | CanSample
 
 
@@ -73,6 +75,12 @@ class MheBenchSettings:
     estimator: EstimatorSettings = field(
         default_factory=lambda: EstimatorSettings(can_delay_s=SimSettings().can_sensor_delay_s)
     )
+    parts: tuple[str, ...] = PARTS
+
+    def __post_init__(self) -> None:
+        unknown = set(self.parts) - set(PARTS)
+        if unknown or not self.parts:
+            raise ValueError(f"parts: choose from {', '.join(PARTS)}, got {', '.join(self.parts) or 'none'}")
 
     @classmethod
     def quick(cls) -> MheBenchSettings:
@@ -382,17 +390,29 @@ def replay_run(duration_s: float, base: EstimatorSettings) -> dict[str, float]:
 
 
 def run_benchmark(bs: MheBenchSettings, progress: Progress | None = None) -> list[str]:
-    """Run everything; the report's lines."""
+    """Run the parts ``bs.parts``; the report's lines."""
     say = progress or (lambda _msg: None)
     lines = [f"sumhe bench mhe: {environment()}"]
     s = bs.estimator
     lines.append(
         f"MHE: solver {s.mhe_solver}, N={s.mhe_steps} N_B={s.mhe_steps_before} N_A={s.mhe_steps_after} "
         f"N_max={s.mhe_max_steps} (merge up to {s.mhe_max_merge}x), model {s.model}/{s.discretisation}, "
-        f"step {s.step_s} s"
+        f"step {s.step_s} s, GNSS speed over ground {'used' if s.gps_speed else 'not used'}"
     )
-    lines.append("")
-    lines.append(f"latency per GNSS epoch, window full (ms; load average {os.getloadavg()[0]:.1f}):")
+    if "latency" in bs.parts:
+        lines += ["", *_latency_report(bs, say)]
+    if "accuracy" in bs.parts:
+        lines += ["", _accuracy_report(bs, say)]
+    if "multipath" in bs.parts:
+        lines += ["", *multipath_report(bs, say)]
+    if "replay" in bs.parts and bs.replay_s > 0:
+        lines += ["", _replay_line(bs, say)]
+    return lines
+
+
+def _latency_report(bs: MheBenchSettings, say: Progress) -> list[str]:
+    s = bs.estimator
+    lines = [f"latency per GNSS epoch, window full (ms; load average {os.getloadavg()[0]:.1f}):"]
     head = ("solver", "N", "epochs", "p50", "p99", "max", "iter/solve")
     lines.append("  {:8s} {:>4s} {:>6s} {:>8s} {:>8s} {:>8s} {:>10s} banded".format(*head))
     for solver in bs.solvers:
@@ -416,23 +436,19 @@ def run_benchmark(bs: MheBenchSettings, progress: Progress | None = None) -> lis
         f"{0.9 * s.mhe_max_steps:.0f} steps: p50 {r['p50']:.2f} p99 {r['p99']:.2f} max {r['max']:.2f} ms "
         f"({r['epochs']:.0f} epochs)"
     )
-    lines.append("")
-    lines.append(_accuracy_report(bs, say))
-    lines.append("")
-    lines += multipath_report(bs, say)
-    if bs.replay_s <= 0:
-        return lines
-    lines.append("")
+    return lines
+
+
+def _replay_line(bs: MheBenchSettings, say: Progress) -> str:
     say(f"replay of {bs.replay_s:.0f} s")
-    r = replay_run(bs.replay_s, s)
-    lines.append(
+    r = replay_run(bs.replay_s, bs.estimator)
+    return (
         f"replay: {r['span_s']:.0f} s of simulated data ({r['samples']:.0f} samples, {r['estimates']:.0f} "
         f"estimates) in {r['wall_s']:.1f} s = {r['speed']:.0f}x real time ({r['cpu_s']:.1f} s of CPU = "
         f"{r['cpu_speed']:.0f}x on a core of its own; load average {r['load']:.1f} on {os.cpu_count()} CPUs); "
         f"epoch update p50 {r['epoch_p50']:.2f} ms, p99 {r['epoch_p99']:.2f} ms; "
         f"banded solves {100 * r['banded']:.0f} %, fallbacks {r['fallbacks']:.0f}"
     )
-    return lines
 
 
 def _accuracy_report(bs: MheBenchSettings, say: Progress) -> str:

@@ -81,7 +81,7 @@ class PeersSettings:
     ``recordings``: directories of recorded drives (see the module docstring)."""
 
     scenarios: tuple[str, ...] = SCENARIO_NAMES
-    gps_errors: tuple[str, ...] = ("walk", "gaussian")
+    gps_errors: tuple[str, ...] = ("uniform", "gaussian", "walk")
     seeds: tuple[int, ...] = (1, 2, 3)
     duration_s: float = 240.0
     outage_lengths_s: tuple[float, ...] = (5.0, 10.0, 30.0, 55.0)

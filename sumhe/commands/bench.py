@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
 def add_mhe_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quick", action="store_true", help="one seed, short latency runs, a 10 min replay")
     parser.add_argument("--solvers", help="comma-separated solvers to time (default sqp,ipopt,fatrop)")
-    parser.add_argument("--no-replay", action="store_true", help="skip the long replay")
+    parser.add_argument("--parts", metavar="A,B", help="parts to run (default latency,accuracy,multipath,replay)")
 
 
 def run_mhe(args: argparse.Namespace) -> int:
@@ -72,8 +72,11 @@ def run_mhe(args: argparse.Namespace) -> int:
     bs = MheBenchSettings.quick() if args.quick else MheBenchSettings()
     if args.solvers:
         bs = dataclasses.replace(bs, solvers=tuple(s.strip() for s in args.solvers.split(",") if s.strip()))
-    if args.no_replay:
-        bs = dataclasses.replace(bs, replay_s=0.0)
+    if args.parts:
+        try:
+            bs = dataclasses.replace(bs, parts=tuple(s.strip() for s in args.parts.split(",") if s.strip()))
+        except ValueError as e:
+            raise SystemExit(f"error: --{e}") from e
     for line in run_benchmark(bs, lambda msg: print(msg, file=sys.stderr, flush=True)):
         print(line, flush=True)
     return 0
@@ -83,7 +86,7 @@ def add_peers_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quick", action="store_true", help="a one-minute subset: one 120 s drive, 5/10/30 s outages")
     parser.add_argument("--estimators", metavar="A,B", help="comma-separated estimators (default: every registered)")
     parser.add_argument("--scenarios", metavar="A,B", help="simulated scenarios (default urban,highway,offroad)")
-    parser.add_argument("--gps-errors", metavar="A,B", help="simulated GPS error models (default walk,gaussian)")
+    parser.add_argument("--gps-errors", metavar="A,B", help="GPS error models (default uniform,gaussian,walk)")
     parser.add_argument("--seeds", metavar="1,2,3", help="simulation seeds (default 1,2,3)")
     parser.add_argument("--duration", type=float, metavar="S", help="length of each simulated drive (default 240 s)")
     parser.add_argument(

@@ -115,9 +115,10 @@ class SuResult:
         return self.states[:, 1]
 
 
-def model_for(settings: EstimatorSettings) -> SuModel:
-    """The SU model the settings select (``model``, ``yaw_rate_bias``, ``speed_scale``, ``gps_speed``)."""
-    return su_model(
+def model_args(settings: EstimatorSettings) -> tuple[str, bool, bool, str, float, bool]:
+    """The arguments of :func:`~sumhe.model.su.su_model` the settings select (``model``, ``yaw_rate_bias``,
+    ``speed_scale``, ``discretisation``, the lever arm, ``gps_speed``): hashable, a cache key too."""
+    return (
         settings.model,
         settings.yaw_rate_bias,
         settings.speed_scale,
@@ -125,6 +126,11 @@ def model_for(settings: EstimatorSettings) -> SuModel:
         lever_m(settings),
         settings.gps_speed,
     )
+
+
+def model_for(settings: EstimatorSettings) -> SuModel:
+    """The SU model the settings select (:func:`model_args`)."""
+    return su_model(*model_args(settings))
 
 
 def lever_m(settings: EstimatorSettings) -> float:
@@ -229,17 +235,7 @@ def estimate_batch(
     model = model_for(settings)
     grid = build_grid(samples, model, settings, frame)
     bounds = noise_bounds(model, grid, settings, lever_m(settings))
-    nlp = build_nlp(
-        settings.model,
-        settings.yaw_rate_bias,
-        settings.speed_scale,
-        settings.discretisation,
-        lever_m(settings),
-        settings.gps_speed,
-        grid.n_steps,
-        settings.ipopt_max_iter,
-        settings.ipopt_tol,
-    )
+    nlp = build_nlp(*model_args(settings), grid.n_steps, settings.ipopt_max_iter, settings.ipopt_tol)
     win = _Window(nlp, model, grid, bounds, settings)
     try:
         lp = solve_lp(grid, model, bounds, settings, win.origin)

@@ -204,7 +204,10 @@ def build_grid(
     can_speed, can_yaw = (can_on_grid(t_can[q], v_can[q], t, settings.can_max_gap_s) for q in CAN_USED)
     _angle_output(model, settings, t, y, avail, allow, valid1, can_speed, can_yaw, period)
     if GPS_SPEED_OUTPUT in model.outputs:
-        _speed_output(model.outputs.index(GPS_SPEED_OUTPUT), settings, t, y, avail, allow, valid1, can_speed, period)
+        j = model.outputs.index(GPS_SPEED_OUTPUT)
+        for k, value in _gps_speeds(valid1, t, can_speed, settings, period):
+            y[k, j], avail[k, j] = value, True
+        allow[:, j] = k_sig * max(settings.gps_speed_sigma_mps, GPS_SPEED_RESOLUTION_MPS)
     has_bias = "yaw_rate_bias" in model.states
     has_scale = "speed_scale" in model.states
     i_v, i_w = n_out - 2, n_out - 1
@@ -233,24 +236,22 @@ def _nearest(t: NDArray[np.float64], tf: NDArray[np.float64], tol: float) -> NDA
     return np.where(np.abs(t[k] - tf) <= tol + 1e-9, k, -1)
 
 
-def _speed_output(
-    j: int,
-    settings: EstimatorSettings,
-    t: NDArray[np.float64],
-    y: NDArray[np.float64],
-    avail: NDArray[np.bool_],
-    allow: NDArray[np.float64],
+def _gps_speeds(
     fixes: list[GnssFix],
+    t: NDArray[np.float64],
     can_speed: NDArray[np.float64],
+    settings: EstimatorSettings,
     period: float,
-) -> None:
-    """Fill the GNSS speed output ``j`` in place from the fixes' speed over ground (:func:`gps_speed`)."""
-    sigma = settings.r_cap_sigmas * max(settings.gps_speed_sigma_mps, GPS_SPEED_RESOLUTION_MPS)
-    for f, kk in zip(fixes, _nearest(t, np.array([f.t for f in fixes]), 0.5 * period), strict=True):
-        can = float(can_speed[kk]) if kk >= 0 and math.isfinite(can_speed[kk]) else None
-        value = gps_speed(f.speed_mps, can, settings) if kk >= 0 else None
-        if value is not None:
-            y[kk, j], avail[kk, j], allow[kk, j] = value, True, sigma
+) -> list[tuple[int, float]]:
+    """(grid step, speed) of the fixes whose speed over ground counts (:func:`gps_speed`); ``period`` (s) the
+    nominal step, half of which is the farthest a fix may be from its step."""
+    out = []
+    for f, k in zip(fixes, _nearest(t, np.array([f.t for f in fixes]), 0.5 * period), strict=True):
+        if k >= 0:
+            value = gps_speed(f.speed_mps, float(can_speed[k]) if math.isfinite(can_speed[k]) else None, settings)
+            if value is not None:
+                out.append((int(k), value))
+    return out
 
 
 def _angle_output(
