@@ -11,7 +11,8 @@ missing; ``docs/mhe.md``):
   (N_B) GNSS epochs from before the newest outage: it stops sliding and grows instead (while the outage is shorter
   than N - N_B steps the N newest steps already hold them, and nothing changes);
 * at most ``max_steps`` (N_max) steps: beyond, steps without GNSS older than the newest N are removed, which
-  merges two steps into one of the summed length (the state noise bounds scale with the step length), two equal
+  merges two steps into one of the summed length (the state noise bounds scale with the step length; the
+  estimator keeps what the removed step's CAN data added as an offset of the merged transition), two equal
   steps first (so steps are 1, 2, 4, ... periods long), the shortest merged step first and the oldest first among
   equals, so the outage is coarsened behind its newest N steps, which stay at the GNSS period; a merged step is
   at most ``max_merge`` nominal periods long. Only when no step can be merged are the oldest steps dropped;
