@@ -10,7 +10,7 @@ import su_samples as S
 from sumhe.config import build_section
 from sumhe.errors import EstimatorInputError
 from sumhe.estimator.batch import antenna_distance_error, estimate_batch, model_for, state_box
-from sumhe.estimator.grid import build_grid
+from sumhe.estimator.grid import build_grid, nominal_period
 from sumhe.estimator.problem import build_nlp
 from sumhe.estimator.settings import EstimatorSettings
 from sumhe.messages import CanSample, GnssFix
@@ -190,3 +190,17 @@ def test_settings_are_validated_naming_the_field() -> None:
         build_section(EstimatorSettings, {"objective": "maximum"}, "estimator")
     with pytest.raises(ValueError, match=r"estimator\.gps_time"):  # GNSS time is the [gps] table's, not here
         build_section(EstimatorSettings, {"gps_time": "utc"}, "estimator")
+
+
+def test_the_grid_period_ignores_outage_gaps_and_needs_three_epochs() -> None:
+    assert nominal_period(np.array([0.0, 0.1, 0.2, 5.0, 5.1]), 0.5) == pytest.approx(0.1)
+    assert nominal_period(np.arange(0.0, 10.0, 1.0), 0.1) == pytest.approx(1.0)  # a 1 Hz receiver
+    assert nominal_period(np.array([110.1, 140.2]), 0.1) == 0.1  # two fixes around an outage
+    # a window holding only the fixes on either side of a 3 s outage: 0.1 s steps in between, not one 3 s step
+    samples = [
+        s
+        for s in S.window(S.Motion(), 3.0, outage=(0.05, 2.95))
+        if not isinstance(s, GnssFix) or s.t in (S.T0, S.T0 + 3.0)
+    ]
+    grid = build_grid(samples, model_for(SETTINGS), SETTINGS, S.FRAME)
+    assert grid.gps.sum() == 2 and np.allclose(np.diff(grid.t), 0.1)

@@ -90,6 +90,15 @@ def check_samples(samples: Sequence[Sample]) -> None:
                     raise EstimatorInputError(f"sample {i}: valid fix with {name} = {value!r}")
 
 
+def nominal_period(epochs: NDArray[np.float64], default: float) -> float:
+    """The GNSS period (s) of epoch times: the median of the intervals within 1.5x the shortest (outage gaps left
+    out), or ``default`` from fewer than three epochs (two fixes around an outage say nothing of the period)."""
+    d = np.diff(np.unique(epochs))
+    if len(d) < 2:
+        return default
+    return float(np.median(d[d <= 1.5 * d.min()]))
+
+
 def gps_speed(speed_mps: float | None, can_speed: float | None, settings: EstimatorSettings) -> float | None:
     """The speed a fix's speed over ground (m/s, >= 0) measures, with the sign of the CAN speed (reversing), or
     None: no speed, or below ``course_min_speed_mps`` (at walking pace Doppler speeds are biased upwards)."""
@@ -181,8 +190,7 @@ def build_grid(
     v_can = {q: np.array([s.value for s in cans if s.quantity == q]) for q in CAN_USED}
     epochs = np.array([f.t for f in ant1])
     t_all = np.concatenate([epochs, *t_can.values()])
-    d_ep = np.diff(np.unique(epochs))
-    period = float(np.median(d_ep)) if len(d_ep) else settings.step_s
+    period = nominal_period(epochs, settings.step_s)
     t = step_times(epochs, float(t_all.min()), float(t_all.max()), period)
     n_out = model.n_outputs
     y = np.zeros((len(t), n_out))
