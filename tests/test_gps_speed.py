@@ -11,9 +11,11 @@ import su_samples as S
 
 from sumhe.baseline.ekf import Ekf
 from sumhe.bench.mhe import drive_stream, run_stream
+from sumhe.config import Config
 from sumhe.estimator.batch import model_for
 from sumhe.estimator.grid import build_grid, gps_speed
 from sumhe.estimator.mhe import MovingHorizonEstimator
+from sumhe.estimator.registry import make_estimator
 from sumhe.estimator.settings import EstimatorSettings
 from sumhe.model.su import GPS_SPEED_OUTPUT, su_model
 from sumhe.sim import SimSettings, simulate
@@ -73,3 +75,14 @@ def test_the_speed_pins_the_can_speed_scale() -> None:
     for name in ("mhe", "ekf"):
         assert errors[name, True] < 0.5 * errors[name, False], errors
         assert errors[name, True] < 5e-4, errors
+
+
+@pytest.mark.parametrize("name", ["pf", "dead-reckoning"])
+def test_the_particle_filter_and_dead_reckoning_leave_the_speed_out(name: str) -> None:
+    drive = simulate(SimSettings(scenario="urban", seed=6, duration_s=20.0))
+    stream = drive_stream(drive)
+    runs = []
+    for on in (False, True):
+        est = make_estimator(name, Config(estimator=dataclasses.replace(SETTINGS, gps_speed=on)))
+        runs.append([(e.t, e.east_m, e.north_m, e.speed_mps) for e in run_stream(est, stream).estimates])
+    assert runs[0] == runs[1] and len(runs[0]) > 100

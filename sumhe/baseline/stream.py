@@ -433,8 +433,9 @@ class RecursiveEstimator(ABC):
             return status
         self._angle_update(fix, lag)
         s = self.settings
-        speed = gps_speed(fix.speed_mps, self._speed[1] if self._speed is not None else None, s)
-        if s.gps_speed and self.uses_gps_speed and speed is not None:
+        use = s.gps_speed and self.uses_gps_speed
+        speed = gps_speed(fix.speed_mps, self._speed[1] if self._speed is not None else None, s) if use else None
+        if speed is not None:
             sigma_v = max(s.gps_speed_sigma_mps, GPS_SPEED_RESOLUTION_MPS)
             R = np.array([[sigma_v**2]])
             if self._gated_update(GPS_SPEED, np.array([speed]), R, lag, self._sog_gate, fix.t, sigma_v) == "rejected":
