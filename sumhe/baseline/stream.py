@@ -31,7 +31,6 @@ the filter from the next valid fix.
 
 from __future__ import annotations
 
-import logging
 import math
 import time
 from abc import ABC, abstractmethod
@@ -57,12 +56,10 @@ from sumhe.baseline.kinematics import (
     chi2_threshold,
     step,
 )
-from sumhe.estimator.base import LocalFix, StateEstimate, bad_epoch_time, has_usable_position
+from sumhe.estimator.base import BadInputCounter, LocalFix, StateEstimate, bad_epoch_time
 from sumhe.estimator.grid import GPS_SPEED_RESOLUTION_MPS, gps_speed
 from sumhe.estimator.settings import EstimatorSettings
 from sumhe.messages import CanSample, GpsStatus
-
-log = logging.getLogger(__name__)
 
 MAX_FIX_LAG_S = 1.0
 """Fixes older than this behind the newest CAN data are dropped (counted ``late_fixes``)."""
@@ -137,7 +134,7 @@ class _NumericFailure(Exception):
     """The state went non-finite; the filter restarts."""
 
 
-class RecursiveEstimator(ABC):
+class RecursiveEstimator(BadInputCounter, ABC):
     """Base of the recursive baselines: implements the :class:`~sumhe.estimator.base.Estimator` protocol.
 
     ``gated = False`` turns the innovation gate off (dead reckoning takes every fix as it is);
@@ -249,7 +246,7 @@ class RecursiveEstimator(ABC):
     def _mean(self) -> FloatArray:
         """The state estimate at ``t_state``."""
 
-    def _on_report(self, estimate: StateEstimate, epoch: bool) -> None:  # noqa: B027 - an optional hook
+    def _on_report(self, estimate: StateEstimate, epoch: bool) -> None:
         """Called with every estimate returned, ``epoch`` False for the CAN-rate ones (the RTS records them)."""
 
     def _window(self) -> int:
@@ -328,12 +325,6 @@ class RecursiveEstimator(ABC):
         self._status = status
         out.append(self._report(t, status))
         return out
-
-    def _usable(self, fix: LocalFix) -> bool:
-        if has_usable_position(fix) or not fix.valid:
-            return fix.valid
-        self._count("bad_fixes", "valid fix without a usable position or sigma taken as no fix")
-        return False
 
     def _check_gap(self, t: float) -> None:
         if self._started and t - self._t_last > MAX_DATA_GAP_S:
@@ -492,10 +483,3 @@ class RecursiveEstimator(ABC):
         )
         self._on_report(estimate, epoch)
         return estimate
-
-    def _count(self, key: str, msg: str, *args: object) -> None:
-        """Count an event; log it at the 1st, 10th, 100th, ... occurrence."""
-        self._counts[key] += 1
-        n = self._counts[key]
-        if n == 10 ** int(math.log10(n)):
-            log.warning("%s: " + msg + " (%d so far)", self.name, *args, n)

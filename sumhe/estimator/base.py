@@ -22,7 +22,9 @@ recorded drive; the pipeline calls it where it exists (:meth:`sumhe.service.pipe
 
 from __future__ import annotations
 
+import logging
 import math
+from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
@@ -110,6 +112,27 @@ def has_usable_position(fix: LocalFix) -> bool:
     ``MAX_FIX_SIGMA_M`` (a larger one overflows a filter's variance and says the position is unknown anyway)."""
     sigma_ok = fix.sigma_m is None or 0 < fix.sigma_m <= MAX_FIX_SIGMA_M
     return fix.valid and math.isfinite(fix.east_m) and math.isfinite(fix.north_m) and sigma_ok
+
+
+class BadInputCounter:
+    """What the streaming estimators share about bad input: ``_count`` counts an event in ``_counts`` (their
+    ``stats()``) and logs it, on the estimator's module logger, at its 1st, 10th, 100th, ... occurrence;
+    ``_usable`` says whether a fix's position can be used, counting a valid fix without one (taken as no fix)."""
+
+    name: str
+    _counts: Counter[str]
+
+    def _count(self, key: str, msg: str, *args: object) -> None:
+        self._counts[key] += 1
+        n = self._counts[key]
+        if n == 10 ** int(math.log10(n)):
+            logging.getLogger(type(self).__module__).warning("%s: " + msg + " (%d so far)", self.name, *args, n)
+
+    def _usable(self, fix: LocalFix) -> bool:
+        if has_usable_position(fix) or not fix.valid:
+            return fix.valid
+        self._count("bad_fixes", "valid fix without a usable position or sigma taken as no fix")
+        return False
 
 
 def fix_sigma_m(fix: GnssFix) -> float | None:

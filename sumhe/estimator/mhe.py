@@ -57,7 +57,7 @@ from numpy.typing import NDArray
 
 from sumhe.config import Config
 from sumhe.errors import ConfigError
-from sumhe.estimator.base import LocalFix, StateEstimate, bad_epoch_time, has_usable_position
+from sumhe.estimator.base import BadInputCounter, LocalFix, StateEstimate, bad_epoch_time
 from sumhe.estimator.batch import model_for, state_box
 from sumhe.estimator.bounds import q_caps
 from sumhe.estimator.grid import (
@@ -146,7 +146,7 @@ class _Samples:
         return self.t[-1] if self.t else -math.inf
 
 
-class MovingHorizonEstimator:
+class MovingHorizonEstimator(BadInputCounter):
     """The moving-horizon SU estimator on the :class:`~sumhe.estimator.base.Estimator` protocol (module doc)."""
 
     name = "mhe"
@@ -314,12 +314,6 @@ class MovingHorizonEstimator:
         out = self._missed_epochs(t)
         out.append(self._epoch(t, fix if usable else None))
         return out
-
-    def _usable(self, fix: LocalFix) -> bool:
-        if has_usable_position(fix) or not fix.valid:
-            return fix.valid
-        self._count("bad_fixes", "valid fix without a usable position or sigma taken as no fix")
-        return False
 
     def _check_gap(self, t: float) -> None:
         if self._started and t - self._t_last > MAX_DATA_GAP_S:
@@ -762,10 +756,3 @@ class MovingHorizonEstimator:
             window=len(self._window),
             solve_ms=1000.0 * (time.perf_counter() - self._push_t0),
         )
-
-    def _count(self, key: str, msg: str, *args: object) -> None:
-        """Count an event; log it at the 1st, 10th, 100th, ... occurrence."""
-        self._counts[key] += 1
-        n = self._counts[key]
-        if n == 10 ** int(math.log10(n)):
-            log.warning("%s: " + msg + " (%d so far)", self.name, *args, n)
