@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from sumhe.bench import metrics
+from sumhe.bench.demo import summarise
 from sumhe.geo import LocalFrame
-from sumhe.service.demo import summarise
 from sumhe.sim import Truth
 
 

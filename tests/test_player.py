@@ -6,9 +6,9 @@ import pytest
 
 from sumhe.config import GpsSettings
 from sumhe.io.nmea_format import format_gga, format_rmc
+from sumhe.io.player import Player, Pty, TcpNmeaServer, TimedLine, read_nmea_log
 from sumhe.io.serial import SerialNmeaSource
 from sumhe.io.source import SourceTimeout
-from sumhe.service.player import Player, Pty, TcpNmeaServer, TimedLine, read_nmea_log
 
 T0 = 1780300800.0
 

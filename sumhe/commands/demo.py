@@ -14,7 +14,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from sumhe.service.demo import demo
+    from sumhe.bench.demo import demo
 
     if args.speed <= 0:
         raise SystemExit("error: --speed must be positive")

@@ -21,7 +21,7 @@ import can
 from sumhe.config import load_config, parse_host_port
 from sumhe.errors import ConfigError
 from sumhe.io.can import read_log
-from sumhe.service.player import Player, Pty, TcpNmeaServer, read_nmea_log
+from sumhe.io.player import Player, Pty, TcpNmeaServer, read_nmea_log
 from sumhe.sim import bundled_drive_dir
 
 log = logging.getLogger(__name__)

@@ -1,6 +1,6 @@
 """``sumhe demo``: the bundled drive through the full live path, with no hardware.
 
-CAN frames go onto a python-can ``virtual`` bus and NMEA into a pseudo-terminal (:mod:`sumhe.service.player`);
+CAN frames go onto a python-can ``virtual`` bus and NMEA into a pseudo-terminal (:mod:`sumhe.io.player`);
 the service reads them as it reads a car (:class:`~sumhe.io.can_source.CanBusSource`,
 :class:`~sumhe.io.serial.SerialNmeaSource`), runs the estimator and sends UDP JSON to 127.0.0.1, where the demo
 listens like any client. Faster than real time (``speed`` > 1), everything runs on one scaled clock
@@ -29,12 +29,12 @@ from sumhe.estimator.registry import check_live, make_estimator
 from sumhe.geo import LocalFrame
 from sumhe.io.can import REFERENCE_E2E, REFERENCE_SIGNALS, read_log
 from sumhe.io.can_source import CanBusSource
+from sumhe.io.player import Player, Pty, read_nmea_log
 from sumhe.io.replay import log_samples
 from sumhe.io.serial import SerialNmeaSource
 from sumhe.io.udp import estimate_to_json
 from sumhe.service.app import Service, install_signal_handlers
 from sumhe.service.pipeline import Pipeline
-from sumhe.service.player import Player, Pty, read_nmea_log
 from sumhe.sim import Truth, bundled_drive_dir, load_settings, load_truth
 
 LIVE_LINE_S = 1.0
