@@ -48,7 +48,8 @@ PRODUCTION_SIGNALS: dict[str, str] = {
 OBD_SPEED_SIGNAL = "OBD2.VehicleSpeed"
 IMU_YAW_SIGNAL = "IMU_RATES.RATE_Z"
 OBD_LAYOUT_MESSAGES = ("IMU_RATES",)
-"""Messages of the template an OBD-port logger sees (the IMU module on its second channel)."""
+"""Messages of the template only an OBD-port logger sees (the IMU module on its second channel); a drive with
+the broadcast speed has the chassis messages only."""
 
 
 def signal_specs(settings: SimSettings) -> dict[str, SignalSpec]:
@@ -98,10 +99,12 @@ def _vehicle_db(layout: str, speed_source: str, yaw_quantum: float, speed_quantu
     _requantise(db, "VSA_MOTION", "YAW_RATE", yaw_quantum, YAW_RANGE_DPS)
     _requantise(db, "IMU_RATES", "RATE_Z", yaw_quantum, IMU_RANGE_DPS)
     _requantise(db, "VSA_SPEED", "VEHICLE_SPEED", speed_quantum, None)
+    logger = [m for m in db.messages if m.name in OBD_LAYOUT_MESSAGES]
     if speed_source == "obd":
-        kept = [m for m in db.messages if m.name in OBD_LAYOUT_MESSAGES]
-        db.messages[:] = kept + list(load_dbc(OBD_DBC).messages)
-        db.nodes.extend(load_dbc(OBD_DBC).nodes)
+        db.messages[:] = logger + list(obd_db().messages)
+        db.nodes.extend(obd_db().nodes)
+    else:
+        db.messages[:] = [m for m in db.messages if m not in logger]
     db.refresh()
     return db
 
