@@ -344,9 +344,7 @@ def simulate_can(
     ecus = sorted({sender for m in db.messages for sender in m.senders})
     ppm = dict(zip(ecus, rng.uniform(-ECU_CLOCK_PPM, ECU_CLOCK_PPM, len(ecus)) * 1e-6, strict=True))
     encoded = [
-        _encode_message(
-            m, trajectory, sensors, ppm[m.senders[0]] if m.senders else 0.0, mapping, m.name in protected
-        )
+        _encode_message(m, trajectory, sensors, ppm[m.senders[0]] if m.senders else 0.0, mapping, m.name in protected)
         for m in sorted(db.messages, key=lambda m: m.frame_id)
         if m.cycle_time and m.name in MESSAGE_MODELS
     ]
@@ -372,7 +370,9 @@ def simulate_can(
         e = encoded[e_idx]
         t = u / 1e6
         frames.append(
-            can.Message(timestamp=t, arbitration_id=e.frame_id, is_extended_id=False, data=payloads[i], channel=e.channel)
+            can.Message(
+                timestamp=t, arbitration_id=e.frame_id, is_extended_id=False, data=payloads[i], channel=e.channel
+            )
         )
         t_rows.extend([t] * len(e.quantities))
         q_rows.extend(e.quantities)

@@ -80,9 +80,7 @@ class Drive:
         return bool(inside) if inside.ndim == 0 else inside
 
 
-def _sensors(
-    settings: SimSettings, rng: np.random.Generator, can_rng: np.random.Generator, body: Body
-) -> Sensors:
+def _sensors(settings: SimSettings, rng: np.random.Generator, can_rng: np.random.Generator, body: Body) -> Sensors:
     """Draw the sensor errors (always all of them, so a given setting changes no other draw)."""
     scale = 1.0 + (1.0 if rng.random() < 0.5 else -1.0) * rng.uniform(0.01, 0.02)
     bias_dps = rng.uniform(-0.5, 0.5)

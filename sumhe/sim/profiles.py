@@ -65,7 +65,7 @@ REALISTIC: dict[str, Range | Any] = {
     # GNSS clock and latency
     "gps_time_offset_s": Uniform(-0.3, 0.3),
     "gps_clock_drift_ppm": Uniform(-80.0, 80.0),
-    "gps_latency_s": Uniform(0.04, 0.30),
+    "gps_latency_s": Uniform(0.04, 0.35),
     "gps_latency_jitter_s": Uniform(0.01, 0.06),
     "gps_rate_hz": Choice((1.0, 5.0, 10.0), (0.4, 0.2, 0.4)),
     "gps_drop_rate": Uniform(0.0, 0.05),
@@ -103,7 +103,7 @@ REALISTIC: dict[str, Range | Any] = {
     "yaw_rate_quantum_dps": Choice((0.01, 0.1, 0.244, 0.25)),
     "speed_quantum_kmh": Choice((0.01, 0.05, 0.1)),
     "obd_rate_hz": Choice((1.0, 2.0, 4.0), (0.2, 0.6, 0.2)),
-    "obd_delay_s": Uniform(0.05, 0.3),
+    "obd_delay_s": Uniform(0.0, 0.3),
     "obd_rounding": Choice(("round", "floor")),
     "imu_sign": Choice((1, -1)),
     # host timestamps
