@@ -37,9 +37,6 @@ class Uniform:
     def draw(self, rng: np.random.Generator) -> float:
         return float(rng.uniform(self.low, self.high))
 
-    def describe(self) -> str:
-        return f"U({self.low:g}, {self.high:g})"
-
 
 @dataclass(frozen=True, slots=True)
 class Choice:
@@ -52,11 +49,6 @@ class Choice:
         p = np.array(self.weights) / sum(self.weights) if self.weights else None
         value = self.options[int(rng.choice(len(self.options), p=p))]
         return float(value) if isinstance(value, float) else value
-
-    def describe(self) -> str:
-        if not self.weights:
-            return "one of " + ", ".join(map(str, self.options))
-        return ", ".join(f"{o} ({w:.0%})" for o, w in zip(self.options, self.weights, strict=True))
 
 
 Range = Uniform | Choice
@@ -140,11 +132,3 @@ def simulate_profile(profile: str = "realistic", seed: int = 0, **fixed: Any) ->
     """``simulate(profile_settings(profile, seed, **fixed))``: e.g. ``simulate_profile("realistic", 3,
     scenario="highway", outages=((60.0, 30.0),))``."""
     return simulate(profile_settings(profile, seed, **fixed))
-
-
-def describe_profile(profile: str) -> list[tuple[str, str]]:
-    """(field, range) rows of a profile, for the docs and ``sumhe simulate --list-profile``."""
-    return [
-        (name, spec.describe() if isinstance(spec, Uniform | Choice) else repr(spec))
-        for name, spec in PROFILES[profile].items()
-    ]
