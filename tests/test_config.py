@@ -102,10 +102,10 @@ def test_missing_dbc_names_the_key(tmp_path):
 def test_dbc_files_are_found_beside_the_logs_too(tmp_path):
     logs = tmp_path / "logs"
     logs.mkdir()
-    (logs / "logger.dbc").write_text("VERSION \"\"\n")
+    (logs / "logger.dbc").write_text('VERSION ""\n')
     cfg = load_config(_write(tmp_path, "[can]\ndbc = ['dbc/obd2.dbc', 'logger.dbc']\n"), env={})
     assert cfg.can.dbc_files == ("dbc/obd2.dbc", "logger.dbc")
-    with pytest.raises(ConfigError, match="logger.dbc"):
+    with pytest.raises(ConfigError, match=r"logger\.dbc"):
         _ = cfg.dbc_paths
     paths = dataclasses.replace(cfg, log_dirs=(logs,)).dbc_paths
     assert paths[0].name == "obd2.dbc" and paths[0].is_file()

@@ -639,12 +639,18 @@ def read_log(path: str | PathLike[str], stats: LogStats | None = None) -> Iterat
             reader: can.io.generic.MessageReader = can.CanutilsLogReader(_valid_candump_lines(text, p, stats))
         else:
             reader = can.LogReader(p)
-    except ValueError as e:
-        raise SourceError(f"{p}: unsupported CAN log format ({e})") from e
-    except Exception as e:  # OSError, or a reader rejecting the file header (BLFParseError, MdfException, ...)
-        raise SourceError(f"{p}: cannot read CAN log: {e}") from e
+    except Exception as e:  # OSError, or a reader rejecting the file (BLFParseError, MdfException, ValueError, ...)
+        if isinstance(e, ValueError) and _suffix(p) not in can.io.player.MESSAGE_READERS:
+            raise SourceError(f"{p}: unsupported CAN log format ({e})") from e
+        raise SourceError(f"{p}: cannot read CAN log: {type(e).__name__}: {e}") from e
     stats.files += 1
     return _frames(reader, p, stats)
+
+
+def _suffix(path: Path) -> str:
+    """The suffix that names a log's format (``.asc`` of ``drive.asc.gz``), lower case."""
+    suffixes = [x.lower() for x in path.suffixes]
+    return suffixes[-2] if len(suffixes) > 1 and suffixes[-1] == ".gz" else (suffixes[-1] if suffixes else "")
 
 
 def _valid_candump_lines(text: TextIO, path: Path, stats: LogStats) -> Iterator[str]:

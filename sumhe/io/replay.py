@@ -106,8 +106,8 @@ class RecordedDrive:
             if not p.is_file():
                 raise SourceError(f"{p}: NMEA log not found")
         self.log_stats = LogStats()
-        self.decoder = CanDecoder.from_config(self.config) if self.can_logs else None
         self._frames = read_logs(self.can_logs, self.log_stats) if self.can_logs else iter(())
+        self.decoder = CanDecoder.from_config(self.config) if self.can_logs else None
 
     @property
     def first_t(self) -> float:
