@@ -207,6 +207,15 @@ def test_a_mapping_naming_an_unknown_signal_is_a_config_error_naming_the_key(spe
         CanDecoder([obd_db(), logger_db()], {"yaw_rate": spec}, source="c.toml")
 
 
+def test_unknown_quantities_are_config_errors_naming_the_key():
+    with pytest.raises(ConfigError, match=r"can\.signals\.lat: unknown quantity"):
+        CanDecoder(logger_db(), {"lat": SignalSpec("GNSS_POS", "LAT")})
+    with pytest.raises(ConfigError, match=r"gps\.signals\.yaw_rate: unknown quantity"):
+        CanDecoder(
+            logger_db(), {}, gnss={"lat": SignalSpec("GNSS_POS", "LAT"), "yaw_rate": SignalSpec("IMU", "IMU_VALID")}
+        )
+
+
 def test_a_live_bus_refuses_a_mapping_for_another_channel(tmp_path):
     path = write(
         tmp_path,

@@ -567,6 +567,9 @@ def _field(message: Message, mapped: _Mapped) -> _Field:
     """Resolve one mapped quantity against its message: the signal, its unit factor, the flag signal, the
     multiplexer values that carry it; ConfigError naming the key."""
     spec, key, quantity = mapped.spec, mapped.key, mapped.quantity
+    known_quantities = GNSS_QUANTITIES if mapped.gnss else CAN_QUANTITIES
+    if quantity not in known_quantities:
+        raise ConfigError(f"{key}: unknown quantity (known: {', '.join(known_quantities)})")
     try:
         signal = message.get_signal_by_name(spec.signal)
     except KeyError as e:
