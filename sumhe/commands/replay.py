@@ -16,11 +16,21 @@ import json
 import math
 import sys
 import time
+from collections import Counter
+from collections.abc import Sequence
 from contextlib import nullcontext
 from dataclasses import dataclass, field
 from typing import TextIO
 
-from sumhe.bench.outages import FixCut, ModeShares, OutageErrors, mode_shares, outage_errors, outage_windows
+from sumhe.bench.outages import (
+    MAX_INTERPOLATION_GAP_S,
+    FixCut,
+    ModeShares,
+    OutageErrors,
+    mode_shares,
+    outage_errors,
+    outage_windows,
+)
 from sumhe.commands.candump import reference_config
 from sumhe.commands.simulate import outage
 from sumhe.config import Config, load_config
@@ -76,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
         cut = FixCut(outage_windows(args.outage, t0 if math.isfinite(t0) else 0.0))
     except ValueError as e:
         raise ConfigError(f"--outage: {e}") from e
-    written = _Written()
+    written = _Written(cut.windows)
     first_t = last_t = None
     wall0 = time.perf_counter()
     out_ctx = open(args.out, "w", encoding="utf-8") if args.out else nullcontext(sys.stdout)  # noqa: SIM115
@@ -96,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
         f"clock resets {ts.clock_resets}; "
         f"solve p50/p99 {percentile(written.solve_ms, 50):.2f}/{percentile(written.solve_ms, 99):.2f} ms; "
         f"{span:.0f} s of data in {wall:.1f} s ({span / max(wall, 1e-9):.0f}x real time)",
-        _modes_line(mode_shares(written.mode)),
+        _modes_line(mode_shares(written.modes.elements())),
         "estimator: "
         + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in estimator.stats().items()),
         *_input_lines(drive),
@@ -112,22 +122,26 @@ def run(args: argparse.Namespace) -> int:
 
 @dataclass
 class _Written:
-    """What was written of each estimate (for the summary): solve times (ms), times, positions, modes."""
+    """Writes estimates as JSON lines and keeps what the summary needs in bounded memory: solve times (ms), the
+    count of each mode, and the times and positions of the estimates near the outage ``windows`` (absolute, s)."""
 
+    windows: Sequence[tuple[float, float]]
     solve_ms: list[float] = field(default_factory=list)
+    modes: Counter[str] = field(default_factory=Counter)
     t: list[float] = field(default_factory=list)
     lat: list[float] = field(default_factory=list)
     lon: list[float] = field(default_factory=list)
-    mode: list[str] = field(default_factory=list)
 
     def write(self, out: TextIO, estimates: list[Estimate]) -> None:
+        margin = MAX_INTERPOLATION_GAP_S
         for est in estimates:
             if est.solve_ms > 0:
                 self.solve_ms.append(est.solve_ms)
-            self.t.append(est.t)
-            self.lat.append(est.lat_deg)
-            self.lon.append(est.lon_deg)
-            self.mode.append(est.mode)
+            self.modes[est.mode] += 1
+            if any(start - margin <= est.t <= end + margin for start, end in self.windows):
+                self.t.append(est.t)
+                self.lat.append(est.lat_deg)
+                self.lon.append(est.lon_deg)
             out.write(json.dumps(estimate_to_json(est), separators=(",", ":")) + "\n")
 
 
