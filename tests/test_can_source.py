@@ -19,17 +19,10 @@ from sumhe.io.source import SourceTimeout
 
 from canframes import speed_frame, yaw_frame
 
+pytestmark = pytest.mark.usefixtures("no_bus_left_open")
+
 DEG = math.pi / 180
 _channels = itertools.count()
-
-
-@pytest.fixture(autouse=True)
-def no_bus_left_open():
-    """Fail a test that leaves a virtual bus open (its source was not closed)."""
-    yield
-    left = list(can.interfaces.virtual.channels)
-    can.interfaces.virtual.channels.clear()
-    assert not left, f"virtual buses left open on channels {left}"
 
 
 @pytest.fixture

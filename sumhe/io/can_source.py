@@ -1,10 +1,11 @@
 """Live CAN input on any python-can interface, as :class:`~sumhe.io.source.ThreadedSource` s.
 
 :class:`CanFrameSource` yields raw :class:`can.Message` s (for ``sumhe record``); :class:`CanBusSource` yields
-SI :class:`~sumhe.messages.CanSample` s through a :class:`~sumhe.io.can.CanDecoder`, with kernel/hardware
-filters for the ids in use. The reader thread calls ``bus.recv`` itself (python-can's ``Notifier`` thread would
-just die on a bus error): a :class:`can.CanOperationError` (socketcan: the link went down) or a bus-off error
-frame closes the bus, and the base class reopens it with capped back-off.
+SI :class:`~sumhe.messages.CanSample` s (and, with ``gps.source = "can"``, :class:`~sumhe.messages.GnssFix` es)
+through a :class:`~sumhe.io.can.CanDecoder`, with kernel/hardware filters for the ids in use. The reader thread
+calls ``bus.recv`` itself (python-can's ``Notifier`` thread would just die on a bus error): a
+:class:`can.CanOperationError` (socketcan: the link went down) or a bus-off error frame closes the bus, and the
+base class reopens it with capped back-off.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from sumhe.config import CanSettings, Config
 from sumhe.errors import ConfigError, SourceError
 from sumhe.io.can import CanDecoder
 from sumhe.io.source import ThreadedSource
-from sumhe.messages import CanSample
+from sumhe.messages import Sample
 
 log = logging.getLogger(__name__)
 
@@ -91,8 +92,9 @@ class CanFrameSource(_CanSource[can.Message]):
         return [msg]
 
 
-class CanBusSource(_CanSource[CanSample]):
-    """Decoded SI samples of the configured bus; only the ids in use pass the bus filters."""
+class CanBusSource(_CanSource[Sample]):
+    """Decoded SI samples (and GNSS fixes decoded from CAN) of the configured bus; only the ids in use pass the bus
+    filters."""
 
     def __init__(self, settings: CanSettings, decoder: CanDecoder) -> None:
         super().__init__(settings, decoder.can_filters())
@@ -100,8 +102,16 @@ class CanBusSource(_CanSource[CanSample]):
 
     @classmethod
     def from_config(cls, config: Config) -> CanBusSource:
-        """Load the DBC and mapping of ``config`` (ConfigError on any mistake) and prepare the source."""
-        return cls(config.can, CanDecoder.from_config(config))
+        """Load the DBCs and mapping of ``config`` (ConfigError on any mistake) and prepare the source. The live
+        bus is one channel: a mapping that names another (as for a logger's multi-bus files) is a ConfigError."""
+        decoder = CanDecoder.from_config(config)
+        for name, channel in decoder.channels().items():
+            if channel != config.can.channel:
+                raise ConfigError(
+                    f"{config.source}: {name}.channel: {channel!r}, but the live bus is can.channel = "
+                    f"{config.can.channel!r} (channels tell apart the buses of recorded logs; drop it for a live bus)"
+                )
+        return cls(config.can, decoder)
 
-    def _convert(self, msg: can.Message) -> list[CanSample]:
+    def _convert(self, msg: can.Message) -> list[Sample]:
         return self.decoder.decode(msg)

@@ -131,7 +131,8 @@ class Service:
         self.clock_rate = clock_rate
         self.pipeline = Pipeline(config, estimator, rules, wall_clock=clock)
         self.stats = ServiceStats()
-        self.reorder = Reorder(config.gps.latency_s + REORDER_MARGIN_S if hold_s is None else hold_s)
+        epoch_s = config.gps.epoch_span_s if config.gps.source == "can" else 0.0  # a CAN GNSS epoch may come late
+        self.reorder = Reorder(config.gps.latency_s + epoch_s + REORDER_MARGIN_S if hold_s is None else hold_s)
         self._udp = UdpSink(config.output) if config.output.udp else None
         self._status_udp = UdpSender([config.output.status_udp]) if config.output.status_udp else None
         self._extra_sink = sink
