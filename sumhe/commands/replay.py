@@ -18,10 +18,9 @@ from contextlib import nullcontext
 from sumhe.bench.reprocess import replay_drive
 from sumhe.commands.candump import reference_config
 from sumhe.commands.simulate import outage
-from sumhe.config import Config, load_config
-from sumhe.errors import ConfigError
+from sumhe.config import load_config
 from sumhe.estimator.registry import make_estimator
-from sumhe.io.replay import RecordedDrive
+from sumhe.io.replay import RecordedDrive, check_gps_source
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -44,16 +43,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="START+LEN",
         help="remove the fixes of these windows (s from the first CAN frame) and report the errors against them",
     )
-
-
-def check_gps_source(config: Config, nmea_logs: list[str] | None) -> None:
-    """ConfigError when the NMEA logs given do not fit ``gps.source``."""
-    if config.gps.source == "nmea" and not nmea_logs:
-        raise ConfigError(
-            f"{config.source}: gps.source = 'nmea': give the NMEA logs with --nmea (or set [gps] source = 'can')"
-        )
-    if config.gps.source == "can" and nmea_logs:
-        raise ConfigError(f"{config.source}: gps.source = 'can': the fixes come from the CAN logs; drop --nmea")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -21,7 +21,7 @@ from os import PathLike
 from pathlib import Path
 
 from sumhe.config import Config
-from sumhe.errors import SourceError
+from sumhe.errors import ConfigError, SourceError
 from sumhe.io.can import CanDecoder, LogStats, read_logs
 from sumhe.io.fixtime import stamp_fix
 from sumhe.io.nmea import iter_fixes
@@ -86,6 +86,16 @@ def beside_logs(config: Config, logs: Iterable[Path]) -> Config:
     config names, such as a logger's DBC, are looked for too)."""
     dirs = dict.fromkeys(p.resolve().parent for p in logs)
     return dataclasses.replace(config, log_dirs=tuple(dict.fromkeys((*config.log_dirs, *dirs))))
+
+
+def check_gps_source(config: Config, nmea_logs: Sequence[object] | None) -> None:
+    """ConfigError when the NMEA logs given do not fit ``gps.source``."""
+    if config.gps.source == "nmea" and not nmea_logs:
+        raise ConfigError(
+            f"{config.source}: gps.source = 'nmea': give the NMEA logs with --nmea (or set [gps] source = 'can')"
+        )
+    if config.gps.source == "can" and nmea_logs:
+        raise ConfigError(f"{config.source}: gps.source = 'can': the fixes come from the CAN logs; drop --nmea")
 
 
 class RecordedDrive:
