@@ -34,6 +34,7 @@ from sumhe.config import CanSettings, Config, load_config
 from sumhe.errors import ConfigError, SumheError
 from sumhe.estimator.base import Estimator
 from sumhe.estimator.registry import make_estimator
+from sumhe.io.can import reference_config
 from sumhe.io.replay import RecordedDrive, check_gps_source
 from sumhe.sim.drive import SECOND_ANTENNA_FILE
 from sumhe.sim.truth import load_truth
@@ -153,8 +154,11 @@ class Task:
         return self.folder / f"{_safe(self.estimator)}.json"
 
     def config(self) -> Config:
-        """The fleet's config with the drive's override merged over it."""
+        """The fleet's config with the drive's override merged over it; neither: the reference vehicle's (as
+        ``sumhe replay`` without ``--config``)."""
         layers = [self.drive.config] if self.drive.config else []
+        if self.base_config is None and not layers:
+            return reference_config()
         return load_config(self.base_config, layers=layers)
 
 

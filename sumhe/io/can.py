@@ -40,7 +40,7 @@ import can
 import cantools
 from cantools.database.can import Database, Message
 
-from sumhe.config import Config, SignalSpec
+from sumhe.config import Config, SignalSpec, load_config
 from sumhe.errors import ConfigError, SourceError
 from sumhe.io.can_gnss import GnssAssembler
 from sumhe.io.checksum import is_intact, rolling_counter
@@ -66,6 +66,13 @@ REFERENCE_SIGNALS: dict[str, str] = {
 
 REFERENCE_E2E: tuple[str, ...] = ("ESP_YAW_RATE", "ESP_VEHICLE_SPEED")
 """The messages of ``dbc/sumhe_ref.dbc`` that carry CRC and rolling counter."""
+
+
+def reference_config() -> Config:
+    """Defaults plus the reference vehicle's signal mapping and end-to-end protected messages (what the commands
+    use without ``--config``)."""
+    return load_config(None, overrides={"can.signals": REFERENCE_SIGNALS, "can.e2e": list(REFERENCE_E2E)})
+
 
 _DEG = math.pi / 180.0
 _KMH = 1.0 / 3.6
