@@ -19,10 +19,11 @@ import math
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, TextIO
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from sumhe.bench.metrics import histogram_percentile, latency_histogram, throughput
 from sumhe.bench.outages import (
@@ -46,6 +47,10 @@ from sumhe.sim.truth import Truth
 TRUTH_CHUNK = 4096
 """Estimates compared with the truth at once (vectorised), then forgotten."""
 
+CAN_INPUTS = ("speed", "yaw_rate")
+"""The CAN quantities sumhe's estimators read (a test holds every registered estimator to it): a replay decodes
+these only, as the others would be pushed through the pipeline for nothing."""
+
 PROGRESS_EVERY_S = 60.0
 """How often (s of data) :func:`replay_drive` reports progress."""
 
@@ -53,45 +58,60 @@ GAUGES = frozenset({"window", "period_s"})
 """Estimator statistics that are levels, not counters: :func:`counter_deltas` reports them as they are."""
 
 
-@dataclass
 class Histogram:
     """Counts of positive values in the fixed log bins of :func:`~sumhe.bench.metrics.latency_histogram`
-    (1e-4 to 1e5, 100 bins a decade: percentiles to within 2.3 %), with their exact count, sum and maximum.
-    Fixed size, whatever the number of values; histograms of several drives add up."""
+    (1e-4 to 1e5, 100 bins a decade: percentiles to within 2.3 %), with their exact count, sum and maximum; NaN
+    is not counted. Fixed size whatever the number of values (values are binned :data:`TRUTH_CHUNK` at a time)."""
 
-    counts: np.ndarray = field(default_factory=lambda: latency_histogram([]))
-    n: int = 0
-    total: float = 0.0
-    max: float = math.nan
-    _pending: list[float] = field(default_factory=list, repr=False)
+    def __init__(self) -> None:
+        self._counts = latency_histogram([])
+        self._n = 0
+        self._total = 0.0
+        self._max = math.nan
+        self._pending: list[float] = []
 
     def add(self, value: float) -> None:
         self._pending.append(value)
         if len(self._pending) >= TRUTH_CHUNK:
             self._fold()
 
-    def extend(self, values: np.ndarray) -> None:
+    def extend(self, values: ArrayLike) -> None:
+        self._fold()
         v = np.asarray(values, dtype=float).ravel()
         v = v[np.isfinite(v)]
         if v.size:
-            self.counts += latency_histogram(v)
-            self.n += int(v.size)
-            self.total += float(v.sum())
-            self.max = float(v.max()) if math.isnan(self.max) else max(self.max, float(v.max()))
+            self._counts += latency_histogram(v)
+            self._n += int(v.size)
+            self._total += float(v.sum())
+            self._max = float(v.max()) if math.isnan(self._max) else max(self._max, float(v.max()))
 
-    def percentile(self, q: float) -> float:
+    @property
+    def counts(self) -> np.ndarray:
         self._fold()
-        return histogram_percentile(self.counts, q)
+        return self._counts
+
+    @property
+    def n(self) -> int:
+        self._fold()
+        return self._n
 
     @property
     def mean(self) -> float:
         self._fold()
-        return self.total / self.n if self.n else math.nan
+        return self._total / self._n if self._n else math.nan
+
+    @property
+    def max(self) -> float:
+        self._fold()
+        return self._max
+
+    def percentile(self, q: float) -> float:
+        return histogram_percentile(self.counts, q)
 
     def _fold(self) -> None:
         if self._pending:
             values, self._pending = self._pending, []
-            self.extend(np.asarray(values))
+            self.extend(values)
 
 
 @dataclass(frozen=True, slots=True)

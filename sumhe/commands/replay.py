@@ -15,7 +15,7 @@ import argparse
 import sys
 from contextlib import nullcontext
 
-from sumhe.bench.reprocess import replay_drive
+from sumhe.bench.reprocess import CAN_INPUTS, replay_drive
 from sumhe.commands.candump import reference_config
 from sumhe.commands.simulate import outage
 from sumhe.config import load_config
@@ -48,7 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config) if args.config else reference_config()
     check_gps_source(config, args.nmea)
-    drive = RecordedDrive(config, args.logs, args.nmea, args.offset)
+    drive = RecordedDrive(config, args.logs, args.nmea, args.offset, CAN_INPUTS)
     estimator = make_estimator(args.estimator or config.estimator.name, drive.config)
     out_ctx = open(args.out, "w", encoding="utf-8") if args.out else nullcontext(sys.stdout)  # noqa: SIM115
     with out_ctx as out:

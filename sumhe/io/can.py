@@ -30,7 +30,7 @@ import math
 import re
 import time
 from collections import deque
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Collection, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from os import PathLike
 from pathlib import Path
@@ -336,12 +336,16 @@ class CanDecoder:
         self._throttle = Throttle()
 
     @classmethod
-    def from_config(cls, config: Config, every_message: bool = False) -> CanDecoder:
+    def from_config(
+        cls, config: Config, every_message: bool = False, quantities: Collection[str] | None = None
+    ) -> CanDecoder:
         """Load ``can.dbc`` (honouring ``can.dbc_strict``) and resolve ``can.signals``, ``can.e2e`` and, with
-        ``gps.source = "can"``, ``gps.signals``."""
+        ``gps.source = "can"``, ``gps.signals``. ``quantities`` keeps only those CAN quantities of the mapping (a
+        replay decodes nothing its estimator does not read); None keeps all."""
         dbs = [load_dbc(path, config.can.dbc_strict) for path in config.dbc_paths]
         gnss = config.gps.signals if config.gps.source == "can" else None
-        return cls(dbs, config.can.signals, config.can.e2e, config.source, every_message, gnss, config.gps.epoch_span_s)
+        signals = {q: s for q, s in config.can.signals.items() if quantities is None or q in quantities}
+        return cls(dbs, signals, config.can.e2e, config.source, every_message, gnss, config.gps.epoch_span_s)
 
     def _add_route(self, channel: str | None, message: Message, fields: list[_Field], e2e: bool, source: str) -> None:
         key = (channel, frame_key(message.frame_id, message.is_extended_frame))
