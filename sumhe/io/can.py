@@ -651,6 +651,10 @@ def read_log(path: str | PathLike[str], stats: LogStats | None = None) -> Iterat
             # opened here so an unreadable file fails now; the line generator owns and closes it
             text: TextIO = opener(p, "rt", encoding="utf-8", errors="replace")
             reader: can.io.generic.MessageReader = can.CanutilsLogReader(_valid_candump_lines(text, p, stats))
+        elif name.endswith(".mf4"):
+            from sumhe.io.mf4 import BulkMF4Reader
+
+            reader = BulkMF4Reader(p)
         else:
             reader = can.LogReader(p)
     except Exception as e:  # OSError, or a reader rejecting the file (BLFParseError, MdfException, ValueError, ...)
