@@ -256,7 +256,7 @@ class DriveSummary:
             f"samples, {self.estimates} estimates; dropped late {d['late']}, duplicate {d['duplicate']}, zero "
             f"time {d['zero_time']}, clock resets {d['clock_resets']}; solve p50/p99 {self.solve_p50_ms:.2f}/"
             f"{self.solve_p99_ms:.2f} ms; {self.span_s:.0f} s of data in {self.wall_s:.1f} s "
-            f"({self.speed:.0f}x real time)",
+            f"({self.speed:.0f}x real time; CPU {self.cpu_s:.1f} s: {throughput(self.span_s, self.cpu_s):.0f}x)",
             _modes_line(self.modes),
             "estimator: "
             + ", ".join(
