@@ -14,18 +14,26 @@ Memory figures: RSS from ``/proc/self/statm`` (Linux), peak from ``getrusage`` (
 
 from __future__ import annotations
 
+import asyncio
+import dataclasses
+import itertools
+import json
 import math
 import os
 import resource
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from sumhe.bench.reprocess import CAN_INPUTS, DriveSummary, replay_drive
+from sumhe.config import OutputSettings
 from sumhe.estimator.registry import make_estimator
 from sumhe.io.can import reference_config
 from sumhe.io.replay import RecordedDrive
+from sumhe.messages import Sample
+from sumhe.service.app import Service
 from sumhe.sim import SimSettings, load_settings, simulate, write_drive
 from sumhe.sim.settings import START_UNIX_S
 
@@ -119,10 +127,7 @@ class SoakResult:
     @property
     def growth_after_first_hour(self) -> float:
         """RSS at the end over RSS after the first ``every_s`` of data, minus 1 (NaN with less than two points)."""
-        after = [p for p in self.points if p.data_s >= self.every_s]
-        if len(after) < 2:
-            return math.nan
-        return after[-1].rss_mb / after[0].rss_mb - 1.0
+        return growth(self.points, self.every_s)
 
 
 def soak_replay(
@@ -158,6 +163,23 @@ def soak_replay(
     return SoakResult(summary, [*points, end], every_s)
 
 
+def growth(points: Sequence[MemoryPoint], after_s: float) -> float:
+    """RSS at the last point over RSS at the first point from ``after_s`` of data on, minus 1 (NaN with fewer
+    than two such points)."""
+    later = [p for p in points if p.data_s >= after_s]
+    return later[-1].rss_mb / later[0].rss_mb - 1.0 if len(later) >= 2 else math.nan
+
+
+def format_daemon(status: dict[str, Any], points: Sequence[MemoryPoint], received: int) -> str:
+    last = points[-1]
+    first_part = points[-1].data_s / 12.0
+    return (
+        f"soak daemon: {last.data_s / 3600:.2f} h of data in {last.wall_s:.0f} s; {status['estimates']} estimates, "
+        f"{received} datagrams received; RSS {last.rss_mb:.1f} MB at the end, peak {last.peak_mb:.1f} MB, growth "
+        f"after the first twelfth {100 * growth(points, first_part):+.1f} %; status: {json.dumps(status)}"
+    )
+
+
 def format_result(result: SoakResult) -> list[str]:
     s, last = result.summary, result.points[-1]
     return [
@@ -166,3 +188,93 @@ def format_result(result: SoakResult) -> list[str]:
         f"the first hour {100 * result.growth_after_first_hour:+.1f} %",
         *s.lines(),
     ]
+
+
+class _Counter(asyncio.DatagramProtocol):
+    """Counts the datagrams the daemon sends (a UDP client on 127.0.0.1)."""
+
+    def __init__(self) -> None:
+        self.received = 0
+
+    def datagram_received(self, data: bytes, addr: Any) -> None:
+        self.received += 1
+
+
+@dataclass
+class _SourceStats:
+    samples: int = 0
+
+
+class _Paced:
+    """The drive's samples at their times on the scaled service clock (waiting for each), counted; ``ended``
+    once they are all given."""
+
+    def __init__(self, samples: Iterator[Sample], clock: Callable[[], float], speed: float) -> None:
+        self.samples, self.clock, self.speed = samples, clock, speed
+        self.ended, self.stats = False, _SourceStats()
+
+    def __aiter__(self) -> _Paced:
+        return self
+
+    async def __anext__(self) -> Sample:
+        sample = next(self.samples, None)
+        if sample is None:
+            self.ended = True
+            raise StopAsyncIteration
+        await asyncio.sleep(max((sample.t - self.clock()) / self.speed, 0.0))
+        self.stats.samples += 1
+        return sample
+
+
+async def soak_daemon(
+    can_logs: Sequence[Path],
+    nmea_logs: Sequence[Path],
+    estimator: str,
+    speed: float,
+    say: Callable[[str], None] = lambda _: None,
+    every_s: float = 300.0,
+) -> tuple[dict[str, Any], list[MemoryPoint], int]:
+    """The daemon's service (:class:`~sumhe.service.app.Service`: reorder buffer, estimator in a worker thread,
+    UDP JSON output to a client on 127.0.0.1) fed by the drive's samples paced at ``speed`` times real time on one
+    scaled service clock (as ``sumhe demo``), its memory read every ``every_s`` seconds of data. The fixes come
+    stamped (with the reference config's ``gps.time = "utc"`` the service's stamping leaves them as they are).
+    Returns the final status, the memory points and the datagrams received."""
+    loop = asyncio.get_running_loop()
+    transport, counter = await loop.create_datagram_endpoint(_Counter, local_addr=("127.0.0.1", 0))
+    port = transport.get_extra_info("sockname")[1]
+    config = dataclasses.replace(
+        reference_config(), output=OutputSettings(udp=(f"127.0.0.1:{port}",), status_interval_s=60.0)
+    )
+    samples = iter(RecordedDrive(config, can_logs, nmea_logs, quantities=CAN_INPUTS).samples())
+    head = next(samples)
+    first, wall0 = head.t, time.time()
+
+    def clock() -> float:
+        return first + (time.time() - wall0) * speed
+
+    source = _Paced(itertools.chain([head], samples), clock, speed)
+    service = Service(config, make_estimator(estimator, config), {"drive": source}, clock=clock, clock_rate=speed)
+    stop = asyncio.Event()
+    task = asyncio.create_task(service.run(stop))
+    points: list[MemoryPoint] = []
+    next_at = 0.0
+    try:
+        while not source.ended and not task.done():
+            await asyncio.sleep(0.5)
+            data_s = clock() - first
+            if data_s >= next_at:
+                point = MemoryPoint(data_s, rss_mb(), peak_rss_mb(), time.time() - wall0)
+                points.append(point)
+                say(
+                    f"soak daemon: {data_s / 3600:5.2f} h of data: RSS {point.rss_mb:6.1f} MB, peak "
+                    f"{point.peak_mb:6.1f} MB, {service.pipeline.stats.estimates} estimates, {counter.received} "
+                    "datagrams received"
+                )
+                next_at += every_s
+        await asyncio.sleep(1.0)
+    finally:
+        stop.set()
+        await task
+        transport.close()
+    points.append(MemoryPoint(clock() - first, rss_mb(), peak_rss_mb(), time.time() - wall0))
+    return service.status(), points, counter.received

@@ -1,14 +1,16 @@
-"""``sumhe bench soak [--hours H] [--dir DIR] [--estimator NAME]``: a day of data replayed, memory printed as it goes
+"""``sumhe bench soak [--hours H] [--dir DIR] [--estimator NAME] [--daemon --speed X]``: a day of data replayed (or,
+with ``--daemon``, fed to the daemon's service at X times real time), memory printed as it goes
 (:mod:`sumhe.bench.soak`). The first run simulates the hour-long segments into DIR (about half a minute each);
 later runs reuse them."""
 
 from __future__ import annotations
 
 import argparse
+import asyncio
 import sys
 from pathlib import Path
 
-from sumhe.bench.soak import chained_drive, format_result, soak_replay
+from sumhe.bench.soak import chained_drive, format_daemon, format_result, soak_daemon, soak_replay
 from sumhe.errors import ConfigError
 
 
@@ -17,6 +19,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dir", type=Path, default=Path("soak-drive"), metavar="DIR", help="where the segments go")
     parser.add_argument("--estimator", default="mhe", metavar="NAME", help="estimator (default mhe)")
     parser.add_argument("--seed", type=int, default=0, metavar="N", help="seed of the first hour (default 0)")
+    parser.add_argument("--daemon", action="store_true", help="the daemon's service, paced, instead of a replay")
+    parser.add_argument("--speed", type=float, default=20.0, metavar="X", help="--daemon: times real time (20)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -27,6 +31,12 @@ def run(args: argparse.Namespace) -> int:
         print(line, file=sys.stderr, flush=True)
 
     can_logs, nmea_logs = chained_drive(args.dir, args.hours, args.seed, say)
+    if args.daemon:
+        if args.speed <= 0:
+            raise ConfigError("--speed: must be positive")
+        status, points, received = asyncio.run(soak_daemon(can_logs, nmea_logs, args.estimator, args.speed, say))
+        print(format_daemon(status, points, received))
+        return 0
     result = soak_replay(can_logs, nmea_logs, args.estimator, say)
     print("\n".join(format_result(result)))
     return 0
