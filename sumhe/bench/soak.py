@@ -1,13 +1,14 @@
 """A day of data in bounded memory: a long simulated drive replayed with its memory printed as it goes.
 
-The simulator makes drives of at most an hour (its ``duration_s`` cap keeps one drive's arrays in memory), so a
-long drive is chained from hour-long segments, each written as the files of a logger that starts a new file
-every hour (``hourNN/drive.log`` + ``drive.nmea``): segment k starts where and when segment k-1 ended (its
-datum is the last true position, its start time one hour later; a new seed gives a new route from there, so the
-heading jumps once an hour, as after a stop). The segments stay on disk (``--dir``) and are reused by the next
-run. The replay reads them as one multi-file drive (:class:`~sumhe.io.replay.RecordedDrive`) through
-:func:`~sumhe.bench.reprocess.replay_drive`, writing the estimates to the null device (the JSON is made and
-written all the same), and reads the process's resident memory (RSS) after every simulated hour of data.
+The simulator makes drives of at most an hour (its ``duration_s`` cap keeps one drive's arrays in memory), so a long
+drive is chained from hour-long segments, each written as the files of a logger that starts a new file every hour
+(``hourNN/drive.log`` + ``drive.nmea``): segment k starts where and when segment k-1 ended (its datum is the last
+true position, its start one second after the previous end, :data:`GAP_S`; a new seed gives a new route from there,
+so the heading jumps once an hour, as after a stop). The segments stay on disk (``--dir``) and are reused by the
+next run. The replay reads them as one multi-file drive (:class:`~sumhe.io.replay.RecordedDrive`) through
+:func:`~sumhe.bench.reprocess.replay_drive`, writing the estimates to the null device (the JSON is made and written
+all the same), and reads the process's resident memory (RSS) after every simulated hour of data. :func:`soak_daemon`
+feeds the same drive to the daemon's service instead, paced faster than real time.
 
 Memory figures: RSS from ``/proc/self/statm`` (Linux), peak from ``getrusage`` (the process's high-water mark).
 """
@@ -39,6 +40,8 @@ from sumhe.sim.settings import START_UNIX_S
 
 SEGMENT_S = 3600.0
 """One segment: the simulator's longest drive."""
+GAP_S = 1.0
+"""Between segments (a logger opening its next file): the first epoch of a segment never repeats the last one's."""
 
 
 def rss_mb() -> float:
@@ -56,12 +59,12 @@ def peak_rss_mb() -> float:
 
 
 def segment_settings(hour: int, seed: int, datum: tuple[float, float], segment_s: float = SEGMENT_S) -> SimSettings:
-    """Segment ``hour`` of a chained drive: ``segment_s`` from ``START_UNIX_S + hour * segment_s`` at ``datum``
-    (lat, lon)."""
+    """Segment ``hour`` of a chained drive: ``segment_s`` from ``START_UNIX_S + hour * (segment_s + GAP_S)`` at
+    ``datum`` (lat, lon)."""
     return SimSettings(
         seed=seed + hour,
         duration_s=segment_s,
-        start_unix_s=START_UNIX_S + hour * segment_s,
+        start_unix_s=START_UNIX_S + hour * (segment_s + GAP_S),
         datum_lat_deg=datum[0],
         datum_lon_deg=datum[1],
         truth_rate_hz=10.0,
@@ -85,13 +88,9 @@ def chained_drive(
         done = folder / "scenario.toml"
         if not (done.is_file() and load_settings(done) == settings):
             started = time.perf_counter()
-            drive = simulate(settings)
-            write_drive(drive, folder)
+            write_drive(simulate(settings), folder)
             say(f"soak: simulated hour {hour + 1} of {hours} in {time.perf_counter() - started:.0f} s")
-            end = (float(drive.truth.lat[-1]), float(drive.truth.lon[-1]))
-        else:
-            end = _last_position(folder / "truth.csv")
-        datum = end
+        datum = _last_position(folder / "truth.csv")  # as written: a second run finds the same settings
         can_logs.append(folder / "drive.log")
         nmea_logs.append(folder / "drive.nmea")
     return can_logs, nmea_logs
@@ -203,6 +202,7 @@ class _Counter(asyncio.DatagramProtocol):
 @dataclass
 class _SourceStats:
     samples: int = 0
+    last_t: float = math.nan
 
 
 class _Paced:
@@ -223,6 +223,7 @@ class _Paced:
             raise StopAsyncIteration
         await asyncio.sleep(max((sample.t - self.clock()) / self.speed, 0.0))
         self.stats.samples += 1
+        self.stats.last_t = sample.t
         return sample
 
 
@@ -276,5 +277,5 @@ async def soak_daemon(
         stop.set()
         await task
         transport.close()
-    points.append(MemoryPoint(clock() - first, rss_mb(), peak_rss_mb(), time.time() - wall0))
+    points.append(MemoryPoint(source.stats.last_t - first, rss_mb(), peak_rss_mb(), time.time() - wall0))
     return service.status(), points, counter.received
