@@ -21,7 +21,7 @@ from sumhe.io.can import (
     si_factor,
 )
 
-from canframes import REF_DBC, TOYOTA_DBC, encode, ref_db, speed_frame, toyota_db, yaw_frame
+from canframes import MESSAGE_FIELDS, REF_DBC, TOYOTA_DBC, encode, ref_db, speed_frame, toyota_db, yaw_frame
 
 DEG = math.pi / 180
 
@@ -442,22 +442,6 @@ def test_corrupt_binary_or_csv_log_ends_early_without_crashing(tmp_path):
     assert len(list(read_log(gz))) == 1
 
 
-CANDUMP_FIELDS = (
-    "timestamp",
-    "arbitration_id",
-    "data",
-    "channel",
-    "is_rx",
-    "is_extended_id",
-    "is_fd",
-    "bitrate_switch",
-    "error_state_indicator",
-    "is_error_frame",
-    "is_remote_frame",
-    "dlc",
-)
-
-
 def test_candump_frames_equal_python_cans_reader(tmp_path):
     """sumhe parses classic candump lines itself (python-can's reader takes the rest): the same frames, field by
     field, for classic, extended, empty, CAN FD, remote and error frames, channel names and numbers, R/T flags."""
@@ -477,7 +461,7 @@ def test_candump_frames_equal_python_cans_reader(tmp_path):
     log.write_text("\n".join(lines) + "\n")
     bundled = bundled_drive_dir() / "drive.log"
     for path in (log, bundled):
-        ours = [tuple(getattr(m, f) for f in CANDUMP_FIELDS) for m in read_log(path)]
+        ours = [tuple(getattr(m, f) for f in MESSAGE_FIELDS) for m in read_log(path)]
         with can.CanutilsLogReader(path) as reader:
-            theirs = [tuple(getattr(m, f) for f in CANDUMP_FIELDS) for m in reader]
+            theirs = [tuple(getattr(m, f) for f in MESSAGE_FIELDS) for m in reader]
         assert ours == theirs and len(ours) >= len(lines)

@@ -17,6 +17,7 @@ from sumhe.io.can import LogStats, first_timestamp, read_log, read_logs
 from sumhe.io.replay import RecordedDrive
 from sumhe.messages import CanSample, GnssFix
 
+from canframes import MESSAGE_FIELDS
 from loggerframes import T0, drive_frames, frame, write_log
 
 REPO = Path(__file__).resolve().parents[1]
@@ -127,22 +128,6 @@ def test_real_canedge_drive_first_file():
     assert valid and all(f.t - fixes[0].t > 100.0 for f in valid)  # no valid fix for the first ~110 s
     assert all(55.0 < f.lat_deg < 57.0 and 9.0 < f.lon_deg < 11.0 for f in valid)  # near Aarhus
     assert drive.decoder.stats.decode_errors == 0 and not drive.decoder.silent()
-
-
-MESSAGE_FIELDS = (
-    "timestamp",
-    "arbitration_id",
-    "data",
-    "channel",
-    "is_rx",
-    "is_extended_id",
-    "is_fd",
-    "bitrate_switch",
-    "error_state_indicator",
-    "is_error_frame",
-    "is_remote_frame",
-    "dlc",
-)
 
 
 @pytest.mark.parametrize("source", ["written", "real"])

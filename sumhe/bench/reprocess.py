@@ -417,13 +417,6 @@ def _errors_line(label: str, e: OutageErrors) -> str:
 
 
 def _plain(value: Any) -> Any:
-    """``value`` with NaN and infinities as None, tuples as lists, numpy scalars as Python numbers."""
-    if isinstance(value, Mapping):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_plain(v) for v in value]
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
+    """``value`` as JSON data: NaN and infinities as None, tuples as lists, numpy scalars as Python numbers."""
+    text = json.dumps(value, default=lambda v: v.item() if isinstance(v, np.generic) else str(v))
+    return json.loads(text, parse_constant=lambda _: None)

@@ -34,7 +34,7 @@ from sumhe.bench.fleet import (
     write_record,
     write_table,
 )
-from sumhe.commands.simulate import outage
+from sumhe.commands.replay import add_outage_option
 from sumhe.errors import ConfigError
 from sumhe.estimator.registry import estimator_names
 
@@ -51,15 +51,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--estimators", metavar="NAMES", help="comma-separated estimator names (default: estimator.name)"
     )
-    parser.add_argument(
-        "--outages",
-        nargs="+",
-        action="extend",
-        type=outage,
-        default=[],
-        metavar="START+LEN",
-        help="remove the fixes of these windows (s from each drive's first frame) and report the errors",
-    )
+    add_outage_option(parser, "--outages", "each drive's first frame")
     parser.add_argument("--config", metavar="FILE", help="TOML config of the fleet (each drive's config.toml over it)")
 
 

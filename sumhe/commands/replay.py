@@ -34,14 +34,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--estimator", metavar="NAME", help="estimator to run (default: estimator.name)")
     parser.add_argument("--out", metavar="FILE", help="JSON lines output (default: stdout)")
     parser.add_argument("--offset", type=float, default=0.0, metavar="S", help="add S seconds to the NMEA times")
+    add_outage_option(parser, "--outage", "the first CAN frame")
+
+
+def add_outage_option(parser: argparse.ArgumentParser, flag: str, origin: str) -> None:
+    """``flag START+LEN ...``: outage windows whose fixes are removed, starts in seconds from ``origin``."""
     parser.add_argument(
-        "--outage",
+        flag,
         nargs="+",
         action="extend",
         type=outage,
         default=[],
         metavar="START+LEN",
-        help="remove the fixes of these windows (s from the first CAN frame) and report the errors against them",
+        help=f"remove the fixes of these windows (s from {origin}) and report the errors against them",
     )
 
 
