@@ -54,8 +54,8 @@ def rss_mb() -> float:
 
 
 def peak_rss_mb() -> float:
-    """The most resident memory this process has had (MB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3
+    """The most resident memory this process has had (MB; Linux counts it in KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e6
 
 
 def segment_settings(hour: int, seed: int, datum: tuple[float, float], segment_s: float = SEGMENT_S) -> SimSettings:
