@@ -64,10 +64,11 @@ def _no_timing(estimate):
     return {k: v for k, v in estimate.items() if k != "solve_ms"}
 
 
-TOLERANCE = {"lat": 1e-7, "lon": 1e-7, "yaw_rate": 1e-3}
-"""lat/lon in degrees (1 cm), yaw rate rad/s; every other number to 0.02 in its unit (m, m/s, deg): a reused
-estimator is reset, not rebuilt, and its solvers may keep a warm start that moves a result in its last digits
-(exact with the estimators of this branch; a state a reset forgets to clear moves it by far more)."""
+TOLERANCE = {"lat": 5e-7, "lon": 5e-7, "yaw_rate": 5e-3}
+"""lat/lon in degrees (5 cm), yaw rate rad/s; every other number to 0.05 in its unit (m, m/s, deg). A reused
+estimator is reset, not rebuilt: its solvers may keep warm starts (OSQP's duals and step size) that move a result
+within the solver's tolerance (exact with this branch's estimators; millimetres with the reworked MHE); a state
+that a reset forgets (a datum, a bias, a window) moves it by metres."""
 
 
 def assert_same_estimates(ours, theirs):
@@ -76,7 +77,7 @@ def assert_same_estimates(ours, theirs):
         assert a.keys() == b.keys()
         for key, value in a.items():
             if isinstance(value, float) and isinstance(b[key], float):
-                assert value == pytest.approx(b[key], rel=0, abs=TOLERANCE.get(key, 0.02)), (key, a, b)
+                assert value == pytest.approx(b[key], rel=0, abs=TOLERANCE.get(key, 0.05)), (key, a, b)
             else:
                 assert value == b[key], (key, a, b)
 
