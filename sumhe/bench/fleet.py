@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from sumhe.bench.reprocess import CAN_INPUTS, replay_drive
-from sumhe.config import CanSettings, Config, load_config
+from sumhe.config import Config, load_config
 from sumhe.errors import ConfigError, SumheError
 from sumhe.estimator.base import Estimator
 from sumhe.estimator.registry import make_estimator
@@ -238,8 +238,8 @@ class FleetWorker:
 
     def estimator(self, name: str, config: Config) -> Estimator:
         """The estimator ``name`` for ``config``: a kept one, reset, when one was built for the same settings
-        (everything but the CAN decoding and the files' places, which an estimator never reads), else a new one."""
-        key = dataclasses.replace(config, can=CanSettings(), source="", base_dir=Path("."), log_dirs=())
+        (everything but where the files are: drives of one car share it), else a new one."""
+        key = dataclasses.replace(config, source="", base_dir=Path("."), log_dirs=())
         for i, (n, k, estimator) in enumerate(self._estimators):
             if n == name and k == key:
                 self._estimators.append(self._estimators.pop(i))
