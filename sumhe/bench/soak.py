@@ -276,6 +276,9 @@ async def soak_daemon(
     finally:
         stop.set()
         await task
+        deadline = time.monotonic() + 2.0
+        while counter.received < service.status()["sent"] and time.monotonic() < deadline:
+            await asyncio.sleep(0.05)  # the last datagrams are still on their way to the client
         transport.close()
     points.append(MemoryPoint(source.stats.last_t - first, rss_mb(), peak_rss_mb(), time.time() - wall0))
     return service.status(), points, counter.received
