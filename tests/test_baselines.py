@@ -10,23 +10,26 @@ import pytest
 from sumhe.baseline import kinematics as kin
 from sumhe.baseline.ekf import Ekf
 from sumhe.baseline.imm import Imm, transition_matrix
-from sumhe.baseline.kinematics import Layout, Noise
+from sumhe.baseline.kinematics import Layout
 from sumhe.baseline.particle import ParticleFilter, systematic_resample
 from sumhe.baseline.rts import Rts
 from sumhe.baseline.stream import Gate
-from sumhe.baseline.tuning import main as tuning_main
 from sumhe.baseline.ukf import Ukf
+from sumhe.cli import main as cli_main
 from sumhe.config import load_config
 from sumhe.errors import ConfigError
 from sumhe.estimator.base import LocalFix, StateEstimate
 from sumhe.estimator.registry import ESTIMATORS, estimator_class, estimator_names, make_estimator
-from sumhe.estimator.settings import EstimatorSettings
 from sumhe.messages import CanSample
+from sumhe.settings import EstimationSettings, NoiseSettings, with_changes
 
 # ---- the linear case: straight north, heading known exactly, position and speed measured ------------------------
 
-LINEAR_SETTINGS = EstimatorSettings(yaw_rate_bias=False, speed_scale=False, gps_heading_sigma_rad=1e-12)
-LINEAR_NOISE = Noise(
+LINEAR_SETTINGS = with_changes(
+    EstimationSettings(),
+    {"estimator.yaw_rate_bias": False, "estimator.speed_scale": False, "gnss.heading_sigma_rad": 1e-12},
+)
+LINEAR_NOISE = NoiseSettings(
     pos_rw=0.2,
     heading_rw=0.0,
     speed_rw=0.7,
@@ -199,7 +202,7 @@ def test_chi2_thresholds() -> None:
 )
 def test_noise_is_validated(field: str, value: float) -> None:
     with pytest.raises(ValueError, match=field):
-        Noise(**{field: value})
+        NoiseSettings(**{field: value})
 
 
 # ---- gate -------------------------------------------------------------------------------------------------------
@@ -313,13 +316,13 @@ def test_registry_uses_the_config_settings() -> None:
 
 def test_search_refuses_test_seeds(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
-        tuning_main(["search", "ekf", "--seeds", "5-7"])
+        cli_main(["bench", "tune", "search", "ekf", "--seeds", "5-7"])
     assert "test seeds" in capsys.readouterr().err
 
 
 def test_gnss_period_follows_the_epochs() -> None:
     ekf = Ekf()
-    assert ekf.period_s == ekf.settings.step_s
+    assert ekf.period_s == ekf.settings.gnss.period_s
     ekf.push(LocalFix(t=1.0, valid=False))
     ekf.push(LocalFix(t=1.01, valid=False))
     ekf.push(LocalFix(t=1.1, valid=False))

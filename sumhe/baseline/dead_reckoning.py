@@ -15,11 +15,11 @@ import math
 import numpy as np
 
 from sumhe.baseline import kinematics as kin
-from sumhe.baseline.kinematics import OMEGA, PHI, FloatArray, Noise, V
+from sumhe.baseline.kinematics import OMEGA, PHI, FloatArray, V
 from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
 from sumhe.config import Config
 from sumhe.estimator.base import LocalFix
-from sumhe.estimator.settings import EstimatorSettings
+from sumhe.settings import EstimationSettings, NoiseSettings
 
 MOTION_HEADING_M = 5.0
 """Distance (m) between fixes that gives an azimuth when the receiver sends neither course nor heading."""
@@ -35,12 +35,12 @@ class DeadReckoning(RecursiveEstimator):
     gated = False
     uses_gps_speed = False
 
-    def __init__(self, settings: EstimatorSettings | None = None, noise: Noise | None = None) -> None:
-        super().__init__(settings or EstimatorSettings(), noise or Noise())
+    def __init__(self, settings: EstimationSettings | None = None, noise: NoiseSettings | None = None) -> None:
+        super().__init__(settings or EstimationSettings(), noise or NoiseSettings())
 
     @classmethod
     def from_config(cls, config: Config) -> DeadReckoning:
-        return cls(config.estimator)
+        return cls(config.estimation)
 
     def _reset_filter(self) -> None:
         self.x = np.zeros(self.layout.n)

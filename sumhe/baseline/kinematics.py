@@ -19,14 +19,14 @@ ground (Doppler, the speed v) at ``lag`` seconds before the state's time, and th
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from statistics import NormalDist
 
 import numpy as np
 from numpy.typing import NDArray
 
-from sumhe.estimator.settings import EstimatorSettings
 from sumhe.model.su import wrap_angle
+from sumhe.settings import EstimationSettings, NoiseSettings
 
 FloatArray = NDArray[np.float64]
 
@@ -47,8 +47,8 @@ class Layout:
     scale: bool = True
 
     @classmethod
-    def from_settings(cls, settings: EstimatorSettings) -> Layout:
-        return cls(bias=settings.yaw_rate_bias, scale=settings.speed_scale)
+    def from_settings(cls, settings: EstimationSettings) -> Layout:
+        return cls(bias=settings.estimator.yaw_rate_bias, scale=settings.estimator.speed_scale)
 
     @property
     def n(self) -> int:
@@ -64,46 +64,6 @@ class Layout:
     def k(self) -> int | None:
         """Row of the speed scale, or None."""
         return 5 + int(self.bias) if self.scale else None
-
-
-@dataclass(frozen=True, slots=True)
-class Noise:
-    """Noise levels of the models, SI units; ``*_rw`` are random-walk densities (unit per sqrt(s)).
-
-    Process: the position, azimuth, speed, yaw rate, bias and scale states each take white noise of the given
-    density (``Q = diag(density^2) dt``). Measurements: CAN speed and yaw rate sigmas (per CAN-rate update),
-    the standstill pseudo-measurement ``omega = 0`` (0 turns it off), the GNSS position sigma as a multiple of
-    the fix's own sigma, a floor on the course sigma. Gate: the chi-square probability of the innovation gate
-    (1 turns the gate off) and how long rejected fixes must agree before the filter re-acquires them.
-    Prior: sigmas of speed and yaw rate at the first fix.
-    """
-
-    pos_rw: float = 0.05
-    heading_rw: float = 0.002
-    speed_rw: float = 1.0
-    yaw_rate_rw: float = 0.3
-    bias_rw: float = 5e-5
-    scale_rw: float = 1e-5
-    can_speed_mps: float = 0.05
-    can_yaw_rate_rps: float = 0.003
-    standstill_rps: float = 0.001
-    gps_scale: float = 1.0
-    course_rad: float = 0.005
-    gate_prob: float = 0.9999
-    reacquire_s: float = 1.0
-    speed0_mps: float = 1.0
-    yaw_rate0_rps: float = 0.1
-
-    def __post_init__(self) -> None:
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"{f.name}: must be a finite number >= 0, got {value!r}")
-        for name in ("can_speed_mps", "can_yaw_rate_rps", "gps_scale"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"{name}: must be positive, got {getattr(self, name)!r}")
-        if not 0 < self.gate_prob <= 1:
-            raise ValueError(f"gate_prob: must be within (0, 1], got {self.gate_prob!r}")
 
 
 def chi2_threshold(prob: float, dof: int) -> float:
@@ -139,7 +99,7 @@ def step_jacobian(x: FloatArray, dt: float) -> FloatArray:
     return F
 
 
-def process_noise(dt: float, noise: Noise, layout: Layout) -> FloatArray:
+def process_noise(dt: float, noise: NoiseSettings, layout: Layout) -> FloatArray:
     """Q of one step of ``dt`` seconds: independent random walks of every state (n x n)."""
     dens = [noise.pos_rw, noise.pos_rw, noise.heading_rw, noise.speed_rw, noise.yaw_rate_rw]
     dens += [noise.bias_rw] * int(layout.bias) + [noise.scale_rw] * int(layout.scale)
@@ -181,7 +141,7 @@ def can_jacobian(x: FloatArray, rows: tuple[str, ...], layout: Layout) -> FloatA
     return H
 
 
-def can_sigmas(rows: tuple[str, ...], noise: Noise) -> FloatArray:
+def can_sigmas(rows: tuple[str, ...], noise: NoiseSettings) -> FloatArray:
     """Measurement sigmas of the CAN rows."""
     sigma = {CAN_SPEED: noise.can_speed_mps, CAN_YAW_RATE: noise.can_yaw_rate_rps, STANDSTILL: noise.standstill_rps}
     return np.array([sigma[r] for r in rows])

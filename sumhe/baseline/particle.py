@@ -3,7 +3,7 @@
 Each particle is a full state of :mod:`.kinematics`. CAN speed and yaw rate drive the particles as inputs
 (odometry, as the INS drives the particles in paper 004): per particle ``v = CAN speed / k`` and
 ``omega = CAN yaw rate - b`` (0 at standstill), then the midpoint step, then random-walk noise on position,
-azimuth, bias and scale with the densities of :class:`~sumhe.baseline.kinematics.Noise` (its speed, yaw-rate
+azimuth, bias and scale with the densities of :class:`~sumhe.baseline.kinematics.NoiseSettings` (its speed, yaw-rate
 and CAN measurement noises are not used). GNSS position and course weight the particles with Gaussian
 likelihoods; systematic resampling when the effective sample size falls below half the particles, with
 Liu-West kernel shrinkage of the static bias and scale (without it their particles collapse onto a few values).
@@ -17,12 +17,11 @@ import math
 import numpy as np
 
 from sumhe.baseline import kinematics as kin
-from sumhe.baseline.kinematics import OMEGA, PHI, FloatArray, Noise, V
+from sumhe.baseline.kinematics import OMEGA, PHI, FloatArray, V
 from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
-from sumhe.baseline.tuning import PF_PARTICLES, tuned_noise
 from sumhe.config import Config
-from sumhe.estimator.settings import EstimatorSettings
 from sumhe.model.su import wrap_angle
+from sumhe.settings import EstimationSettings, NoiseSettings
 
 RESAMPLE_ESS = 0.5
 """Resample when the effective sample size is below this share of the particles."""
@@ -51,20 +50,23 @@ class ParticleFilter(RecursiveEstimator):
 
     def __init__(
         self,
-        settings: EstimatorSettings | None = None,
-        noise: Noise | None = None,
-        particles: int = PF_PARTICLES,
-        seed: int = 0,
+        settings: EstimationSettings | None = None,
+        noise: NoiseSettings | None = None,
+        particles: int | None = None,
+        seed: int | None = None,
     ) -> None:
+        settings = settings or EstimationSettings()
+        table = settings.estimator.pf
+        particles = table.particles if particles is None else particles
         if isinstance(particles, bool) or not isinstance(particles, int) or particles < 10:
             raise ValueError(f"particles: must be an integer >= 10, got {particles!r}")
         self.particles = particles
-        self.seed = seed
-        super().__init__(settings or EstimatorSettings(), noise or tuned_noise(self.name))
+        self.seed = table.seed if seed is None else seed
+        super().__init__(settings, noise or table.noise)
 
     @classmethod
     def from_config(cls, config: Config) -> ParticleFilter:
-        return cls(config.estimator)
+        return cls(config.estimation)
 
     def _reset_filter(self) -> None:
         self.rng = np.random.default_rng(self.seed)

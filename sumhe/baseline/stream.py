@@ -13,14 +13,14 @@ only the maths, as hooks on its own state:
 * ``_mean()``: the state estimate now (layout of :mod:`.kinematics`, speed and yaw rate filled in).
 
 Timing: the filter's state lives at ``t_state``, the newest CAN speed sample (or fix, if newer); CAN samples
-are taken as measured ``settings.can_delay_s`` before their timestamp (the sensor delay, a calibration), and
+are taken as measured ``settings.can.delay_s`` before their timestamp (the sensor delay, a calibration), and
 their estimates are reported at the timestamp. A fix older
 than the state (the receiver's latency: fix time = receive time - latency, and CAN data of the meantime came
 first) is compared with the state through the model run back by the lag. Each epoch's estimate is reported at
 the epoch's own time (the state moved there by the model), so an epoch's estimate may be up to the latency
 older than the CAN-rate estimate before it. GNSS silence is measured on the fix clock: the newest sample time
 minus the typical delay of fixes behind CAN data (median of the last fixes), compared with 1.5 nominal periods
-(from the last intervals between epochs, ``settings.step_s`` until two epochs were seen).
+(from the last intervals between epochs, ``settings.gnss.period_s`` until two epochs were seen).
 
 Bad input never raises: non-finite values, unknown sample types, CAN values beyond the vehicle limits, valid fixes
 without a usable position (taken as "no fix"), samples going back in time, fixes older than
@@ -51,15 +51,14 @@ from sumhe.baseline.kinematics import (
     FloatArray,
     Layout,
     N,
-    Noise,
     V,
     chi2_threshold,
     step,
 )
 from sumhe.estimator.base import BadInputCounter, LocalFix, StateEstimate, bad_epoch_time
 from sumhe.estimator.grid import GPS_SPEED_RESOLUTION_MPS, gps_speed
-from sumhe.estimator.settings import EstimatorSettings
 from sumhe.messages import CanSample, GpsStatus
+from sumhe.settings import EstimationSettings, NoiseSettings
 
 MAX_FIX_LAG_S = 1.0
 """Fixes older than this behind the newest CAN data are dropped (counted ``late_fixes``)."""
@@ -138,14 +137,14 @@ class RecursiveEstimator(BadInputCounter, ABC):
     """Base of the recursive baselines: implements the :class:`~sumhe.estimator.base.Estimator` protocol.
 
     ``gated = False`` turns the innovation gate off (dead reckoning takes every fix as it is);
-    ``uses_gps_speed = False`` leaves the fixes' speed over ground out even with ``settings.gps_speed``.
+    ``uses_gps_speed = False`` leaves the fixes' speed over ground out even with ``settings.gnss.use_speed``.
     """
 
     name: ClassVar[str] = ""
     gated: ClassVar[bool] = True
     uses_gps_speed: ClassVar[bool] = True
 
-    def __init__(self, settings: EstimatorSettings, noise: Noise) -> None:
+    def __init__(self, settings: EstimationSettings, noise: NoiseSettings) -> None:
         self.settings = settings
         self.noise = noise
         self.layout = Layout.from_settings(settings)
@@ -206,7 +205,7 @@ class RecursiveEstimator(BadInputCounter, ABC):
         """The nominal GNSS period (s): mean of the recent intervals between epochs within 50 % of their median
         (the mean of consecutive intervals cancels the latency jitter; the median test leaves gaps out)."""
         if not self._intervals:
-            return self.settings.step_s
+            return self.settings.gnss.period_s
         d = np.asarray(self._intervals)
         median = float(np.median(d))
         regular = d[np.abs(d - median) <= 0.5 * median]
@@ -264,12 +263,12 @@ class RecursiveEstimator(BadInputCounter, ABC):
             return []
         if q not in ("speed", "yaw_rate"):
             return []
-        limit = self.settings.max_speed_mps if q == "speed" else 2.0 * self.settings.max_yaw_rate_rps
+        limit = self.settings.vehicle.max_speed_mps if q == "speed" else 2.0 * self.settings.vehicle.max_yaw_rate_rps
         if not (math.isfinite(value) and abs(value) <= limit):
             self._count("bad_samples", "CAN %s = %r beyond the vehicle limits dropped", q, value)
             return []
         self._t_can = t
-        tm = t - self.settings.can_delay_s
+        tm = t - self.settings.can.delay_s
         self._check_gap(tm)
         if q == "yaw_rate":
             self._yaw = (tm, value)
@@ -351,13 +350,13 @@ class RecursiveEstimator(BadInputCounter, ABC):
         return out
 
     def _inputs(self, t: float) -> Inputs:
-        gap = self.settings.can_max_gap_s
+        gap = self.settings.can.max_gap_s
         speed = self._speed[1] if self._speed is not None and t - self._speed[0] <= gap else None
         if self._yaw_n:
             yaw: float | None = self._yaw_sum / self._yaw_n
         else:
             yaw = self._yaw[1] if self._yaw is not None and t - self._yaw[0] <= gap else None
-        still = speed is not None and abs(speed) <= 0.5 * self.settings.can_speed_resolution_mps
+        still = speed is not None and abs(speed) <= 0.5 * self.settings.can.speed_quantum_mps
         return Inputs(speed, yaw, still)
 
     def _advance(self, t: float, inputs: Inputs) -> None:
@@ -377,10 +376,10 @@ class RecursiveEstimator(BadInputCounter, ABC):
         x0[OMEGA] = inputs.yaw_rate if inputs.yaw_rate is not None and not inputs.standstill else 0.0
         sig = [sigma, sigma, sigma_phi, self.noise.speed0_mps, self.noise.yaw_rate0_rps]
         if self.layout.b is not None:
-            sig.append(0.5 * self.settings.yaw_rate_bias_max_rps)
+            sig.append(0.5 * self.settings.can.yaw_rate_bias_max_rps)
         if self.layout.k is not None:
             x0[self.layout.k] = 1.0
-            sig.append(0.5 * self.settings.speed_scale_max)
+            sig.append(0.5 * self.settings.can.speed_scale_max)
         self._t_state = fix.t
         self._start(x0, np.diag(np.square(sig)))
         self._started = True
@@ -390,20 +389,20 @@ class RecursiveEstimator(BadInputCounter, ABC):
         ``gps_resolution_m``), else by GGA quality, else the default."""
         s = self.settings
         if fix.sigma_m is not None:
-            sigma = max(fix.sigma_m, s.gps_resolution_m)
+            sigma = max(fix.sigma_m, s.gnss.resolution_m)
         elif fix.quality == 4:
-            sigma = s.gps_sigma_rtk_m
+            sigma = s.gnss.sigma_rtk_m
         elif fix.quality == 5:
-            sigma = s.gps_sigma_float_m
+            sigma = s.gnss.sigma_float_m
         else:
-            sigma = s.gps_sigma_m
+            sigma = s.gnss.sigma_m
         return self.noise.gps_scale * sigma
 
     def _fix_angle(self, fix: LocalFix) -> tuple[float, float] | None:
         """The azimuth a fix measures (rad) and its sigma: HDT heading, else course above the minimum speed."""
         s = self.settings
-        if s.use_heading and fix.heading_rad is not None and math.isfinite(fix.heading_rad):
-            return fix.heading_rad, s.gps_heading_sigma_rad
+        if s.gnss.use_heading and fix.heading_rad is not None and math.isfinite(fix.heading_rad):
+            return fix.heading_rad, s.gnss.heading_sigma_rad
         speed = fix.speed_mps
         if speed is None or not math.isfinite(speed):
             speed = self._speed[1] if self._speed is not None else None
@@ -411,9 +410,9 @@ class RecursiveEstimator(BadInputCounter, ABC):
             fix.course_rad is not None
             and math.isfinite(fix.course_rad)
             and speed is not None
-            and speed >= s.course_min_speed_mps
+            and speed >= s.gnss.course_min_speed_mps
         ):
-            return fix.course_rad, math.hypot(self.noise.course_rad, s.gps_speed_sigma_mps / speed)
+            return fix.course_rad, math.hypot(self.noise.course_rad, s.gnss.speed_sigma_mps / speed)
         return None
 
     def _fix_updates(self, fix: LocalFix, lag: float) -> GpsStatus:
@@ -424,10 +423,10 @@ class RecursiveEstimator(BadInputCounter, ABC):
             return status
         self._angle_update(fix, lag)
         s = self.settings
-        use = s.gps_speed and self.uses_gps_speed
+        use = s.gnss.use_speed and self.uses_gps_speed
         speed = gps_speed(fix.speed_mps, self._speed[1] if self._speed is not None else None, s) if use else None
         if speed is not None:
-            sigma_v = max(s.gps_speed_sigma_mps, GPS_SPEED_RESOLUTION_MPS)
+            sigma_v = max(s.gnss.speed_sigma_mps, GPS_SPEED_RESOLUTION_MPS)
             R = np.array([[sigma_v**2]])
             if self._gated_update(GPS_SPEED, np.array([speed]), R, lag, self._sog_gate, fix.t, sigma_v) == "rejected":
                 self._count("speed_rejected", "GNSS speed over ground rejected by the gate")

@@ -17,7 +17,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import os
@@ -38,9 +37,9 @@ from sumhe.estimator.base import Estimator, FixConverter, LocalFix, StateEstimat
 from sumhe.estimator.batch import estimate_batch
 from sumhe.estimator.mhe import MovingHorizonEstimator
 from sumhe.estimator.registry import make_estimator
-from sumhe.estimator.settings import EstimatorSettings
 from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample, Sample
+from sumhe.settings import CanModel, EstimationSettings, with_changes
 from sumhe.sim import SimSettings, simulate
 from sumhe.sim.drive import Drive
 
@@ -75,8 +74,8 @@ class MheBenchSettings:
     multipath_per_min: float = 3.0
     before: int = 10
     after: int = 10
-    estimator: EstimatorSettings = field(
-        default_factory=lambda: EstimatorSettings(can_delay_s=SimSettings().can_sensor_delay_s)
+    estimator: EstimationSettings = field(
+        default_factory=lambda: EstimationSettings(can=CanModel(delay_s=SimSettings().can_sensor_delay_s))
     )
     parts: tuple[str, ...] = PARTS
 
@@ -165,15 +164,20 @@ def position_errors(drive: Drive, estimates: Sequence[StateEstimate]) -> tuple[N
 
 
 def latency_run(
-    solver: str, steps: int, duration_s: float, base: EstimatorSettings, max_epochs: int | None = None
+    solver: str, steps: int, duration_s: float, base: EstimationSettings, max_epochs: int | None = None
 ) -> dict[str, float]:
     """Per-epoch update time of the MHE with ``solver`` and a window of ``steps`` steps, once it is full."""
-    settings = dataclasses.replace(
-        base, mhe_solver=solver, mhe_steps=steps, mhe_max_steps=max(steps, base.mhe_max_steps)
+    settings = with_changes(
+        base,
+        {
+            "estimator.mhe.solver": solver,
+            "estimator.mhe.steps": steps,
+            "estimator.mhe.max_steps": max(steps, base.estimator.mhe.max_steps),
+        },
     )
-    skip_s = steps * base.step_s + 1.0
+    skip_s = steps * base.gnss.period_s + 1.0
     if max_epochs is not None:
-        duration_s = min(duration_s, skip_s + max_epochs * base.step_s)
+        duration_s = min(duration_s, skip_s + max_epochs * base.gnss.period_s)
     drive = simulate(SimSettings(scenario="urban", seed=7, duration_s=max(duration_s, skip_s + 5.0)))
     est = MovingHorizonEstimator(settings)
     est.warm_up()
@@ -194,14 +198,14 @@ def latency_run(
     }
 
 
-def outage_latency_run(solver: str, base: EstimatorSettings) -> dict[str, float]:
+def outage_latency_run(solver: str, base: EstimationSettings) -> dict[str, float]:
     """Per-epoch update time while a 30 s outage grows the window to N_max (epochs with >= 90 % of N_max)."""
-    settings = dataclasses.replace(base, mhe_solver=solver)
+    settings = with_changes(base, {"estimator.mhe.solver": solver})
     drive = simulate(SimSettings(scenario="urban", seed=8, duration_s=60.0, outages=((15.0, 30.0),)))
     est = MovingHorizonEstimator(settings)
     est.warm_up()
     run = run_stream(est, drive_stream(drive))
-    big = [e.solve_ms for e in run.estimates if e.mode != "can" and e.window >= 0.9 * settings.mhe_max_steps]
+    big = [e.solve_ms for e in run.estimates if e.mode != "can" and e.window >= 0.9 * settings.estimator.mhe.max_steps]
     ms = np.array(big)
     return {
         "epochs": float(len(ms)),
@@ -252,7 +256,7 @@ def accuracy_drive(
     mhe.warm_up()
     capture = _Smoothed(outages, bs.after, mhe)
     runs = {"mhe": run_stream(mhe, stream, capture)}
-    config = Config(estimator=bs.estimator)
+    config = Config.of(bs.estimator)
     for name in bs.baselines:
         try:
             runs[name] = run_stream(make_estimator(name, config), stream)
@@ -330,7 +334,7 @@ def multipath_report(bs: MheBenchSettings, say: Progress) -> list[str]:
     what the gates let through."""
     names = ["mhe", *bs.baselines]
     pooled: dict[str, list[NDArray]] = {n: [] for n in names}
-    config = Config(estimator=bs.estimator)
+    config = Config.of(bs.estimator)
     for scenario in bs.scenarios:
         say(f"multipath {scenario}")
         sim = SimSettings(
@@ -363,7 +367,7 @@ def multipath_report(bs: MheBenchSettings, say: Progress) -> list[str]:
 # ---- replay --------------------------------------------------------------------------------------------------------
 
 
-def replay_run(duration_s: float, base: EstimatorSettings) -> dict[str, float]:
+def replay_run(duration_s: float, base: EstimationSettings) -> dict[str, float]:
     """One long highway/urban drive (two outages per 10 minutes) through the MHE: x real time on one core."""
     plan = tuple((s, 10.0) for s in np.arange(120.0, duration_s - 60.0, 300.0))
     drive = simulate(SimSettings(scenario="urban", seed=9, duration_s=duration_s, outages=plan))
@@ -397,10 +401,11 @@ def run_benchmark(bs: MheBenchSettings, progress: Progress | None = None) -> lis
     say = progress or (lambda _msg: None)
     lines = [f"sumhe bench mhe: {environment()}"]
     s = bs.estimator
+    m = s.estimator.mhe
     lines.append(
-        f"MHE: solver {s.mhe_solver}, N={s.mhe_steps} N_B={s.mhe_steps_before} N_A={s.mhe_steps_after} "
-        f"N_max={s.mhe_max_steps} (merge up to {s.mhe_max_merge}x), model {s.model}/{s.discretisation}, "
-        f"step {s.step_s} s, GNSS speed over ground {'used' if s.gps_speed else 'not used'}"
+        f"MHE: solver {m.solver}, N={m.steps} N_B={m.steps_before} N_A={m.steps_after} "
+        f"N_max={m.max_steps} (merge up to {m.max_merge}x), model {s.estimator.model}/{s.estimator.discretisation}, "
+        f"step {s.gnss.period_s} s, GNSS speed over ground {'used' if s.gnss.use_speed else 'not used'}"
     )
     if "latency" in bs.parts:
         lines += ["", *_latency_report(bs, say)]
@@ -435,8 +440,8 @@ def _latency_report(bs: MheBenchSettings, say: Progress) -> list[str]:
     say("latency through a 30 s outage")
     r = outage_latency_run("sqp", s)
     lines.append(
-        f"  sqp through a 30 s outage (N={s.mhe_steps} -> {r['window']:.0f} steps), epochs with >= "
-        f"{0.9 * s.mhe_max_steps:.0f} steps: p50 {r['p50']:.2f} p99 {r['p99']:.2f} max {r['max']:.2f} ms "
+        f"  sqp through a 30 s outage (N={s.estimator.mhe.steps} -> {r['window']:.0f} steps), epochs with >= "
+        f"{0.9 * s.estimator.mhe.max_steps:.0f} steps: p50 {r['p50']:.2f} p99 {r['p99']:.2f} max {r['max']:.2f} ms "
         f"({r['epochs']:.0f} epochs)"
     )
     return lines
@@ -458,7 +463,7 @@ def _accuracy_report(bs: MheBenchSettings, say: Progress) -> str:
     lines = [
         "accuracy: error of the newest state inside outages (m), all estimates (GNSS epochs and CAN rate); "
         f"{len(bs.scenarios)} scenarios x {len(bs.seeds)} seeds, {bs.duration_s:.0f} s drives, CAN delay "
-        f"calibrated ({bs.estimator.can_delay_s} s) for every estimator"
+        f"calibrated ({bs.estimator.can.delay_s} s) for every estimator"
     ]
     for gps_error in bs.gps_errors:
         lines.append(f" GNSS errors {gps_error!r}:")

@@ -12,7 +12,7 @@ Every estimator gets exactly the same samples: fixes stamped once with their mea
 (:func:`~sumhe.io.fixtime.stamp_fix`), CAN samples in log order, merged by time as a replay merges them, pushed one
 by one through :class:`~sumhe.service.pipeline.Pipeline` (the code path of the service and of ``sumhe replay``),
 then ``pipeline.finish()``. The config has a fixed datum at the truth's frame; on simulated drives the CAN sensor
-delay is calibrated (``estimator.can_delay_s`` = the simulator's delay) for every estimator alike.
+delay is calibrated (``sensors.can.delay_s`` = the simulator's delay) for every estimator alike.
 
 Figures, per estimator over all drives: position error of every estimate (GNSS epochs and CAN rate) inside the
 outages (all, per length, per motion; an outage lasts until the first fix after it) and outside them after the
@@ -53,6 +53,7 @@ from sumhe.io.fixtime import stamp_fix
 from sumhe.io.replay import log_samples, merge_by_time
 from sumhe.messages import GnssFix, Sample
 from sumhe.service.pipeline import Pipeline
+from sumhe.settings import with_changes
 from sumhe.sim import SimSettings, Truth, load_settings, load_truth, simulate
 from sumhe.sim.settings import GPS_ERROR_MODELS, SCENARIO_NAMES
 
@@ -229,10 +230,10 @@ def drive_config(base: Config, frame: LocalFrame, can_delay_s: float | None = No
     """``base`` with the datum fixed at ``frame`` (estimates come out in the truth's frame) and, when given, the
     calibrated CAN sensor delay."""
     datum = DatumSettings(mode="fixed", lat=frame.lat0_deg, lon=frame.lon0_deg, alt=frame.alt0_m)
-    estimator = base.estimator
+    sensors = base.sensors
     if can_delay_s is not None:
-        estimator = dataclasses.replace(estimator, can_delay_s=can_delay_s)
-    return dataclasses.replace(base, datum=datum, estimator=estimator)
+        sensors = with_changes(sensors, {"can.delay_s": can_delay_s})
+    return dataclasses.replace(base, datum=datum, sensors=sensors)
 
 
 def simulated_drive(scenario: str, gps_error: str, seed: int, ps: PeersSettings, base: Config) -> BenchDrive:

@@ -1,6 +1,7 @@
 """``sumhe bench [NAME]``: the benchmarks, one sub-benchmark each: ``peers`` (every estimator side by side,
-:mod:`sumhe.bench.peers`; what ``sumhe bench`` without a NAME runs), ``mhe`` (:mod:`sumhe.bench.mhe`) and
-``protocol`` (paper 000's protocol, the same as ``sumhe protocol``).
+:mod:`sumhe.bench.peers`; what ``sumhe bench`` without a NAME runs), ``mhe`` (:mod:`sumhe.bench.mhe`),
+``protocol`` (paper 000's protocol, the same as ``sumhe protocol``) and ``tune`` (the peers' noise tuning,
+:mod:`sumhe.bench.tune`).
 
 A benchmark prints figures (latency percentiles, errors, speed) and how it ran; it asserts nothing. BLAS is
 pinned to one thread by :func:`sumhe.cli.main` before numpy loads. Adding a benchmark is one line in
@@ -36,6 +37,11 @@ BENCHMARKS: dict[str, tuple[str, str, str]] = {
         "paper 000's outage protocol: batch SU methods side by side (as sumhe protocol)",
         "sumhe.commands.protocol:add_arguments",
         "sumhe.commands.protocol:run",
+    ),
+    "tune": (
+        "the peers' noise tuning: grid search on training drives, evaluation on test drives",
+        "sumhe.bench.tune:add_arguments",
+        "sumhe.commands.bench:run_tune",
     ),
 }
 """Sub-benchmarks: name -> (help, ``module:function`` adding its arguments, ``module:function`` running it)."""
@@ -194,6 +200,12 @@ def run_peers(args: argparse.Namespace) -> int:
         (out / "peers.md").write_text(markdown(summary), encoding="utf-8")
         print(f"wrote {out / 'peers.json'} and {out / 'peers.md'}", file=sys.stderr)
     return 0
+
+
+def run_tune(args: argparse.Namespace) -> int:
+    from sumhe.bench.tune import run
+
+    return run(args, lambda line: print(line, flush=True))
 
 
 def add_live_arguments(parser: argparse.ArgumentParser) -> None:

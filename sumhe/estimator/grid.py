@@ -22,10 +22,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sumhe.errors import EstimatorInputError
-from sumhe.estimator.settings import EstimatorSettings
 from sumhe.geo import LocalFrame
 from sumhe.messages import CanSample, GnssFix, Sample
 from sumhe.model.su import GPS_SPEED_OUTPUT, SuModel, antenna_azimuth
+from sumhe.settings import EstimationSettings
 
 log = logging.getLogger(__name__)
 
@@ -99,26 +99,26 @@ def nominal_period(epochs: NDArray[np.float64], default: float) -> float:
     return float(np.median(d[d <= 1.5 * d.min()]))
 
 
-def gps_speed(speed_mps: float | None, can_speed: float | None, settings: EstimatorSettings) -> float | None:
+def gps_speed(speed_mps: float | None, can_speed: float | None, settings: EstimationSettings) -> float | None:
     """The speed a fix's speed over ground (m/s, >= 0) measures, with the sign of the CAN speed (reversing), or
     None: no speed, or below ``course_min_speed_mps`` (at walking pace Doppler speeds are biased upwards)."""
-    if speed_mps is None or not math.isfinite(speed_mps) or speed_mps < settings.course_min_speed_mps:
+    if speed_mps is None or not math.isfinite(speed_mps) or speed_mps < settings.gnss.course_min_speed_mps:
         return None
     return -speed_mps if can_speed is not None and can_speed < 0.0 else speed_mps
 
 
-def gps_sigma_m(fix: GnssFix, settings: EstimatorSettings) -> tuple[float, float]:
+def gps_sigma_m(fix: GnssFix, settings: EstimationSettings) -> tuple[float, float]:
     """1-sigma error (east, north) in m of a fix: GST sigmas, else by GGA quality (RTK), else HDOP x UERE."""
     if fix.sigma_lat_m is not None and fix.sigma_lon_m is not None:
         return fix.sigma_lon_m, fix.sigma_lat_m
     if fix.quality == GGA_RTK_FIXED:
-        s = settings.gps_sigma_rtk_m
+        s = settings.gnss.sigma_rtk_m
     elif fix.quality == GGA_RTK_FLOAT:
-        s = settings.gps_sigma_float_m
+        s = settings.gnss.sigma_float_m
     elif fix.hdop is not None and math.isfinite(fix.hdop):
-        s = fix.hdop * settings.gps_uere_m
+        s = fix.hdop * settings.gnss.uere_m
     else:
-        s = settings.gps_sigma_m
+        s = settings.gnss.sigma_m
     return s, s
 
 
@@ -164,7 +164,7 @@ def can_on_grid(ts: NDArray[np.float64], vs: NDArray[np.float64], t: NDArray[np.
 def build_grid(
     samples: Sequence[Sample],
     model: SuModel,
-    settings: EstimatorSettings,
+    settings: EstimationSettings,
     frame: LocalFrame | None = None,
 ) -> Grid:
     """Check the samples and put them on the step grid of ``model``; EstimatorInputError if unusable.
@@ -173,7 +173,7 @@ def build_grid(
     height ``frame.alt0_m`` (a level road; NMEA altitudes are above the geoid, not the ellipsoid, and mixing
     the two moves positions by ``dh * distance / R_earth``). Fixes of antenna 2 are used by ``su7`` only;
     Fix times ``t`` are their measurement times (:func:`sumhe.io.fixtime.stamp_fix`); CAN times are moved back
-    by ``settings.can_delay_s``.
+    by ``settings.can.delay_s``.
     """
     check_samples(samples)
     fixes = [s for s in samples if isinstance(s, GnssFix)]
@@ -186,17 +186,17 @@ def build_grid(
         first = valid1[0]
         frame = LocalFrame(float(first.lat_deg), float(first.lon_deg), first.alt_m or 0.0)  # type: ignore[arg-type]
     cans = [s for s in samples if isinstance(s, CanSample)]
-    t_can = {q: np.array([s.t - settings.can_delay_s for s in cans if s.quantity == q]) for q in CAN_USED}
+    t_can = {q: np.array([s.t - settings.can.delay_s for s in cans if s.quantity == q]) for q in CAN_USED}
     v_can = {q: np.array([s.value for s in cans if s.quantity == q]) for q in CAN_USED}
     epochs = np.array([f.t for f in ant1])
     t_all = np.concatenate([epochs, *t_can.values()])
-    period = nominal_period(epochs, settings.step_s)
+    period = nominal_period(epochs, settings.gnss.period_s)
     t = step_times(epochs, float(t_all.min()), float(t_all.max()), period)
     n_out = model.n_outputs
     y = np.zeros((len(t), n_out))
     avail = np.zeros((len(t), n_out), dtype=bool)
     allow = np.ones((len(t), n_out))
-    k_sig = settings.r_cap_sigmas
+    k_sig = settings.estimator.r_cap_sigmas
     for group, col in ((valid1, 0), ([f for f in ant2 if f.valid], 2)):
         if not group:
             continue
@@ -208,14 +208,14 @@ def build_grid(
         for c in (0, 1):
             y[k[ok], col + c] = enu[ok, c]
             avail[k[ok], col + c] = True
-            allow[k[ok], col + c] = k_sig * np.maximum(sig[ok, c], settings.gps_resolution_m)
-    can_speed, can_yaw = (can_on_grid(t_can[q], v_can[q], t, settings.can_max_gap_s) for q in CAN_USED)
+            allow[k[ok], col + c] = k_sig * np.maximum(sig[ok, c], settings.gnss.resolution_m)
+    can_speed, can_yaw = (can_on_grid(t_can[q], v_can[q], t, settings.can.max_gap_s) for q in CAN_USED)
     _angle_output(model, settings, t, y, avail, allow, valid1, can_speed, can_yaw, period)
     if GPS_SPEED_OUTPUT in model.outputs:
         j = model.outputs.index(GPS_SPEED_OUTPUT)
         for k, value in _gps_speeds(valid1, t, can_speed, settings, period):
             y[k, j], avail[k, j] = value, True
-        allow[:, j] = k_sig * max(settings.gps_speed_sigma_mps, GPS_SPEED_RESOLUTION_MPS)
+        allow[:, j] = k_sig * max(settings.gnss.speed_sigma_mps, GPS_SPEED_RESOLUTION_MPS)
     has_bias = "yaw_rate_bias" in model.states
     has_scale = "speed_scale" in model.states
     i_v, i_w = n_out - 2, n_out - 1
@@ -224,14 +224,14 @@ def build_grid(
         y[ok, col] = values[ok]
         avail[ok, col] = True
     allow[:, i_v] = (
-        0.5 * settings.can_speed_resolution_mps
-        + k_sig * settings.can_speed_sigma_mps
-        + (0.0 if has_scale else settings.speed_scale_max * np.abs(np.nan_to_num(can_speed)))
+        0.5 * settings.can.speed_quantum_mps
+        + k_sig * settings.can.speed_sigma_mps
+        + (0.0 if has_scale else settings.can.speed_scale_max * np.abs(np.nan_to_num(can_speed)))
     )
     allow[:, i_w] = (
-        0.5 * settings.can_yaw_rate_resolution_rps
-        + k_sig * settings.can_yaw_rate_sigma_rps
-        + (0.0 if has_bias else settings.yaw_rate_bias_max_rps)
+        0.5 * settings.can.yaw_rate_quantum_rps
+        + k_sig * settings.can.yaw_rate_sigma_rps
+        + (0.0 if has_bias else settings.can.yaw_rate_bias_max_rps)
     )
     log.debug("grid: %d steps over %.2f s, %d with GNSS", len(t), t[-1] - t[0], int(avail[:, 0].sum()))
     return Grid(t=t, y=y, avail=avail, allow=allow, can_speed=can_speed, can_yaw_rate=can_yaw, frame=frame)
@@ -248,7 +248,7 @@ def _gps_speeds(
     fixes: list[GnssFix],
     t: NDArray[np.float64],
     can_speed: NDArray[np.float64],
-    settings: EstimatorSettings,
+    settings: EstimationSettings,
     period: float,
 ) -> list[tuple[int, float]]:
     """(grid step, speed) of the fixes whose speed over ground counts (:func:`gps_speed`); ``period`` (s) the
@@ -264,7 +264,7 @@ def _gps_speeds(
 
 def _angle_output(
     model: SuModel,
-    settings: EstimatorSettings,
+    settings: EstimationSettings,
     t: NDArray[np.float64],
     y: NDArray[np.float64],
     avail: NDArray[np.bool_],
@@ -282,28 +282,30 @@ def _angle_output(
     j = model.angle_outputs[0]
     h = np.concatenate([np.diff(t), [period]])
     turn = 0.5 * h * np.abs(np.nan_to_num(can_yaw))
-    k_sig = settings.r_cap_sigmas
+    k_sig = settings.estimator.r_cap_sigmas
     if model.antennas == 2:
         both = avail[:, 0] & avail[:, 2]
         y[both, j] = antenna_azimuth(y[both, 0], y[both, 1], y[both, 2], y[both, 3])
         avail[both, j] = True
-        allow[both, j] = (allow[both, 0] + allow[both, 2]) * math.sqrt(2) / settings.antenna_distance_m + turn[both]
+        allow[both, j] = (allow[both, 0] + allow[both, 2]) * math.sqrt(2) / settings.vehicle.antenna_distance_m + turn[
+            both
+        ]
         return
     k = _nearest(t, np.array([f.t for f in fixes]), 0.5 * period)
     for f, kk in zip(fixes, k, strict=True):
         if kk < 0:
             continue
         speed = f.speed_mps if f.speed_mps is not None else can_speed[kk]
-        if settings.use_heading and f.heading_rad is not None and math.isfinite(f.heading_rad):
-            angle, sigma = f.heading_rad, settings.gps_heading_sigma_rad
+        if settings.gnss.use_heading and f.heading_rad is not None and math.isfinite(f.heading_rad):
+            angle, sigma = f.heading_rad, settings.gnss.heading_sigma_rad
         elif (
             f.course_rad is not None
             and math.isfinite(f.course_rad)
             and speed is not None
             and math.isfinite(speed)
-            and speed >= settings.course_min_speed_mps
+            and speed >= settings.gnss.course_min_speed_mps
         ):
-            angle, sigma = f.course_rad, settings.gps_speed_sigma_mps / max(speed, 1e-3)
+            angle, sigma = f.course_rad, settings.gnss.speed_sigma_mps / max(speed, 1e-3)
         else:
             continue
         y[kk, j] = angle

@@ -68,11 +68,11 @@ from sumhe.estimator.grid import (
     gps_sigma_m,
     gps_speed,
 )
-from sumhe.estimator.settings import EstimatorSettings
 from sumhe.estimator.sqp import SolveResult, WindowProblem, WindowSolver, make_solver, step_jacobians
-from sumhe.estimator.window import Window, WindowPolicy, plan_window
+from sumhe.estimator.window import Window, plan_window
 from sumhe.messages import CanSample, GpsStatus
 from sumhe.model.su import BIAS_STATE, GPS_SPEED_OUTPUT, SCALE_STATE, SuModel
+from sumhe.settings import EstimationSettings
 
 log = logging.getLogger(__name__)
 
@@ -101,13 +101,13 @@ EPS = 1e-9
 """Regularisation of the arrival cost's eliminations (directions without information)."""
 
 
-def mhe_q_caps(model: SuModel, h: float, settings: EstimatorSettings) -> NDArray[np.float64]:
+def mhe_q_caps(model: SuModel, h: float, settings: EstimationSettings) -> NDArray[np.float64]:
     """The MHE's state-noise bounds for a step of ``h`` s: the q caps (vehicle limits,
     :func:`~sumhe.estimator.bounds.q_caps`), those of the integrated states (positions, azimuth; ``q_power`` 2)
     times ``mhe_trapezoid_q`` with the trapezoidal transition, whose one-step error is O(h^3), not Euler's O(h^2)."""
     caps = q_caps(model, h, settings)
-    if settings.discretisation == "trapezoid":
-        caps = np.where(np.array(model.q_power) == 2, settings.mhe_trapezoid_q * caps, caps)
+    if settings.estimator.discretisation == "trapezoid":
+        caps = np.where(np.array(model.q_power) == 2, settings.estimator.mhe.trapezoid_q * caps, caps)
     return caps
 
 
@@ -151,13 +151,15 @@ class MovingHorizonEstimator(BadInputCounter):
 
     name = "mhe"
 
-    def __init__(self, settings: EstimatorSettings | None = None) -> None:
-        s = settings or EstimatorSettings()
-        if s.model != "su5":
-            raise ConfigError(f"estimator.model: the moving-horizon estimator supports su5 only, got {s.model!r}")
+    def __init__(self, settings: EstimationSettings | None = None) -> None:
+        s = settings or EstimationSettings()
+        if s.estimator.model != "su5":
+            raise ConfigError(
+                f"estimator.model: the moving-horizon estimator supports su5 only, got {s.estimator.model!r}"
+            )
         self.settings = s
         self.model = model = model_for(s)
-        self.policy = WindowPolicy.from_settings(s)
+        self.policy = s.estimator.mhe
         self._m, self._md, self._n = model.n_states, model.n_dynamic, model.n_outputs
         self._ie, self._in = model.position
         self._iphi, self._iv, self._iw = model.index("phi"), model.index("v"), model.index("omega")
@@ -172,7 +174,9 @@ class MovingHorizonEstimator(BadInputCounter):
         self._theta_range = (self._hi[self._md :] - self._lo[self._md :]) / 2.0
         self._window = Window(self.policy.max_steps + 1, self._m, self._n, gps_column=self._jpos[0])
         self._buckets = tuple(
-            sorted({*range(self.policy.steps, self.policy.max_steps, s.mhe_bucket_steps), self.policy.max_steps})
+            sorted(
+                {*range(self.policy.steps, self.policy.max_steps, s.estimator.mhe.bucket_steps), self.policy.max_steps}
+            )
         )
         self._solvers: dict[int, WindowSolver] = {}
         self._step_jac = step_jacobians(model)
@@ -182,10 +186,10 @@ class MovingHorizonEstimator(BadInputCounter):
 
     @classmethod
     def from_config(cls, config: Config) -> MovingHorizonEstimator:
-        """The estimator of ``config.estimator`` (the registry's constructor), with the ``sqp`` solvers of every
+        """The estimator of ``config.estimation`` (the registry's constructor), with the ``sqp`` solvers of every
         window size built now (half a second) rather than during the first long outage."""
-        estimator = cls(config.estimator)
-        if config.estimator.mhe_solver == "sqp":
+        estimator = cls(config.estimation)
+        if config.estimator.mhe.solver == "sqp":
             estimator.warm_up()
         return estimator
 
@@ -202,7 +206,7 @@ class MovingHorizonEstimator(BadInputCounter):
         self._last_real_epoch: float | None = None
         self._intervals: deque[float] = deque(maxlen=PERIOD_HISTORY)
         self._delays: deque[float] = deque(maxlen=PERIOD_HISTORY)
-        self._period = self.settings.step_s
+        self._period = self.settings.gnss.period_s
         self._delay = 0.0
         self._Q = np.zeros((0, self._md))
         self._q_caps = mhe_q_caps(self.model, self._period, self.settings)
@@ -239,7 +243,7 @@ class MovingHorizonEstimator(BadInputCounter):
         dropped samples), the window length and the nominal period."""
         out: dict[str, float | int | str] = {
             "estimator": self.name,
-            "solver": self.settings.mhe_solver,
+            "solver": self.settings.estimator.mhe.solver,
             "window": len(self._window),
             "period_s": self.period_s,
         }
@@ -268,12 +272,12 @@ class MovingHorizonEstimator(BadInputCounter):
         if not (isinstance(t, float | int) and isinstance(value, float | int) and math.isfinite(t)):
             self._count("bad_samples", "CAN %s sample with a non-finite time or value", q)
             return []
-        t -= self.settings.can_delay_s
+        t -= self.settings.can.delay_s
         store = self._speed if q == "speed" else self._yaw
         if t < store.newest:
             self._count("dropped_backwards", "CAN %s sample %.3f s back in time dropped", q, store.newest - t)
             return []
-        limit = self.settings.max_speed_mps if q == "speed" else 2.0 * self.settings.max_yaw_rate_rps
+        limit = self.settings.vehicle.max_speed_mps if q == "speed" else 2.0 * self.settings.vehicle.max_yaw_rate_rps
         if not (math.isfinite(value) and abs(value) <= limit):
             self._count("bad_samples", "CAN %s = %r beyond the vehicle limits dropped", q, value)
             return []
@@ -346,7 +350,7 @@ class MovingHorizonEstimator(BadInputCounter):
         s, md = self.settings, self._md
         x = np.zeros(self._m)
         x[self._ie], x[self._in] = fix.east_m, fix.north_m
-        speed, yaw = self._speed.at(fix.t, s.can_max_gap_s), self._yaw.at(fix.t, s.can_max_gap_s)
+        speed, yaw = self._speed.at(fix.t, s.can.max_gap_s), self._yaw.at(fix.t, s.can.max_gap_s)
         angle = self._fix_angle(fix, speed)
         x[self._iphi] = angle[0] if angle is not None else 0.0
         x[self._iv] = speed if speed is not None else 0.0
@@ -365,7 +369,7 @@ class MovingHorizonEstimator(BadInputCounter):
         if self._theta0 is not None:
             x[md:] = self._theta0
         self._box_centre, self._prior, self._weight = x.copy(), x.copy(), weight
-        y, avail, allow = self._outputs(fix.t, s.step_s, fix)
+        y, avail, allow = self._outputs(fix.t, s.gnss.period_s, fix)
         self._heading_known = bool(avail[self._jangle])
         self._window.append(fix.t, y, avail, allow, x)
         self._started = True
@@ -421,7 +425,9 @@ class MovingHorizonEstimator(BadInputCounter):
             x_new, mode = self._solve(None)
         if mode == "predict":
             self._count(
-                "fallbacks", "MHE solve failed %d times: the model prediction", self.settings.mhe_max_retries + 1
+                "fallbacks",
+                "MHE solve failed %d times: the model prediction",
+                self.settings.estimator.mhe.max_retries + 1,
             )
         self._gate_done(t, status)
         self._heading_known |= status == "ok" and bool(win.avail[-1, self._jangle])
@@ -444,10 +450,10 @@ class MovingHorizonEstimator(BadInputCounter):
         sig_e, sig_n = self._fix_sigma(fix)
         # the prediction may be off by a fraction of the distance driven since the last fix used, or by twice
         # that distance while the azimuth has never been measured (it may point anywhere)
-        drift = s.mhe_gate_drift if self._heading_known else 2.0
-        radius = s.r_cap_sigmas * max(sig_e, sig_n) + s.mhe_gate_m + drift * self._since_fix_m
+        drift = s.estimator.mhe.gate_drift if self._heading_known else 2.0
+        radius = s.estimator.r_cap_sigmas * max(sig_e, sig_n) + s.estimator.mhe.gate_m + drift * self._since_fix_m
         miss = math.hypot(fix.east_m - x_pred[self._ie], fix.north_m - x_pred[self._in])
-        if miss <= radius or self._used_fixes < max(self.policy.before, 2):
+        if miss <= radius or self._used_fixes < max(self.policy.steps_before, 2):
             return True
         log.debug("fix at %.2f rejected: %.1f m from the prediction (gate %.1f m)", fix.t, miss, radius)
         return False
@@ -463,7 +469,7 @@ class MovingHorizonEstimator(BadInputCounter):
         recent = np.array(self._reject_offsets[-REACQUIRE_FIXES:])
         spread = float(np.max(np.hypot(*(recent - recent.mean(axis=0)).T)))
         sig_e, sig_n = self._fix_sigma(fix)
-        return spread <= self.settings.r_cap_sigmas * max(sig_e, sig_n) + self.settings.mhe_gate_m
+        return spread <= self.settings.estimator.r_cap_sigmas * max(sig_e, sig_n) + self.settings.estimator.mhe.gate_m
 
     def _gate_done(self, t: float, status: GpsStatus) -> None:
         """The gate's bookkeeping once the epoch is solved: a fix used, or one more rejected."""
@@ -482,19 +488,19 @@ class MovingHorizonEstimator(BadInputCounter):
         s = self.settings
         sigma = fix.sigma_m
         if sigma is None:
-            by_quality = {GGA_RTK_FIXED: s.gps_sigma_rtk_m, GGA_RTK_FLOAT: s.gps_sigma_float_m}
-            sigma = by_quality.get(fix.quality, s.gps_sigma_m)
+            by_quality = {GGA_RTK_FIXED: s.gnss.sigma_rtk_m, GGA_RTK_FLOAT: s.gnss.sigma_float_m}
+            sigma = by_quality.get(fix.quality, s.gnss.sigma_m)
         return sigma, sigma
 
     def _fix_angle(self, fix: LocalFix, speed: float | None) -> tuple[float, float] | None:
         """The azimuth a fix measures (rad) and its sigma: heading, else course above the minimum speed."""
         s = self.settings
-        if s.use_heading and fix.heading_rad is not None and math.isfinite(fix.heading_rad):
-            return fix.heading_rad, s.gps_heading_sigma_rad
+        if s.gnss.use_heading and fix.heading_rad is not None and math.isfinite(fix.heading_rad):
+            return fix.heading_rad, s.gnss.heading_sigma_rad
         v = fix.speed_mps if fix.speed_mps is not None and math.isfinite(fix.speed_mps) else speed
-        moving = v is not None and v >= s.course_min_speed_mps
+        moving = v is not None and v >= s.gnss.course_min_speed_mps
         if moving and fix.course_rad is not None and math.isfinite(fix.course_rad):
-            return fix.course_rad, s.gps_speed_sigma_mps / max(v, 1e-3)  # type: ignore[arg-type]
+            return fix.course_rad, s.gnss.speed_sigma_mps / max(v, 1e-3)  # type: ignore[arg-type]
         return None
 
     def _outputs(
@@ -507,9 +513,9 @@ class MovingHorizonEstimator(BadInputCounter):
         self._can_outputs(t, t - 0.5 * h_prev, t + 0.5 * self.period_s, y, avail, allow)
         if fix is None:
             return y, avail, allow
-        k_sig = s.r_cap_sigmas
+        k_sig = s.estimator.r_cap_sigmas
         for j, value, sigma in zip(self._jpos, (fix.east_m, fix.north_m), self._fix_sigma(fix), strict=True):
-            y[j], avail[j], allow[j] = value, True, k_sig * max(sigma, s.gps_resolution_m)
+            y[j], avail[j], allow[j] = value, True, k_sig * max(sigma, s.gnss.resolution_m)
         can_speed = y[self._jspeed] if avail[self._jspeed] else None
         angle = self._fix_angle(fix, can_speed)
         if angle is not None:
@@ -517,7 +523,7 @@ class MovingHorizonEstimator(BadInputCounter):
             y[self._jangle], avail[self._jangle], allow[self._jangle] = angle[0], True, k_sig * angle[1] + turn
         speed = gps_speed(fix.speed_mps, can_speed, s) if self._jsog is not None else None
         if speed is not None:
-            sigma = max(s.gps_speed_sigma_mps, GPS_SPEED_RESOLUTION_MPS)
+            sigma = max(s.gnss.speed_sigma_mps, GPS_SPEED_RESOLUTION_MPS)
             y[self._jsog], avail[self._jsog], allow[self._jsog] = speed, True, k_sig * sigma
         return y, avail, allow
 
@@ -531,18 +537,18 @@ class MovingHorizonEstimator(BadInputCounter):
         around ``t`` (a mean over the first half alone would lag by a quarter step)."""
         s = self.settings
         for store, j, res, sigma in (
-            (self._speed, self._jspeed, s.can_speed_resolution_mps, s.can_speed_sigma_mps),
-            (self._yaw, self._jyaw, s.can_yaw_rate_resolution_rps, s.can_yaw_rate_sigma_rps),
+            (self._speed, self._jspeed, s.can.speed_quantum_mps, s.can.speed_sigma_mps),
+            (self._yaw, self._jyaw, s.can.yaw_rate_quantum_rps, s.can.yaw_rate_sigma_rps),
         ):
             reach = min(t - t0, t1 - t, store.newest - t)
             mean = store.mean(t - reach, t + reach) if reach > MIN_HALF_S else None
-            value, count = mean if mean is not None else (store.at(t, s.can_max_gap_s), 1)
+            value, count = mean if mean is not None else (store.at(t, s.can.max_gap_s), 1)
             y[j], avail[j] = (value, True) if value is not None else (0.0, False)
-            allow[j] = 0.5 * res + s.r_cap_sigmas * sigma / math.sqrt(count)
+            allow[j] = 0.5 * res + s.estimator.r_cap_sigmas * sigma / math.sqrt(count)
         if self._ik is None:
-            allow[self._jspeed] += s.speed_scale_max * abs(y[self._jspeed])
+            allow[self._jspeed] += s.can.speed_scale_max * abs(y[self._jspeed])
         if self._ib is None:
-            allow[self._jyaw] += s.yaw_rate_bias_max_rps
+            allow[self._jyaw] += s.can.yaw_rate_bias_max_rps
 
     # ---- the solve ------------------------------------------------------------------------------------------------
 
@@ -552,13 +558,15 @@ class MovingHorizonEstimator(BadInputCounter):
         if solver is None:
             s = self.settings
             t0 = time.perf_counter()
-            max_iter = s.mhe_qp_max_iter if s.mhe_solver == "sqp" else s.ipopt_max_iter
-            tol = s.mhe_qp_tol if s.mhe_solver == "sqp" else 1e-6
-            solver = make_solver(self.model, capacity, s.mhe_solver, max_iter, tol, s.mhe_sqp_iterations)
+            max_iter = s.estimator.mhe.qp_max_iter if s.estimator.mhe.solver == "sqp" else s.estimator.mhe.nlp_max_iter
+            tol = s.estimator.mhe.qp_tol if s.estimator.mhe.solver == "sqp" else 1e-6
+            solver = make_solver(
+                self.model, capacity, s.estimator.mhe.solver, max_iter, tol, s.estimator.mhe.sqp_iterations
+            )
             self._solvers[capacity] = solver
             self._counts["solver_builds"] += 1
             build_ms = 1e3 * (time.perf_counter() - t0)
-            log.info("MHE: %s solver for %d steps built in %.0f ms", s.mhe_solver, capacity, build_ms)
+            log.info("MHE: %s solver for %d steps built in %.0f ms", s.estimator.mhe.solver, capacity, build_ms)
         return solver
 
     def _noise_bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -610,9 +618,13 @@ class MovingHorizonEstimator(BadInputCounter):
         self._q_caps = mhe_q_caps(self.model, self.period_s, s)
         Q, R = self._noise_bounds()
         self._Q = Q
-        iterations = s.mhe_sqp_iterations if self.policy.steps <= L else max(s.mhe_sqp_iterations, STARTUP_ITERATIONS)
-        for attempt in range(s.mhe_max_retries + 1):
-            problem = self._problem(capacity, Q, R, s.widen_factor**attempt)
+        iterations = (
+            s.estimator.mhe.sqp_iterations
+            if self.policy.steps <= L
+            else max(s.estimator.mhe.sqp_iterations, STARTUP_ITERATIONS)
+        )
+        for attempt in range(s.estimator.mhe.max_retries + 1):
+            problem = self._problem(capacity, Q, R, s.estimator.widen_factor**attempt)
             try:
                 result = solver.solve(problem, shift if attempt == 0 else None, iterations)
             except (RuntimeError, ValueError, ArithmeticError) as e:
@@ -620,7 +632,7 @@ class MovingHorizonEstimator(BadInputCounter):
                 continue
             self.last_result = result
             self._counts["solves"] += 1
-            self._counts["qp_iterations" if s.mhe_solver == "sqp" else "nlp_iterations"] += result.iterations
+            self._counts["qp_iterations" if s.estimator.mhe.solver == "sqp" else "nlp_iterations"] += result.iterations
             if result.success:
                 self._counts["banded_solves"] += result.status == "banded"
                 if attempt:
@@ -680,7 +692,7 @@ class MovingHorizonEstimator(BadInputCounter):
         if nt == 0:
             return prior, Hr
         # the CAN states drift: W <- (W^-1 + E D E')^-1 by Woodbury, D = drift variance over dt
-        drift = np.square(self.settings.mhe_theta_drift * self._theta_range) * dt / 60.0
+        drift = np.square(self.settings.estimator.mhe.theta_drift * self._theta_range) * dt / 60.0
         E = Hr[:, -nt:]
         weight = Hr - E @ np.linalg.solve(Hr[-nt:, -nt:] + np.diag(1.0 / np.maximum(drift, 1e-30)), E.T)
         return prior, 0.5 * (weight + weight.T)
@@ -727,7 +739,7 @@ class MovingHorizonEstimator(BadInputCounter):
         times = [*ts[i:j], t1] if j == i or ts[j - 1] < t1 else ts[i:j]
         scale = x[self._ik] if self._ik is not None else 1.0
         bias = x[self._ib] if self._ib is not None else 0.0
-        gap = self.settings.can_max_gap_s
+        gap = self.settings.can.max_gap_s
         ta = t0
         for k, tb in enumerate(times):
             v = self._speed.v[i + k] if i + k < j else self._speed.at(tb, gap)
