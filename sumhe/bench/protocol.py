@@ -37,6 +37,7 @@ from sumhe.estimator.grid import build_grid
 from sumhe.geo import LocalFrame
 from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample, GnssFix, Sample
+from sumhe.model.su import integrate_odometry
 from sumhe.settings import EstimationSettings, with_changes
 from sumhe.sim import SimSettings, simulate
 from sumhe.sim.drive import Drive
@@ -213,14 +214,7 @@ def _integrate(
     wy = np.array([w for _, w in yaw])
     grid = np.union1d(np.arange(t0, times[-1] + 1e-9, 0.01), times)
     grid = grid[grid >= t0]
-    v = np.interp(grid, ts, vs)
-    w = np.interp(grid, ty, wy)
-    dt = np.diff(grid)
-    phi = phi0 - np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * dt)])
-    phi_mid = 0.5 * (phi[1:] + phi[:-1])
-    v_mid = 0.5 * (v[1:] + v[:-1])
-    east = p0[0] + np.concatenate([[0.0], np.cumsum(v_mid * np.sin(phi_mid) * dt)])
-    north = p0[1] + np.concatenate([[0.0], np.cumsum(v_mid * np.cos(phi_mid) * dt)])
+    east, north, _ = integrate_odometry(grid, np.interp(grid, ts, vs), np.interp(grid, ty, wy), p0[0], p0[1], phi0)
     return np.column_stack([np.interp(times, grid, east), np.interp(times, grid, north)])
 
 

@@ -160,11 +160,9 @@ def start_states(lp: LpSolution, model: SuModel, origin: NDArray[np.float64]) ->
     x = np.zeros((N, model.n_states))
     n_pos = 2 * model.antennas
     x[:, :n_pos] = lp.p - np.tile(origin, model.antennas)
-    x[:, model.index("phi")] = lp.phi
-    x[:, model.index("v")] = lp.speed
-    x[:, model.index("omega")] = lp.yaw_rate
-    if SCALE_STATE in model.states:
-        x[:, model.index(SCALE_STATE)] = 1.0
+    x[:, model.i_phi], x[:, model.i_v], x[:, model.i_omega] = lp.phi, lp.speed, lp.yaw_rate
+    if model.i_scale is not None:
+        x[:, model.i_scale] = 1.0
     return x
 
 

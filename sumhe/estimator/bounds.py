@@ -32,7 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sumhe.estimator.grid import GPS_SPEED_RESOLUTION_MPS, Grid
-from sumhe.model.su import GPS_SPEED_OUTPUT, SCALE_STATE, SuModel, state_residuals
+from sumhe.model.su import GPS_SPEED_OUTPUT, SuModel, integrate_odometry, state_residuals
 from sumhe.settings import EstimationSettings
 
 TOKEN_FLOOR = 1e-6
@@ -92,21 +92,16 @@ def can_trajectory(model: SuModel, grid: Grid, lever_m: float, substeps: int = 1
     v = fill_gaps(grid.can_speed, t)
     w = fill_gaps(grid.can_yaw_rate, t)
     tf = np.concatenate([np.linspace(a, b, substeps, endpoint=False) for a, b in itertools.pairwise(t)] + [t[-1:]])
-    vf, wf = np.interp(tf, t, v), np.interp(tf, t, w)
-    dt = np.diff(tf)
-    phi = np.concatenate([[0.0], -np.cumsum(0.5 * (wf[1:] + wf[:-1]) * dt)])
-    mid_phi, mid_v = 0.5 * (phi[1:] + phi[:-1]), 0.5 * (vf[1:] + vf[:-1])
-    east = np.concatenate([[0.0], np.cumsum(mid_v * np.sin(mid_phi) * dt)])
-    north = np.concatenate([[0.0], np.cumsum(mid_v * np.cos(mid_phi) * dt)])
+    east, north, phi = integrate_odometry(tf, np.interp(tf, t, v), np.interp(tf, t, w))
     k = np.arange(len(t)) * substeps
     x = np.zeros((len(t), model.n_states))
-    x[:, 0], x[:, 1] = east[k], north[k]
+    ie, i_n = model.position
+    x[:, ie], x[:, i_n] = east[k], north[k]
     if model.antennas == 2:
-        x[:, 2], x[:, 3] = east[k] - lever_m * np.sin(phi[k]), north[k] - lever_m * np.cos(phi[k])
-    i_phi = model.index("phi")
-    x[:, i_phi], x[:, i_phi + 1], x[:, i_phi + 2] = phi[k], v, w
-    if SCALE_STATE in model.states:
-        x[:, model.index(SCALE_STATE)] = 1.0
+        x[:, ie + 2], x[:, i_n + 2] = east[k] - lever_m * np.sin(phi[k]), north[k] - lever_m * np.cos(phi[k])
+    x[:, model.i_phi], x[:, model.i_v], x[:, model.i_omega] = phi[k], v, w
+    if model.i_scale is not None:
+        x[:, model.i_scale] = 1.0
     return x
 
 

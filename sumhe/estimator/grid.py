@@ -218,7 +218,7 @@ def build_grid(
         allow[:, j] = k_sig * max(settings.gnss.speed_sigma_mps, GPS_SPEED_RESOLUTION_MPS)
     has_bias = "yaw_rate_bias" in model.states
     has_scale = "speed_scale" in model.states
-    i_v, i_w = n_out - 2, n_out - 1
+    i_v, i_w = model.j_can_speed, model.j_can_yaw_rate
     for col, values in ((i_v, can_speed), (i_w, can_yaw)):
         ok = np.isfinite(values)
         y[ok, col] = values[ok]

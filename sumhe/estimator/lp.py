@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 from sumhe.errors import SolverError
 from sumhe.estimator.bounds import NoiseBounds, fill_gaps
 from sumhe.estimator.grid import Grid
-from sumhe.model.su import SCALE_STATE, SuModel
+from sumhe.model.su import SuModel
 from sumhe.settings import EstimationSettings
 
 log = logging.getLogger(__name__)
@@ -124,10 +124,9 @@ def displacements(
     """``h u_{t-1}`` of (21) for every step (N-1 x antenna positions, m): the model's own transition of the
     positions driven by the inputs (azimuth phi-hat, CAN speed and yaw rate; bias 0, scale 1)."""
     x = np.zeros((len(phi), model.n_states))
-    i_phi = model.index("phi")
-    x[:, i_phi], x[:, i_phi + 1], x[:, i_phi + 2] = phi, speed, yaw_rate
-    if SCALE_STATE in model.states:
-        x[:, model.index(SCALE_STATE)] = 1.0
+    x[:, model.i_phi], x[:, model.i_v], x[:, model.i_omega] = phi, speed, yaw_rate
+    if model.i_scale is not None:
+        x[:, model.i_scale] = 1.0
     n_pos = 2 * model.antennas
     return np.array(model.transition(x[:-1].T, x[1:].T, h)[:n_pos]).T
 

@@ -55,7 +55,8 @@ from numpy.typing import NDArray
 from scipy.linalg import solveh_banded
 
 from sumhe.errors import SolverError
-from sumhe.model.su import SuModel, wrap_angle
+from sumhe.model.compiled import NumpyFunction
+from sumhe.model.su import SuModel, output_noise, state_noise
 
 log = logging.getLogger(__name__)
 
@@ -137,40 +138,15 @@ class WindowSolver(Protocol):
     def solve(self, problem: WindowProblem, shift: int | None, iterations: int | None = None) -> SolveResult: ...
 
 
-class NumpyFunction:
-    """A CasADi function of dense inputs and outputs evaluated through its buffer interface: numpy in, numpy out,
-    without the DM conversions of a plain call (0.3 us instead of 40-150 us per call here, where the MHE makes
-    two calls per epoch). Arguments are read column-major, as CasADi stores matrices; not thread-safe (one
-    estimator, one thread)."""
-
-    def __init__(self, f: ca.Function) -> None:
-        self._buffer, self._trigger = f.buffer()
-        self._args = [np.zeros(f.nnz_in(i)) for i in range(f.n_in())]
-        self._res = [np.zeros(f.nnz_out(i)) for i in range(f.n_out())]
-        for i, a in enumerate(self._args):
-            self._buffer.set_arg(i, memoryview(a))
-        for i, r in enumerate(self._res):
-            self._buffer.set_res(i, memoryview(r))
-
-    def __call__(self, *args: NDArray[np.float64] | float) -> NDArray[np.float64]:
-        """The first output (a copy) for these arguments."""
-        for dst, src in zip(self._args, args, strict=True):
-            dst[:] = np.ravel(src, order="F")
-        self._trigger()
-        return self._res[0].copy()
-
-
 def residual_functions(model: SuModel) -> tuple[ca.Function, ca.Function]:
     """CasADi functions of one step: state noise ``w(x_prev, x_next, h)`` (m_dynamic) and output noise
-    ``e(x, y)`` (n). Output angles are wrapped with atan2(sin, cos) as in :mod:`sumhe.estimator.problem`; the
-    azimuth state is kept continuous along the window (never wrapped), so its noise is not: a wrapped state
-    noise would let the azimuth jump by 2 pi from step to step, away from its arrival box."""
-    m, md, n = model.n_states, model.n_dynamic, model.n_outputs
+    ``e(x, y)`` (n), by the model's one residual rule (:func:`~sumhe.model.su.state_noise`,
+    :func:`~sumhe.model.su.output_noise`)."""
+    m, n = model.n_states, model.n_outputs
     xp, xn, h = ca.SX.sym("xp", m), ca.SX.sym("xn", m), ca.SX.sym("h")
-    w = xn[:md] - ca.vertcat(*model.transition(xp, xn, h, ca)[:md])
     x, y = ca.SX.sym("x", m), ca.SX.sym("y", n)
-    e = y - ca.vertcat(*model.output(x, ca))
-    e = ca.vertcat(*[wrap_angle(e[j], ca) if j in model.angle_outputs else e[j] for j in range(n)])
+    w = ca.vertcat(*state_noise(model, xp, xn, h, ca))
+    e = ca.vertcat(*output_noise(model, x, y, ca))
     return ca.Function("w", [xp, xn, h], [w]), ca.Function("e", [x, y], [e])
 
 
