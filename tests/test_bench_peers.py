@@ -14,8 +14,8 @@ from sumhe.bench import peers
 from sumhe.bench.peers import BenchRunError, Outage, PeersSettings, call_isolated, outage_plan, run_bench, summarise
 from sumhe.cli import main
 from sumhe.commands.candump import reference_config
-from sumhe.estimator.base import LocalFix
 from sumhe.estimator.registry import ESTIMATORS, estimator_names
+from sumhe.frontend.fixes import LocalFix
 from sumhe.messages import CanSample, GnssFix
 from sumhe.sim import SimSettings, simulate, write_drive
 

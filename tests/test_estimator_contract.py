@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 from sumhe.config import DatumSettings, GpsSettings, load_config
-from sumhe.estimator.base import Estimator, FixConverter, LocalFix, StateEstimate
+from sumhe.estimator.base import Estimator, StateEstimate
 from sumhe.estimator.registry import estimator_names, make_estimator
+from sumhe.frontend.fixes import FixConverter, LocalFix
 from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample, GnssFix
 from sumhe.sim import Drive, SimSettings, simulate
@@ -75,7 +76,8 @@ def synthetic_drive(
                 valid=True,
                 east_m=east[i] + e,
                 north_m=north[i] + n,
-                sigma_m=0.3,
+                gst_sigma_east_m=0.3,
+                gst_sigma_north_m=0.3,
                 speed_mps=v[i],
                 course_rad=phi[i] % (2 * math.pi),
             )
@@ -227,7 +229,7 @@ def test_bad_data_never_raises(estimator: Estimator) -> None:
         CanSample(t + 0.01, "no_such_quantity", 1.0),
         LocalFix(t=math.inf, valid=True, east_m=0.0, north_m=0.0),
         LocalFix(t=t + 0.05, valid=True, east_m=math.nan, north_m=1.0),
-        LocalFix(t=t + 0.15, valid=True, east_m=1.0, north_m=1.0, sigma_m=-1.0),
+        LocalFix(t=t + 0.15, valid=True, east_m=1.0, north_m=1.0, gst_sigma_east_m=-1.0, gst_sigma_north_m=-1.0),
         GnssFix(t=t + 0.2, time_utc=None, lat_deg=None, lon_deg=None, alt_m=None, quality=0, valid=False),
         "not a sample",
         CanSample(t + 0.3, "speed", 10.0),
@@ -244,7 +246,12 @@ def test_reset_forgets_the_drive(estimator: Estimator) -> None:
     estimator.reset()
     t = max(s.t for s in drive.samples)
     assert estimator.push(CanSample(t + 0.02, "speed", 0.0)) == []
-    fixes = [LocalFix(t=t + 0.05 + 0.1 * k, valid=True, east_m=500.0, north_m=-20.0, sigma_m=0.5) for k in range(3)]
+    fixes = [
+        LocalFix(
+            t=t + 0.05 + 0.1 * k, valid=True, east_m=500.0, north_m=-20.0, gst_sigma_east_m=0.5, gst_sigma_north_m=0.5
+        )
+        for k in range(3)
+    ]
     outputs = run(estimator, fixes)
     assert outputs.estimates and all(e.t >= t for e in outputs.estimates)
     for e in outputs.estimates:
@@ -258,7 +265,12 @@ def test_restarts_after_a_long_data_gap(estimator: Estimator) -> None:
     run(estimator, drive.samples, finish=False)
     t = max(s.t for s in drive.samples) + 60.0
     assert estimator.push(CanSample(t, "speed", 0.0)) == []
-    fixes = [LocalFix(t=t + 0.01 + 0.1 * k, valid=True, east_m=-300.0, north_m=7.0, sigma_m=0.5) for k in range(3)]
+    fixes = [
+        LocalFix(
+            t=t + 0.01 + 0.1 * k, valid=True, east_m=-300.0, north_m=7.0, gst_sigma_east_m=0.5, gst_sigma_north_m=0.5
+        )
+        for k in range(3)
+    ]
     outputs = run(estimator, fixes)
     assert outputs.estimates and all(e.t >= t for e in outputs.estimates)
     assert all(e.east_m == pytest.approx(-300.0, abs=0.5) for e in outputs.estimates)

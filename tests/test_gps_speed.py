@@ -12,9 +12,10 @@ from sumhe.baseline.ekf import Ekf
 from sumhe.bench.mhe import drive_stream, run_stream
 from sumhe.config import Config
 from sumhe.estimator.batch import model_for
-from sumhe.estimator.grid import build_grid, gps_speed
+from sumhe.estimator.grid import build_grid
 from sumhe.estimator.mhe import MovingHorizonEstimator
 from sumhe.estimator.registry import make_estimator
+from sumhe.frontend.measurements import gps_speed
 from sumhe.model.su import GPS_SPEED_OUTPUT, su_model
 from sumhe.settings import EstimationSettings, with_changes
 from sumhe.sim import SimSettings, simulate
@@ -36,12 +37,12 @@ def test_the_models_gain_the_speed_output_before_the_can_ones() -> None:
 
 
 def test_which_speeds_count() -> None:
-    assert gps_speed(10.0, 9.9, SETTINGS) == 10.0
-    assert gps_speed(10.0, None, SETTINGS) == 10.0
-    assert gps_speed(10.0, -9.9, SETTINGS) == -10.0  # reversing: the sign of the CAN speed
-    assert gps_speed(1.5, 1.5, SETTINGS) is None  # below course_min_speed_mps: Doppler speeds are biased there
-    assert gps_speed(None, 5.0, SETTINGS) is None
-    assert gps_speed(math.nan, 5.0, SETTINGS) is None
+    assert gps_speed(10.0, 9.9, SETTINGS.gnss) == 10.0
+    assert gps_speed(10.0, None, SETTINGS.gnss) == 10.0
+    assert gps_speed(10.0, -9.9, SETTINGS.gnss) == -10.0  # reversing: the sign of the CAN speed
+    assert gps_speed(1.5, 1.5, SETTINGS.gnss) is None  # below course_min_speed_mps: Doppler speeds are biased there
+    assert gps_speed(None, 5.0, SETTINGS.gnss) is None
+    assert gps_speed(math.nan, 5.0, SETTINGS.gnss) is None
 
 
 def test_the_grid_carries_the_speed_of_the_fixes() -> None:

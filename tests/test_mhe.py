@@ -12,13 +12,16 @@ import pytest
 from sumhe.bench.mhe import drive_stream, run_stream
 from sumhe.config import Config, GpsSettings
 from sumhe.errors import ConfigError
-from sumhe.estimator.base import Estimator, LocalFix, StateEstimate
+from sumhe.estimator.base import Estimator, StateEstimate
 from sumhe.estimator.batch import model_for, state_box
 from sumhe.estimator.bounds import noise_bounds
 from sumhe.estimator.grid import build_grid
 from sumhe.estimator.mhe import MovingHorizonEstimator
+from sumhe.estimator.mhe.nlp import NlpSolver
+from sumhe.estimator.mhe.problem import WindowProblem
+from sumhe.estimator.mhe.sqp import SqpSolver
 from sumhe.estimator.registry import make_estimator
-from sumhe.estimator.sqp import NlpSolver, SqpSolver, WindowProblem
+from sumhe.frontend.fixes import LocalFix
 from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample, GnssFix
 from sumhe.settings import EstimationSettings, with_changes

@@ -7,7 +7,7 @@ import pytest
 
 from sumhe.config import load_config
 from sumhe.errors import ConfigError
-from sumhe.estimator.window import Plan, Window, outage_anchor, plan_window
+from sumhe.estimator.mhe.window import Plan, Window, outage_anchor, plan_window
 from sumhe.settings import MheSettings
 
 PERIOD = 0.1

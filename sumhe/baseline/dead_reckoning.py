@@ -18,7 +18,7 @@ from sumhe.baseline import kinematics as kin
 from sumhe.baseline.kinematics import OMEGA, PHI, FloatArray, V
 from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
 from sumhe.config import Config
-from sumhe.estimator.base import LocalFix
+from sumhe.frontend.stream import FixMeasurement
 from sumhe.settings import EstimationSettings, NoiseSettings
 
 MOTION_HEADING_M = 5.0
@@ -82,16 +82,16 @@ class DeadReckoning(RecursiveEstimator):
         self.x[PHI] = phi
         kin.wrap_state(self.x)
 
-    def _fix_angle(self, fix: LocalFix) -> tuple[float, float] | None:
+    def _fix_angle(self, fix: FixMeasurement) -> tuple[float, float] | None:
         angle = super()._fix_angle(fix)
-        here = np.array([fix.east_m, fix.north_m])
-        if angle is not None or self._anchor is None or fix.t - self._anchor_t > MOTION_HEADING_MAX_S:
-            self._anchor, self._anchor_t = here, fix.t
+        here, t = np.array([fix.east_m, fix.north_m]), fix.fix.t
+        if angle is not None or self._anchor is None or t - self._anchor_t > MOTION_HEADING_MAX_S:
+            self._anchor, self._anchor_t = here, t
             return angle
         d = here - self._anchor
         if math.hypot(*d) < MOTION_HEADING_M:
             return None
-        self._anchor, self._anchor_t = here, fix.t
+        self._anchor, self._anchor_t = here, t
         return math.atan2(d[0], d[1]), MOTION_HEADING_SIGMA_RAD
 
     def _mean(self) -> FloatArray:

@@ -29,7 +29,8 @@ from sumhe.baseline import kinematics as kin
 from sumhe.baseline.ekf import Ekf
 from sumhe.baseline.kinematics import OMEGA, PHI, E, FloatArray, N, V
 from sumhe.baseline.stream import Inputs
-from sumhe.estimator.base import LocalFix, StateEstimate
+from sumhe.estimator.base import StateEstimate
+from sumhe.frontend.fixes import LocalFix
 from sumhe.messages import CanSample
 from sumhe.settings import EstimationSettings, NoiseSettings
 

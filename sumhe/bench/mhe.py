@@ -33,10 +33,11 @@ from numpy.typing import NDArray
 from sumhe.bench.metrics import horizontal_errors, interval_index, mean_p95_max, net_errors, offsets_before
 from sumhe.config import Config, DatumSettings, GpsSettings
 from sumhe.errors import SumheError
-from sumhe.estimator.base import Estimator, FixConverter, LocalFix, StateEstimate
+from sumhe.estimator.base import Estimator, StateEstimate
 from sumhe.estimator.batch import estimate_batch
 from sumhe.estimator.mhe import MovingHorizonEstimator
 from sumhe.estimator.registry import make_estimator
+from sumhe.frontend.fixes import FixConverter, LocalFix
 from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample, Sample
 from sumhe.settings import CanModel, EstimationSettings, with_changes

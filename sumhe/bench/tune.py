@@ -36,7 +36,8 @@ from sumhe.baseline.rts import Rts
 from sumhe.baseline.stream import RecursiveEstimator
 from sumhe.baseline.ukf import Ukf
 from sumhe.config import DatumSettings, GpsSettings
-from sumhe.estimator.base import FixConverter, LocalFix, StateEstimate
+from sumhe.estimator.base import StateEstimate
+from sumhe.frontend.fixes import FixConverter, LocalFix
 from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample
 from sumhe.settings import CanModel, EstimationSettings, NoiseSettings

@@ -31,7 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from sumhe.estimator.grid import GPS_SPEED_RESOLUTION_MPS, Grid
+from sumhe.estimator.grid import Grid
+from sumhe.frontend.measurements import GPS_SPEED_RESOLUTION_MPS
 from sumhe.model.su import GPS_SPEED_OUTPUT, SuModel, integrate_odometry, state_residuals
 from sumhe.settings import EstimationSettings
 

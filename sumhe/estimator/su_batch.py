@@ -18,8 +18,9 @@ import numpy as np
 
 from sumhe.config import Config
 from sumhe.errors import EstimatorInputError
-from sumhe.estimator.base import LocalFix, StateEstimate
+from sumhe.estimator.base import StateEstimate
 from sumhe.estimator.batch import SuResult, estimate_batch
+from sumhe.frontend.fixes import LocalFix
 from sumhe.geo import LocalFrame
 from sumhe.messages import CanSample, GnssFix, Sample
 from sumhe.settings import EstimationSettings
