@@ -73,7 +73,8 @@ def add_mhe_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_mhe(args: argparse.Namespace) -> int:
-    from sumhe.bench.mhe import MheBenchSettings, run_benchmark
+    from sumhe.bench.mhe import MheBenchSettings
+    from sumhe.bench.mhe_report import run_benchmark
 
     bs = MheBenchSettings.quick() if args.quick else MheBenchSettings()
     if args.solvers:
@@ -109,7 +110,7 @@ def _names(text: str) -> tuple[str, ...]:
 
 
 def _peers_settings(args: argparse.Namespace) -> Any:
-    from sumhe.bench.peers import PeersSettings
+    from sumhe.bench.drives import PeersSettings
     from sumhe.errors import ConfigError
     from sumhe.estimator.registry import estimator_names
 
@@ -177,7 +178,8 @@ def run_peers(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from sumhe.bench.peers import how_it_ran, main_table, markdown, run_bench, summarise
+    from sumhe.bench.peers import run_bench
+    from sumhe.bench.report import how_it_ran, main_table, markdown, summarise
     from sumhe.commands.candump import reference_config
     from sumhe.config import load_config
 
