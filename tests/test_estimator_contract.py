@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 
 from sumhe.config import DatumSettings, GpsSettings, load_config
-from sumhe.estimator.base import Estimator, StateEstimate
+from sumhe.estimator.base import Estimator, StateEstimate, StreamEstimator
 from sumhe.estimator.registry import estimator_names, make_estimator
 from sumhe.frontend.fixes import FixConverter, LocalFix
+from sumhe.frontend.stream import Epoch
 from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample, GnssFix
 from sumhe.sim import Drive, SimSettings, simulate
@@ -133,6 +134,29 @@ def test_is_an_estimator(estimator: Estimator) -> None:
     stats = estimator.stats()
     assert isinstance(stats, Mapping)
     assert all(isinstance(k, str) and isinstance(v, int | float | str) for k, v in stats.items())
+
+
+def test_live_estimators_answer_the_front_ends_events(estimator: Estimator) -> None:
+    """The smaller interface under ``push``: one estimate per epoch at its time (``outage`` without a fix, the
+    ``start`` epoch ``ok``), and per CAN speed tick one estimate at the tick's measurement time or stamp."""
+    assert isinstance(estimator, StreamEstimator)
+    drive = synthetic_drive(8.0, nofix=[(4.0, 0.5)])
+    epochs = ticks = 0
+    for sample in drive.samples:
+        for event in estimator.frontend.push(sample):
+            if isinstance(event, Epoch):
+                e = estimator.on_epoch(event)
+                assert e.t == event.t
+                assert e.gps == "ok" if event.start else e.gps in ("ok", "rejected", "outage")
+                assert event.fix is not None or e.gps == "outage"
+                epochs += 1
+            else:
+                answer = estimator.on_can(event)
+                if event.quantity == "speed":
+                    assert answer is not None and answer.t in (event.t, event.stamp)
+                    ticks += 1
+    assert epochs == sum(isinstance(s, LocalFix) for s in drive.samples)  # a usable fix first: every one counts
+    assert ticks > 300
 
 
 def test_nothing_before_the_first_valid_fix(estimator: Estimator) -> None:
