@@ -45,8 +45,9 @@ from sumhe.settings import EstimationSettings
 @dataclass(frozen=True, slots=True)
 class StateEstimate:
     """An estimator's answer in the local frame: east/north (m), azimuth (rad, clockwise from north),
-    speed (m/s), yaw rate (rad/s, anticlockwise). ``bound_*`` are half-widths of the set of positions
-    consistent with model and data, where the estimator knows them."""
+    speed (m/s), yaw rate (rad/s, anticlockwise); the GNSS status and the estimator's mode; ``bound_*`` the
+    half-widths of the set of positions consistent with model and data, where the estimator knows them; the window
+    length (steps) and the time of the push that made it (ms)."""
 
     t: float
     east_m: float
@@ -56,10 +57,10 @@ class StateEstimate:
     yaw_rate_rps: float
     gps: GpsStatus
     mode: str
-    window: int = 0
-    solve_ms: float = 0.0
     bound_east_m: float | None = None
     bound_north_m: float | None = None
+    window: int = 0
+    solve_ms: float = 0.0
 
 
 @runtime_checkable
