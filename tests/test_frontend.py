@@ -147,12 +147,12 @@ def test_events_start_at_the_first_usable_fix_and_missed_epochs_come_first() -> 
     assert start.fix.speed_mps == 10.0 and start.fix.azimuth_rad == 0.5
     assert start.fix.sigma_east_m == pytest.approx(1.5)  # HDOP x UERE
     (tick,) = fe.push(CanSample(10.10, "speed", 10.0))
-    assert tick == CanTick(pytest.approx(10.08), 10.10, "speed", 10.0)  # measured the CAN delay before its stamp
+    assert tick == CanTick(pytest.approx(10.08), 10.10, "speed", 10.0, output=True)  # measured delay_s before its stamp
     fe.push(_fix(10.15))
     fe.push(_fix(10.25))
     # GNSS falls silent: each CAN sample reveals the epochs missed before it
     events = fe.push(CanSample(10.52, "yaw_rate", 0.1))
-    assert [type(e) for e in events] == [Epoch, Epoch, CanTick]
+    assert [type(e) for e in events] == [Epoch, Epoch, CanTick] and not events[2].output  # type: ignore[union-attr]
     assert [e.t for e in events[:2]] == pytest.approx([10.35, 10.45]) and all(e.missed for e in events[:2])  # type: ignore[union-attr]
     assert fe.tally.counts["missed_epochs"] == 2
 

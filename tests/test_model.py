@@ -21,6 +21,7 @@ from sumhe.model import (
     su_model,
     wrap_angle,
 )
+from sumhe.model.su import can_motion
 
 
 def test_su5_step_by_hand() -> None:
@@ -143,6 +144,14 @@ def test_unknown_model_or_scheme() -> None:
         su_model("su9")
     with pytest.raises(ValueError, match="discretisation"):
         su_model("su5", discretisation="rk4")
+
+
+def test_can_motion_inverts_the_can_outputs() -> None:
+    m = su_model("su5", yaw_rate_bias=True, speed_scale=True)
+    x = np.array([0.0, 0.0, 0.1, 12.0, 0.2, 0.01, 1.03])
+    speed, yaw_rate = m.output(x)[m.j_can_speed], m.output(x)[m.j_can_yaw_rate]
+    assert can_motion(speed, yaw_rate, x, m.i_bias, m.i_scale) == pytest.approx([12.0, 0.2])
+    assert can_motion(5.0, 0.1, x[:5], None, None) == [5.0, 0.1]
 
 
 def test_named_indices() -> None:

@@ -84,7 +84,7 @@ class DeadReckoning(RecursiveEstimator):
 
     def _fix_angle(self, fix: FixMeasurement) -> tuple[float, float] | None:
         angle = super()._fix_angle(fix)
-        here, t = np.array([fix.east_m, fix.north_m]), fix.fix.t
+        here, t = np.array([fix.east_m, fix.north_m]), fix.t
         if angle is not None or self._anchor is None or t - self._anchor_t > MOTION_HEADING_MAX_S:
             self._anchor, self._anchor_t = here, t
             return angle

@@ -99,16 +99,6 @@ def process_noise(dt: float, noise: NoiseSettings, layout: Layout) -> FloatArray
     return np.diag(np.square(dens) * abs(dt))
 
 
-def speed_scale(x: FloatArray, layout: Layout) -> FloatArray | float:
-    """k of the state(s), 1 without a scale state."""
-    return x[layout.k] if layout.k is not None else 1.0
-
-
-def yaw_rate_bias(x: FloatArray, layout: Layout) -> FloatArray | float:
-    """b of the state(s), 0 without a bias state."""
-    return x[layout.b] if layout.b is not None else 0.0
-
-
 def can_model(x: FloatArray, rows: tuple[str, ...], layout: Layout) -> FloatArray:
     """The CAN rows of the state(s): ``speed`` and ``yaw_rate`` as su5 measures them (k v, omega + b,
     :func:`~sumhe.model.su.can_outputs`), ``standstill`` omega."""

@@ -20,7 +20,7 @@ from sumhe.baseline import kinematics as kin
 from sumhe.baseline.kinematics import OMEGA, PHI, FloatArray, V
 from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
 from sumhe.config import Config
-from sumhe.model.su import wrap_angle
+from sumhe.model.su import can_motion, wrap_angle
 from sumhe.settings import EstimationSettings, NoiseSettings
 
 RESAMPLE_ESS = 0.5
@@ -91,11 +91,9 @@ class ParticleFilter(RecursiveEstimator):
     def _set_inputs(self, inputs: Inputs) -> None:
         """Speed and yaw rate of every particle from the CAN inputs and its own scale and bias."""
         speed = inputs.speed if inputs.speed is not None else 0.0
-        self.X[V] = speed / kin.speed_scale(self.X, self.layout)
-        if inputs.standstill or inputs.yaw_rate is None:
-            self.X[OMEGA] = 0.0
-        else:
-            self.X[OMEGA] = inputs.yaw_rate - kin.yaw_rate_bias(self.X, self.layout)
+        yaw_rate = inputs.yaw_rate if inputs.yaw_rate is not None else 0.0
+        self.X[V], omega = can_motion(speed, yaw_rate, self.X, self.layout.b, self.layout.k)
+        self.X[OMEGA] = 0.0 if inputs.standstill or inputs.yaw_rate is None else omega
 
     def _predict(self, dt: float, inputs: Inputs) -> None:
         self._set_inputs(inputs)

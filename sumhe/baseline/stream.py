@@ -177,7 +177,7 @@ class RecursiveEstimator(StreamEstimator):
         return self._report(t, status)
 
     def on_can(self, tick: CanTick) -> StateEstimate | None:
-        if tick.quantity != "speed" or not self._started:
+        if not tick.output or not self._started:
             return None
         inputs = self._inputs(tick.t)
         self._advance(tick.t, inputs)
@@ -244,7 +244,7 @@ class RecursiveEstimator(StreamEstimator):
             self._t_state = t
 
     def _begin(self, fix: FixMeasurement) -> None:
-        t = fix.fix.t
+        t = fix.t
         inputs = self._inputs(t)
         angle = self._fix_angle(fix)
         self._heading_known = angle is not None
@@ -283,7 +283,7 @@ class RecursiveEstimator(StreamEstimator):
         sigma_e, sigma_n = scale * fix.sigma_east_m, scale * fix.sigma_north_m
         z = np.array([fix.east_m, fix.north_m])
         R = np.diag([sigma_e**2, sigma_n**2])
-        t = fix.fix.t
+        t = fix.t
         status = self._gated_update(POSITION, z, R, lag, self._pos_gate, t, max(sigma_e, sigma_n))
         if status == "rejected":
             return status
@@ -306,7 +306,7 @@ class RecursiveEstimator(StreamEstimator):
             self._heading_known = True
             return
         R = np.array([[sigma_phi**2]])
-        if self._gated_update(AZIMUTH, np.array([phi]), R, lag, self._az_gate, fix.fix.t, sigma_phi) == "rejected":
+        if self._gated_update(AZIMUTH, np.array([phi]), R, lag, self._az_gate, fix.t, sigma_phi) == "rejected":
             self.tally.count("azimuth_rejected", "GNSS course/heading rejected by the gate")
 
     def _gated_update(

@@ -15,6 +15,14 @@ is worth and when it counts:
   ``MAX_DATA_GAP_S`` restarts there (counted ``restarts``).
 
 Events come out in time order: an epoch a CAN sample's time reveals as missed comes before that sample's tick.
+
+Where the inputs still to come belong (each one place): a GNSS time offset against the CAN clock corrects the
+epoch's and the measurement's time in :meth:`FrontEnd._fix`; a course that errs by more than the speed says, or
+differs from the heading (sideslip, mounting), is :func:`~sumhe.frontend.measurements.azimuth_measurement`'s; NMEA
+without HDOP or GST falls to ``sensors.gnss.sigma_m`` in :func:`~sumhe.frontend.measurements.fix_sigmas`; sparse,
+quantised CAN speed (OBD-II polling) is the buffer's and the DBC quantum's (:mod:`sumhe.io.quanta`), and which
+samples make an estimate is :data:`OUTPUT_QUANTITY`; a fix arriving after newer CAN data is judged in
+:meth:`FrontEnd._fix` (``MAX_FIX_LAG_S``).
 """
 
 from __future__ import annotations
@@ -35,6 +43,8 @@ MAX_DATA_GAP_S = 10.0
 """No sample at all for this long (a clock jump, a paused replay) restarts the estimator at the next usable fix."""
 MAX_FIX_LAG_S = 1.0
 """Fixes older than this behind the newest CAN data are dropped (counted ``late_fixes``)."""
+OUTPUT_QUANTITY = "speed"
+"""The CAN quantity whose samples the estimators answer with an estimate."""
 CAN_KEEP_S = 2.0
 """CAN samples are kept for this long, or three periods if longer, behind the newest epoch."""
 
@@ -57,9 +67,11 @@ class Tally:
 
 @dataclass(frozen=True, slots=True)
 class FixMeasurement:
-    """What one usable fix measures, with its 1-sigma errors: position (m, the local frame), azimuth (rad; a
-    heading, or a course over ground) and speed (m/s, signed like the CAN speed), None where it measures none."""
+    """What one usable fix measures at ``t`` (s, the measurement time on the CAN clock), with its 1-sigma errors:
+    position (m, the local frame), azimuth (rad; a heading, or a course over ground) and speed (m/s, signed like
+    the CAN speed), None where it measures none."""
 
+    t: float
     east_m: float
     north_m: float
     sigma_east_m: float
@@ -86,12 +98,14 @@ class Epoch:
 
 @dataclass(frozen=True, slots=True)
 class CanTick:
-    """A CAN sample taken in: ``t`` its measurement time, ``stamp`` its timestamp (s)."""
+    """A CAN sample taken in: ``t`` its measurement time, ``stamp`` its timestamp (s); ``output``: the estimators
+    answer it with an estimate (the CAN-rate output runs at the rate of the ``speed`` samples)."""
 
     t: float
     stamp: float
     quantity: str
     value: float
+    output: bool
 
 
 class FrontEnd:
@@ -153,7 +167,7 @@ class FrontEnd:
         if not self.started:
             return []
         events: list[Epoch | CanTick] = self._missed(t - self.clock.delay_s)
-        events.append(CanTick(t, stamp, q, float(value)))
+        events.append(CanTick(t, stamp, q, float(value), output=q == OUTPUT_QUANTITY))
         return events
 
     # ---- GNSS -------------------------------------------------------------------------------------------------
@@ -198,6 +212,7 @@ class FrontEnd:
         angle = azimuth_measurement(fix.course_rad, fix.heading_rad, speed, s.gnss)
         sigma_e, sigma_n = fix.sigmas(s.gnss)
         return FixMeasurement(
+            t=fix.t,
             east_m=fix.east_m,
             north_m=fix.north_m,
             sigma_east_m=sigma_e,

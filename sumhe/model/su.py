@@ -138,6 +138,14 @@ def can_outputs(v: Any, omega: Any, x: Any, bias_index: int | None, scale_index:
     return [speed, yaw_rate]
 
 
+def can_motion(speed: Any, yaw_rate: Any, x: Any, bias_index: int | None, scale_index: int | None) -> list[Any]:
+    """The speed (m/s) and yaw rate (rad/s) of a vehicle whose CAN reads ``speed`` and ``yaw_rate``: the inverse of
+    :func:`can_outputs` at the CAN states of ``x``, ``speed / k`` and ``yaw_rate - b``."""
+    v = speed / x[scale_index] if scale_index is not None else speed
+    omega = yaw_rate - x[bias_index] if bias_index is not None else yaw_rate
+    return [v, omega]
+
+
 def su7_output(
     x: Any, ns: Any = np, bias_index: int | None = None, scale_index: int | None = None, gps_speed: bool = False
 ) -> list[Any]:

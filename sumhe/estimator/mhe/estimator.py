@@ -102,7 +102,7 @@ class MovingHorizonEstimator(StreamEstimator):
         return self._epoch(epoch.t, epoch.fix)
 
     def on_can(self, tick: CanTick) -> StateEstimate | None:
-        if tick.quantity != "speed" or not len(self.window):
+        if not tick.output or not len(self.window):
             return None
         return self._estimate(self.propagation.to(tick.t, self.frontend.can), tick.t, self._status, "can")
 
@@ -139,7 +139,7 @@ class MovingHorizonEstimator(StreamEstimator):
     def _begin(self, fix: FixMeasurement) -> StateEstimate:
         """Start at a usable fix: position from it, azimuth from its course/heading (else 0), speed and yaw rate
         from CAN, the CAN states from before a restart or none (bias 0, scale 1), under a weak prior."""
-        model, s, t = self.model, self.settings, fix.fix.t
+        model, s, t = self.model, self.settings, fix.t
         md, can = model.n_dynamic, self.frontend.can
         x = np.zeros(model.n_states)
         i_e, i_n = model.position

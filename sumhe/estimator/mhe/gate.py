@@ -65,7 +65,7 @@ class FixGate:
         miss = math.hypot(fix.east_m - east_m, fix.north_m - north_m)
         if miss <= radius or self.used_fixes < max(m.steps_before, 2):
             return True
-        log.debug("fix at %.2f rejected: %.1f m from the prediction (gate %.1f m)", fix.fix.t, miss, radius)
+        log.debug("fix at %.2f rejected: %.1f m from the prediction (gate %.1f m)", fix.t, miss, radius)
         return False
 
     def locked_out(self, t: float) -> bool:

@@ -3,7 +3,8 @@
 Between GNSS epochs the estimate is the newest solution moved on to the newest CAN speed sample
 (:class:`Propagation`); at an epoch, the window's newest state moved to the epoch is the new step's prediction
 (:func:`advance`). The CAN speed is divided by the speed scale and the yaw rate's bias removed (the model's CAN
-outputs inverted) and both are held for the step: trapezoidal steps from sample to sample.
+outputs inverted, :func:`~sumhe.model.su.can_motion`) and both are held for the step: trapezoidal steps from sample
+to sample.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import bisect
 import math
 
 from sumhe.frontend.can import CanBuffer
-from sumhe.model.su import SuModel
+from sumhe.model.su import SuModel, can_motion
 
 
 def advance(model: SuModel, x: list[float], t0: float, t1: float, can: CanBuffer, max_gap_s: float) -> list[float]:
@@ -24,19 +25,18 @@ def advance(model: SuModel, x: list[float], t0: float, t1: float, can: CanBuffer
     ts = speed.t
     i, j = bisect.bisect_right(ts, t0), bisect.bisect_right(ts, t1)
     times = [*ts[i:j], t1] if j == i or ts[j - 1] < t1 else ts[i:j]
-    i_v, i_w, i_k, i_b = model.i_v, model.i_omega, model.i_scale, model.i_bias
-    scale = x[i_k] if i_k is not None else 1.0
-    bias = x[i_b] if i_b is not None else 0.0
+    i_v, i_w = model.i_v, model.i_omega
     ta = t0
     for k, tb in enumerate(times):
         v = speed.v[i + k] if i + k < j else speed.at(tb, max_gap_s)
         mean = yaw.mean(ta, tb)
         w = mean[0] if mean is not None else yaw.at(tb, max_gap_s)
         xn = list(x)
+        v_true, w_true = can_motion(v or 0.0, w or 0.0, x, model.i_bias, model.i_scale)
         if v is not None:
-            xn[i_v] = v / scale if scale else v
+            xn[i_v] = v_true
         if w is not None:
-            xn[i_w] = w - bias
+            xn[i_w] = w_true
         x = model.transition(x, xn, tb - ta, math)
         x[i_v], x[i_w] = xn[i_v], xn[i_w]
         ta = tb
