@@ -58,7 +58,7 @@ class Layout:
     @property
     def n(self) -> int:
         """Number of states."""
-        return len(SU5_STATES) + int(self.bias) + int(self.scale)
+        return su_model("su5", self.bias, self.scale).n_states
 
     @property
     def b(self) -> int | None:
