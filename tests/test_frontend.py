@@ -72,9 +72,11 @@ def test_the_grid_and_the_stream_weigh_the_same_fix_alike() -> None:
 def test_unusable_sigmas_make_a_valid_fix_no_fix() -> None:
     for gst in (-1.0, 0.0, 2000.0):
         fix = LocalFix(t=1.0, valid=True, east_m=0.0, north_m=0.0, gst_sigma_east_m=gst, gst_sigma_north_m=gst)
-        assert not fix.usable(GNSS)
-    assert LocalFix(t=1.0, valid=True, east_m=0.0, north_m=0.0, hdop=1.0).usable(GNSS)
-    assert not LocalFix(t=1.0, valid=True, east_m=math.nan, north_m=0.0).usable(GNSS)
+        assert not fix.usable(fix.sigmas(GNSS))
+    good = LocalFix(t=1.0, valid=True, east_m=0.0, north_m=0.0, hdop=1.0)
+    assert good.usable(good.sigmas(GNSS))
+    nowhere = LocalFix(t=1.0, valid=True, east_m=math.nan, north_m=0.0)
+    assert not nowhere.usable(nowhere.sigmas(GNSS))
 
 
 # ---- azimuth and speed over ground -------------------------------------------------------------------------------

@@ -10,10 +10,9 @@ newest CAN time minus the typical delay of fixes behind the CAN data), is a miss
 from __future__ import annotations
 
 import math
+import statistics
 from collections import deque
 from collections.abc import Iterable
-
-import numpy as np
 
 PERIOD_HISTORY = 32
 """Intervals (and fix delays) remembered."""
@@ -26,13 +25,12 @@ MISSED_AFTER_PERIODS = 1.5
 def nominal_period(intervals: Iterable[float], default: float) -> float:
     """The GNSS period (s) of ``intervals`` between epochs (see the module docstring); ``default`` from fewer than
     two."""
-    d = np.asarray(list(intervals), dtype=float)
-    d = d[(d > 0) & (d <= MAX_PERIOD_S)]
+    d = [float(x) for x in intervals if 0 < x <= MAX_PERIOD_S]
     if len(d) < 2:
         return default
-    median = float(np.median(d))
-    regular = d[np.abs(d - median) <= 0.5 * median]
-    return float(np.mean(regular)) if regular.size else median
+    median = statistics.median(d)
+    regular = [x for x in d if abs(x - median) <= 0.5 * median]
+    return statistics.fmean(regular) if regular else median
 
 
 def bad_epoch_time(t: object, last_epoch: float | None) -> tuple[str, str, tuple[float, ...]] | None:
@@ -66,7 +64,7 @@ class EpochClock:
         self._last_real = t
         if newest_can > t:
             self._delays.append(newest_can - t)
-            self.delay_s = float(np.median(self._delays))
+            self.delay_s = statistics.median(self._delays)
 
     def missed(self, t_fix_clock: float) -> list[float]:
         """Times of the epochs GNSS missed up to ``t_fix_clock`` (s), each a period after the last; they become the

@@ -42,12 +42,12 @@ class LocalFix:
         fix_sigmas`)."""
         return fix_sigmas(self.quality, self.hdop, self.gst_sigma_east_m, self.gst_sigma_north_m, gnss)  # type: ignore[return-value]
 
-    def usable(self, gnss: GnssModel) -> bool:
-        """A fix flagged valid whose position is finite and whose sigmas are positive and at most
-        :data:`~sumhe.frontend.measurements.MAX_FIX_SIGMA_M` (a larger one overflows a filter's variance and says
-        the position is unknown anyway)."""
+    def usable(self, sigmas: tuple[float, float]) -> bool:
+        """A fix flagged valid whose position is finite and whose ``sigmas`` (:meth:`sigmas`) are positive and at
+        most :data:`~sumhe.frontend.measurements.MAX_FIX_SIGMA_M` (a larger one overflows a filter's variance and
+        says the position is unknown anyway)."""
         finite = math.isfinite(self.east_m) and math.isfinite(self.north_m)
-        return self.valid and finite and sigmas_usable(*self.sigmas(gnss))
+        return self.valid and finite and sigmas_usable(*sigmas)
 
 
 class FixConverter:

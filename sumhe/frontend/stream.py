@@ -182,8 +182,8 @@ class FrontEnd:
         if self.started and t < newest_can - MAX_FIX_LAG_S:
             self.tally.count("late_fixes", "GNSS epoch %.2f s behind the CAN data dropped", newest_can - t)
             return []
-        gnss = self.settings.gnss
-        usable = fix.usable(gnss)
+        sigmas = fix.sigmas(self.settings.gnss)
+        usable = fix.usable(sigmas)
         if fix.valid and not usable:
             self.tally.count("bad_fixes", "valid fix without a usable position or sigma taken as no fix")
         self.clock.observe(t, newest_can)
@@ -195,22 +195,23 @@ class FrontEnd:
             self.started = True
             self.tally.counts["epochs"] += 1
             self.can.trim(t - max(CAN_KEEP_S, 3.0 * self.period_s))
-            return [Epoch(t, self.measure(fix), start=True)]
+            return [Epoch(t, self.measure(fix, sigmas), start=True)]
         events: list[Epoch | CanTick] = self._missed(t)
         self.clock.last_epoch = t
         self.tally.counts["epochs"] += 1
         self.can.trim(t - max(CAN_KEEP_S, 3.0 * self.period_s))
-        events.append(Epoch(t, self.measure(fix) if usable else None))
+        events.append(Epoch(t, self.measure(fix, sigmas) if usable else None))
         return events
 
-    def measure(self, fix: LocalFix) -> FixMeasurement:
-        """The measurements of a usable fix (:mod:`sumhe.frontend.measurements`); the CAN speed at its time signs
-        its speed over ground and, when it has none of its own, decides whether its course counts."""
+    def measure(self, fix: LocalFix, sigmas: tuple[float, float]) -> FixMeasurement:
+        """The measurements of a usable fix whose position ``sigmas`` are :meth:`LocalFix.sigmas`
+        (:mod:`sumhe.frontend.measurements`); the CAN speed at its time signs its speed over ground and, when it
+        has none of its own, decides whether its course counts."""
         s = self.settings
         can_speed = self.can["speed"].at(fix.t, s.can.max_gap_s)
         speed = fix.speed_mps if fix.speed_mps is not None and math.isfinite(fix.speed_mps) else can_speed
         angle = azimuth_measurement(fix.course_rad, fix.heading_rad, speed, s.gnss)
-        sigma_e, sigma_n = fix.sigmas(s.gnss)
+        sigma_e, sigma_n = sigmas
         return FixMeasurement(
             t=fix.t,
             east_m=fix.east_m,
