@@ -31,6 +31,7 @@ import logging
 import math
 from collections import Counter
 from dataclasses import dataclass
+from typing import NamedTuple
 
 from sumhe.frontend.can import CAN_USED, CanBuffer
 from sumhe.frontend.epochs import EpochClock, bad_epoch_time
@@ -96,10 +97,10 @@ class Epoch:
     start: bool = False
 
 
-@dataclass(frozen=True, slots=True)
-class CanTick:
+class CanTick(NamedTuple):
     """A CAN sample taken in: ``t`` its measurement time, ``stamp`` its timestamp (s); ``output``: the estimators
-    answer it with an estimate (the CAN-rate output runs at the rate of the ``speed`` samples)."""
+    answer it with an estimate (the CAN-rate output runs at the rate of the ``speed`` samples). A named tuple: one
+    is made per CAN sample."""
 
     t: float
     stamp: float
@@ -153,7 +154,7 @@ class FrontEnd:
             self.tally.count("bad_samples", "CAN %s sample with a non-finite time or value", q)
             return []
         t = stamp - self.settings.can.delay_s
-        store = self.can[q]
+        store = self.can.samples[q]
         if t < store.newest:
             self.tally.count("dropped_backwards", "CAN %s sample %.3f s back in time dropped", q, store.newest - t)
             return []
