@@ -1,8 +1,9 @@
 """Configuration: one TOML file loaded once into frozen, validated settings.
 
 This is the only module that reads configuration files or the environment. Precedence:
-overrides (CLI) > environment (``SUMHE_<SECTION>__<KEY>``, e.g. ``SUMHE_CAN__CHANNEL=vcan1``) > file >
-defaults. Every error is a :class:`~sumhe.errors.ConfigError` naming the file and the key.
+overrides (CLI) > environment (``SUMHE_<SECTION>__<KEY>``, e.g. ``SUMHE_CAN__CHANNEL=vcan1``; a nested table's
+key with one ``__`` per level, ``SUMHE_ESTIMATOR__MHE__STEPS=80``) > file > defaults. Every error is a
+:class:`~sumhe.errors.ConfigError` naming the file and the key.
 """
 
 from __future__ import annotations
@@ -18,8 +19,9 @@ from pathlib import Path
 from typing import Any, Union
 
 from sumhe.errors import ConfigError
-from sumhe.estimator.settings import EstimatorSettings
 from sumhe.messages import CAN_QUANTITIES, GNSS_QUANTITIES
+from sumhe.settings import EstimationSettings, EstimatorSettings, SensorSettings, VehicleSettings
+from sumhe.settings.moved import MOVED
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -175,6 +177,8 @@ class Config:
     gps: GpsSettings = field(default_factory=GpsSettings)
     datum: DatumSettings = field(default_factory=DatumSettings)
     output: OutputSettings = field(default_factory=OutputSettings)
+    vehicle: VehicleSettings = field(default_factory=VehicleSettings)
+    sensors: SensorSettings = field(default_factory=SensorSettings)
     estimator: EstimatorSettings = field(default_factory=EstimatorSettings)
     source: str = "<defaults>"
     base_dir: Path = field(default_factory=Path.cwd)
@@ -202,6 +206,17 @@ class Config:
         """The files of ``can.dbc``, found by :meth:`resolve_path`."""
         return tuple(self.resolve_path(name, "can.dbc") for name in self.can.dbc_files)
 
+    @classmethod
+    def of(cls, estimation: EstimationSettings, **sections: Any) -> Config:
+        """A config with the estimator, vehicle and sensors of ``estimation`` (and other ``sections`` given)."""
+        sensors = SensorSettings(estimation.gnss, estimation.can)
+        return cls(estimator=estimation.estimator, vehicle=estimation.vehicle, sensors=sensors, **sections)
+
+    @property
+    def estimation(self) -> EstimationSettings:
+        """What an estimator reads: ``[estimator]``, ``[vehicle]`` and ``[sensors]``."""
+        return EstimationSettings.of(self.estimator, self.vehicle, self.sensors)
+
 
 _SIGNAL_QUANTITIES: dict[type, tuple[str, ...]] = {CanSettings: CAN_QUANTITIES, GpsSettings: GNSS_QUANTITIES}
 """Settings classes with a ``signals`` table -> the quantities it may map."""
@@ -211,6 +226,8 @@ _SECTIONS: dict[str, type] = {
     "gps": GpsSettings,
     "datum": DatumSettings,
     "output": OutputSettings,
+    "vehicle": VehicleSettings,
+    "sensors": SensorSettings,
     "estimator": EstimatorSettings,
 }
 
@@ -308,15 +325,20 @@ def _coerce(value: Any, hint: Any, key: str) -> Any:
     raise ValueError(f"{key}: unsupported setting type {hint!r}")
 
 
-def build_section(cls: type, table: Mapping[str, Any], section: str) -> Any:
-    """Build one frozen settings dataclass from a TOML table; ValueError messages name ``section.key``."""
+def build_section(cls: type, table: Mapping[str, Any], section: str, base: Any = None) -> Any:
+    """Build one frozen settings dataclass from a TOML table; ValueError messages name ``section.key``.
+
+    A nested settings table (e.g. ``[estimator.mhe]``) changes the keys it names in its field's default; a key
+    that moved elsewhere is refused naming its new place (:data:`sumhe.settings.moved.MOVED`)."""
     hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls) if f.init}
+    defaults = {f.name: f for f in dataclasses.fields(cls) if f.init}
     kwargs: dict[str, Any] = {}
     for key, value in table.items():
         full = f"{section}.{key}"
-        if key not in names:
-            raise ValueError(f"{full}: unknown key (known: {', '.join(sorted(names))})")
+        if full in MOVED:
+            raise ValueError(f"{full}: moved: set {MOVED[full]}")
+        if key not in defaults:
+            raise ValueError(f"{full}: unknown key (known: {', '.join(sorted(defaults))})")
         if key == "signals" and cls in _SIGNAL_QUANTITIES:
             quantities = _SIGNAL_QUANTITIES[cls]
             if not isinstance(value, Mapping):
@@ -325,10 +347,16 @@ def build_section(cls: type, table: Mapping[str, Any], section: str) -> Any:
                 if q not in quantities:
                     raise ValueError(f"{full}.{q}: unknown quantity (known: {', '.join(quantities)})")
             kwargs[key] = {q: _parse_signal(v, f"{full}.{q}") for q, v in value.items()}
+        elif dataclasses.is_dataclass(hints[key]):
+            if not isinstance(value, Mapping):
+                raise ValueError(f"{full}: expected a table")
+            f = defaults[key]
+            default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+            kwargs[key] = build_section(hints[key], value, full, default)
         else:
             kwargs[key] = _coerce(value, hints[key], full)
     try:
-        return cls(**kwargs)
+        return dataclasses.replace(base, **kwargs) if base is not None else cls(**kwargs)
     except ValueError as e:
         msg = str(e)
         raise ValueError(msg if msg.startswith(section + ".") else f"{section}.{msg}") from e
@@ -340,6 +368,7 @@ def _env_overrides(env: Mapping[str, str]) -> dict[str, Any]:
         if not name.startswith("SUMHE_") or "__" not in name:
             continue
         section, _, key = name[len("SUMHE_") :].lower().partition("__")
+        key = key.replace("__", ".")
         try:
             value: Any = tomllib.loads(f"v = {raw}")["v"]
         except tomllib.TOMLDecodeError:

@@ -216,7 +216,6 @@ def test_gps_source_can_with_nmea_logs_or_nmea_without_them_is_refused(tmp_path,
 _channels = itertools.count()
 
 
-@pytest.mark.usefixtures("no_bus_left_open")
 def test_daemon_with_gnss_from_can_needs_no_serial_port(tmp_path):
     """A live bus (python-can's virtual bus, in real time) carrying the logger's frames: fixes decoded from CAN
     reach the estimator through the service's reorder buffer; the only source is the bus."""

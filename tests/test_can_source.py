@@ -19,8 +19,6 @@ from sumhe.io.source import SourceTimeout
 
 from canframes import speed_frame, yaw_frame
 
-pytestmark = pytest.mark.usefixtures("no_bus_left_open")
-
 DEG = math.pi / 180
 _channels = itertools.count()
 

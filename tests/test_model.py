@@ -9,7 +9,10 @@ import pytest
 from sumhe.model import (
     antenna_azimuth,
     antenna_distance_residual,
+    integrate_odometry,
+    output_noise,
     output_residuals,
+    state_noise,
     state_residuals,
     su5_output,
     su5_step,
@@ -18,6 +21,7 @@ from sumhe.model import (
     su_model,
     wrap_angle,
 )
+from sumhe.model.su import MIN_COURSE_SPEED_MPS, Installation, antenna_motion, can_motion, can_outputs
 
 
 def test_su5_step_by_hand() -> None:
@@ -59,7 +63,7 @@ def test_lever_arm_swings_rear_antenna_right_in_a_left_turn() -> None:
 
 def test_outputs_with_can_bias_and_scale() -> None:
     x = [3.0, 4.0, 0.1, 20.0, 0.05, 0.007, 1.02]
-    assert su5_output(x, bias_index=5, scale_index=6) == pytest.approx([3.0, 4.0, 0.1, 20.4, 0.057])
+    assert su5_output(x, inst=Installation(bias=5, scale=6)) == pytest.approx([3.0, 4.0, 0.1, 20.4, 0.057])
     assert su5_output(x[:5]) == [3.0, 4.0, 0.1, 20.0, 0.05]
     y = su7_output([1.0, 1.0, 0.0, 0.0, 0.7, 8.0, 0.1])
     assert y[:4] == [1.0, 1.0, 0.0, 0.0]
@@ -140,3 +144,126 @@ def test_unknown_model_or_scheme() -> None:
         su_model("su9")
     with pytest.raises(ValueError, match="discretisation"):
         su_model("su5", discretisation="rk4")
+
+
+def test_can_motion_inverts_the_can_outputs() -> None:
+    m = su_model("su5", yaw_rate_bias=True, speed_scale=True)
+    x = np.array([0.0, 0.0, 0.1, 12.0, 0.2, 0.01, 1.03])
+    speed, yaw_rate = m.output(x)[m.j_can_speed], m.output(x)[m.j_can_yaw_rate]
+    assert can_motion(speed, yaw_rate, x, m.i_bias, m.i_scale) == pytest.approx([12.0, 0.2])
+    assert can_motion(5.0, 0.1, x[:5], None, None) == [5.0, 0.1]
+
+
+def test_named_indices() -> None:
+    m = su_model("su5", yaw_rate_bias=True, speed_scale=True, gps_speed=True)
+    assert (m.i_phi, m.i_v, m.i_omega, m.i_bias, m.i_scale) == (2, 3, 4, 5, 6)
+    assert (m.j_position, m.j_azimuth, m.j_gps_speed, m.j_can_speed, m.j_can_yaw_rate) == ((0, 1), 2, 3, 4, 5)
+    plain = su_model("su7")
+    assert (plain.i_phi, plain.i_bias, plain.i_scale, plain.j_gps_speed) == (4, None, None, None)
+    assert (plain.j_azimuth, plain.j_can_speed, plain.j_can_yaw_rate) == (4, 5, 6)
+
+
+def test_one_angle_rule_for_residuals_numpy_and_casadi() -> None:
+    model = su_model("su5", discretisation="trapezoid")
+    xp = np.array([0.0, 0.0, 3.1, 0.0, 0.0])
+    xn = np.array([0.0, 0.0, 3.1 + 2 * math.pi + 0.01, 0.0, 0.0])
+    # the azimuth state is continuous: a 2 pi jump is state noise, not wrapped away
+    assert state_noise(model, xp, xn, 0.1)[2] == pytest.approx(2 * math.pi + 0.01)
+    # a measured course of -3.1 rad is 0.083 rad from a state at 3.1 rad: output residuals are wrapped
+    y = np.array([0.0, 0.0, -3.1, 0.0, 0.0])
+    assert output_noise(model, xp, y)[2] == pytest.approx(2 * math.pi - 6.2)
+    sp, sn, sy = ca.SX.sym("xp", 5), ca.SX.sym("xn", 5), ca.SX.sym("y", 5)
+    f = ca.Function(
+        "r", [sp, sn, sy], [ca.vertcat(*state_noise(model, sp, sn, 0.1, ca), *output_noise(model, sp, sy, ca))]
+    )
+    expected = np.array([*state_noise(model, xp, xn, 0.1), *output_noise(model, xp, y)], dtype=float)
+    assert np.asarray(f(xp, xn, y)).ravel() == pytest.approx(expected)
+
+
+def test_odometry_is_exact_on_a_line_and_second_order_on_a_circle() -> None:
+    t = np.linspace(0.0, 10.0, 101)
+    east, north, phi = integrate_odometry(t, np.full_like(t, 5.0), np.zeros_like(t), 1.0, 2.0, math.pi / 2)
+    assert east[-1] == pytest.approx(51.0) and north[-1] == pytest.approx(2.0) and phi[-1] == math.pi / 2
+    v, omega = 10.0, 0.3
+    errors = []
+    for n in (51, 101):
+        t = np.linspace(0.0, 5.0, n)
+        east, north, phi = integrate_odometry(t, np.full(n, v), np.full(n, omega))
+        truth_e, truth_n = (v / omega) * (np.cos(-omega * t) - 1.0), -(v / omega) * np.sin(-omega * t)
+        assert phi[-1] == pytest.approx(-omega * 5.0)
+        errors.append(max(abs(east[-1] - truth_e[-1]), abs(north[-1] - truth_n[-1])))
+    assert errors[1] < 0.3 * errors[0]  # halving the step quarters the error
+
+
+# ---- the Kalman peers run this model ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("bias", "scale", "gain"), [(False, False, False), (True, False, False), (True, True, False), (True, True, True)]
+)
+@pytest.mark.parametrize("dt", [0.02, -0.15])
+def test_kalman_kinematics_are_su5(bias: bool, scale: bool, gain: bool, dt: float) -> None:
+    from sumhe.baseline import kinematics as kin
+
+    layout = kin.Layout(bias=bias, scale=scale, gain=gain)
+    su5 = su_model("su5", bias, scale, "trapezoid", yaw_rate_gain=gain)
+    assert (layout.b, layout.k, layout.g) == (su5.i_bias, su5.i_scale, su5.i_gain)
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=layout.n) + np.r_[0.0, 0.0, 0.0, 12.0, 0.0, [0.0] * bias, [1.0] * scale, [1.0] * gain]
+    # the step is su5's transition at constant speed and yaw rate: the midpoint rule
+    assert kin.step(x, dt) == pytest.approx(su5.transition(x, x, dt))
+    mid = x[2] - 0.5 * dt * x[4]
+    assert kin.step(x, dt)[:3] == pytest.approx(
+        [x[0] + dt * x[3] * math.sin(mid), x[1] + dt * x[3] * math.cos(mid), x[2] - dt * x[4]]
+    )
+    stacked = np.column_stack([x, 2 * x])
+    assert kin.step(stacked, dt)[:, 1] == pytest.approx(kin.step(2 * x, dt))
+    # Jacobians: CasADi's, checked against central differences
+    eps = 1e-6
+    fd = np.column_stack([(kin.step(x + eps * e, dt) - kin.step(x - eps * e, dt)) / (2 * eps) for e in np.eye(len(x))])
+    assert kin.step_jacobian(x, dt) == pytest.approx(fd, abs=1e-7)
+    rows = (kin.CAN_SPEED, kin.CAN_YAW_RATE, kin.STANDSTILL)
+    assert kin.can_model(x, rows, layout)[:2] == pytest.approx(su5.output(x)[-2:])
+    fd = np.column_stack(
+        [
+            (kin.can_model(x + eps * e, rows, layout) - kin.can_model(x - eps * e, rows, layout)) / (2 * eps)
+            for e in np.eye(len(x))
+        ]
+    )
+    assert kin.can_jacobian(x, rows, layout) == pytest.approx(fd, abs=1e-7)
+
+
+# ---- the sensor and installation states of issue 12 -------------------------------------------------------------
+
+
+def test_the_yaw_rate_gain_scales_the_can_yaw_rate_and_can_motion_inverts_it() -> None:
+    x = [0.0, 0.0, 0.3, 15.0, 0.2, 0.007, 1.02, 0.95]
+    speed, yaw = can_outputs(15.0, 0.2, x, 5, 6, 7)
+    assert (speed, yaw) == pytest.approx((15.3, 0.95 * 0.2 + 0.007))
+    assert can_motion(speed, yaw, x, 5, 6, 7) == pytest.approx([15.0, 0.2])
+
+
+def test_an_antenna_ahead_sees_the_turn_in_its_course() -> None:
+    """At 10 m/s and 0.2 rad/s (left), an antenna 1.5 m ahead moves 0.3 m/s to the left: its course is the azimuth
+    minus atan(0.03) (1.7 deg); one 0.4 m to the left drives 0.08 m/s slower."""
+    de, dn, course, sog = antenna_motion(0.0, 10.0, 0.2, 1.5, 0.0)
+    assert (de, dn) == pytest.approx((0.0, 1.5))
+    assert course == pytest.approx(-math.atan2(0.3, math.sqrt(100.0 + MIN_COURSE_SPEED_MPS**2)))
+    assert sog == pytest.approx(10.0 + 0.09 / 20.0, abs=1e-3)
+    de, dn, course, sog = antenna_motion(math.pi / 2, 10.0, 0.2, 0.0, 0.4)  # heading east: left is north
+    assert (de, dn) == pytest.approx((0.0, 0.4)) and course == pytest.approx(math.pi / 2)
+    assert sog == pytest.approx(10.0 - 0.08, abs=1e-3)
+    # at rest the derivatives stay finite (an NLP linearises there)
+    assert all(math.isfinite(v) for v in antenna_motion(0.0, 0.0, 0.0, 2.0, 0.3))
+
+
+def test_su5_outputs_with_the_installation_states() -> None:
+    model = su_model("su5", True, True, "trapezoid", 0.0, True, True, True, True, 0.0, 0.3)
+    assert model.states[5:] == ("yaw_rate_bias", "speed_scale", "yaw_rate_gain", "azimuth_offset", "antenna_forward")
+    assert (model.i_gain, model.i_azimuth_offset, model.i_lever) == (7, 8, 9)
+    x = np.array([10.0, 20.0, 0.0, 10.0, 0.0, 0.0, 1.0, 1.0, 0.01, 1.2])
+    y = model.output(x)
+    assert y[:2] == pytest.approx([10.0 - 0.3, 20.0 + 1.2])  # the antenna 1.2 m ahead (north), 0.3 m left (west)
+    assert y[model.j_azimuth] == pytest.approx(0.01)  # straight ahead: the azimuth plus its offset
+    with pytest.raises(ValueError, match="su5"):
+        su_model("su7", yaw_rate_gain=True)
