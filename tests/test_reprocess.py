@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from sumhe.bench.metrics import percentiles
-from sumhe.bench.reprocess import CAN_INPUTS, Histogram, counter_deltas, replay_drive
+from sumhe.bench.reprocess import Histogram, counter_deltas, replay_drive
 from sumhe.estimator.registry import estimator_names, make_estimator
+from sumhe.frontend.can import CAN_USED
 from sumhe.io.can import reference_config
 from sumhe.io.replay import RecordedDrive
 from sumhe.sim import SimSettings, simulate, write_drive
@@ -47,13 +48,13 @@ def test_counter_deltas_subtract_counters_only():
 @pytest.mark.slow
 @pytest.mark.parametrize("name", estimator_names())
 def test_every_estimator_reads_only_the_can_inputs(tmp_path, name):
-    """A replay decodes only CAN_INPUTS: every estimator must give the same estimates without the other
-    quantities (an estimator that starts reading another one must have it added to CAN_INPUTS)."""
+    """A replay decodes only CAN_USED: every estimator must give the same estimates without the other
+    quantities (an estimator that starts reading another one must have it added to CAN_USED)."""
     write_drive(simulate(SimSettings(seed=4, duration_s=20.0)), tmp_path)
     config = reference_config()
-    assert set(config.can.signals) > set(CAN_INPUTS)
+    assert set(config.can.signals) > set(CAN_USED)
     runs = []
-    for quantities in (None, CAN_INPUTS):
+    for quantities in (None, CAN_USED):
         drive = RecordedDrive(config, tmp_path / "drive.log", tmp_path / "drive.nmea", quantities=quantities)
         out = io.StringIO()
         summary = replay_drive(drive, make_estimator(name, drive.config), out=out)

@@ -29,11 +29,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sumhe.bench.reprocess import CAN_INPUTS, replay_drive
+from sumhe.bench.reprocess import replay_drive
 from sumhe.config import Config, load_config
 from sumhe.errors import ConfigError, SumheError
 from sumhe.estimator.base import Estimator
 from sumhe.estimator.registry import make_estimator
+from sumhe.frontend.can import CAN_USED
 from sumhe.io.can import reference_config
 from sumhe.io.replay import RecordedDrive, check_gps_source
 from sumhe.sim.drive import SECOND_ANTENNA_FILE
@@ -227,7 +228,7 @@ class FleetWorker:
         nmea = spec.nmea_logs if config.gps.source == "nmea" else ()
         check_gps_source(config, nmea)
         truth = load_truth(spec.truth) if spec.truth else None
-        drive = RecordedDrive(config, spec.can_logs, nmea, quantities=CAN_INPUTS)
+        drive = RecordedDrive(config, spec.can_logs, nmea, quantities=CAN_USED)
         estimator = self.estimator(task.estimator, drive.config)
         task.folder.mkdir(parents=True, exist_ok=True)
         tmp = task.estimates_path.with_suffix(".jsonl.tmp")

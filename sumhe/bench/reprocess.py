@@ -47,10 +47,6 @@ from sumhe.sim.truth import Truth
 TRUTH_CHUNK = 4096
 """Estimates compared with the truth at once (vectorised), then forgotten."""
 
-CAN_INPUTS = ("speed", "yaw_rate")
-"""The CAN quantities sumhe's estimators read (a test holds every registered estimator to it): a replay decodes
-these only, as the others would be pushed through the pipeline for nothing."""
-
 PROGRESS_EVERY_S = 60.0
 """How often (s of data) :func:`replay_drive` reports progress."""
 

@@ -28,9 +28,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sumhe.bench.reprocess import CAN_INPUTS, DriveSummary, replay_drive
+from sumhe.bench.reprocess import DriveSummary, replay_drive
 from sumhe.config import OutputSettings
 from sumhe.estimator.registry import make_estimator
+from sumhe.frontend.can import CAN_USED
 from sumhe.io.can import reference_config
 from sumhe.io.replay import RecordedDrive
 from sumhe.messages import Sample
@@ -138,7 +139,7 @@ def soak_replay(
 ) -> SoakResult:
     """Replay the drive, reading the memory every ``every_s`` seconds of data."""
     config = reference_config()
-    drive = RecordedDrive(config, can_logs, nmea_logs, quantities=CAN_INPUTS)
+    drive = RecordedDrive(config, can_logs, nmea_logs, quantities=CAN_USED)
     est = make_estimator(estimator, drive.config)
     points: list[MemoryPoint] = []
     started = time.perf_counter()
@@ -246,7 +247,7 @@ async def soak_daemon(
     config = dataclasses.replace(
         reference_config(), output=OutputSettings(udp=(f"127.0.0.1:{port}",), status_interval_s=60.0)
     )
-    samples = iter(RecordedDrive(config, can_logs, nmea_logs, quantities=CAN_INPUTS).samples())
+    samples = iter(RecordedDrive(config, can_logs, nmea_logs, quantities=CAN_USED).samples())
     head = next(samples)
     first, wall0 = head.t, time.time()
 
