@@ -179,8 +179,10 @@ def read_signals(config: Config, can_logs: Paths, nmea_logs: Paths = None) -> Dr
         source = "the CAN logs (gps.source = 'can')" if config.gps.source == "can" else "the NMEA logs"
         raise CalibrationError(f"no valid GNSS fix in {source} ({total} fixes, none with a position)")
     if len(can["speed"]) < 2:
+        ls = drive.log_stats
         raise CalibrationError(
-            f"no CAN speed decoded ({len(can['speed'])} samples): check can.signals.speed in {drive.config.source}"
+            f"no CAN speed decoded ({len(can['speed'])} samples from {ls.frames} CAN frames of {ls.files} readable "
+            f"files): check the logs and can.signals.speed in {drive.config.source}"
         )
     frame = LocalFrame(float(fixes[0].lat_deg), float(fixes[0].lon_deg), 0.0)  # type: ignore[arg-type]
     enu = frame.to_enu([f.lat_deg for f in fixes], [f.lon_deg for f in fixes])
@@ -212,33 +214,29 @@ def read_signals(config: Config, can_logs: Paths, nmea_logs: Paths = None) -> Dr
 # ---- the fits ------------------------------------------------------------------------------------------------------
 
 
-def speed_scale_fit(gnss: FloatArray, can: FloatArray, quantum_mps: float) -> tuple[float, float]:
-    """``(scale, offset_mps)`` of ``gnss = scale * (can + offset)`` (speeds > 0, m/s, paired at one time) by
+def speed_scale_fit(gnss: FloatArray, can: FloatArray, quantum_mps: float) -> tuple[float, float, float]:
+    """``(scale, offset_mps, std)`` of ``gnss = scale * (can + offset)`` (speeds > 0, m/s, paired at one time) by
     generalised least squares: the CAN speed's rounding error is one random value per quantum step (uniform over
-    a quantum: at a steady speed it does not average out), white noise besides. ``offset`` is 0 (rounded) or, for
-    a quantum of at least :data:`COARSE_QUANTUM_MPS`, half a quantum (truncated) if that fits better."""
+    a quantum: at a steady speed it does not average out), white noise besides; ``std`` is the scale's standard
+    error under that model. ``offset`` is 0 (rounded) or, for a quantum of at least :data:`COARSE_QUANTUM_MPS`,
+    half a quantum (truncated) if that fits better."""
     offsets = (0.0, quantum_mps / 2.0) if quantum_mps >= COARSE_QUANTUM_MPS else (0.0,)
     level = np.unique(np.round(can / quantum_mps), return_inverse=True)[1]
-    best = (math.inf, math.nan, 0.0)
+    n = np.bincount(level).astype(float)
+    best = (math.inf, math.nan, 0.0, math.inf)
     for offset in offsets:
         x = can + offset
         k0 = float(x @ gnss / (x @ x))
         tau2 = (k0 * quantum_mps) ** 2 / 12.0
         sigma2 = max(float(np.var(gnss - k0 * x)) - tau2, 1e-4)
-
-        def per_level(values: FloatArray) -> FloatArray:
-            return np.bincount(level, weights=values)  # type: ignore[no-any-return]
-
-        n = np.bincount(level).astype(float)
-        sx, sy = per_level(x), per_level(gnss)
+        sx, sy = np.bincount(level, weights=x), np.bincount(level, weights=gnss)
         shrink = tau2 / (sigma2 + n * tau2)
-        a = float(np.sum(per_level(x * x) - shrink * sx * sx))
-        b = float(np.sum(per_level(x * gnss) - shrink * sx * sy))
-        k = b / a
+        a = float(x @ x - np.sum(shrink * sx * sx))
+        k = float(x @ gnss - np.sum(shrink * sx * sy)) / a
         rss = float(np.sum(np.square(gnss - k * x)))
         if rss < best[0]:
-            best = (rss, k, offset)
-    return best[1], best[2]
+            best = (rss, k, offset, math.sqrt(sigma2 / a))
+    return best[1], best[2], best[3]
 
 
 def jackknife_std(
@@ -293,7 +291,7 @@ class _SpeedFit:
 def _speed_fit(t: FloatArray, g: FloatArray, sig: DriveSignals) -> _SpeedFit | None:
     q = sig.speed_quantum_mps
 
-    def at_lag(keep: NDArray[np.bool_], offset: float | None) -> tuple[LagFit, float, float] | None:
+    def at_lag(keep: NDArray[np.bool_], offset: float | None) -> tuple[LagFit, float, float, float] | None:
         fit = speed_lag(t[keep], g[keep], sig.t_speed, sig.speed)
         if fit is None:
             return None
@@ -303,17 +301,17 @@ def _speed_fit(t: FloatArray, g: FloatArray, sig: DriveSignals) -> _SpeedFit | N
         if np.count_nonzero(moving) < MIN_PAIRS:
             return None
         if offset is None:
-            k, off = speed_scale_fit(gk[moving], c[moving], q)
+            k, off, std = speed_scale_fit(gk[moving], c[moving], q)
         else:
             x = c[moving] + offset
-            k, off = float(x @ gk[moving] / (x @ x)), offset
-        return fit, k, off
+            k, off, std = float(x @ gk[moving] / (x @ x)), offset, math.nan
+        return fit, k, off, std
 
     everything = np.ones(len(t), dtype=bool)
     full = at_lag(everything, None)
     if full is None:
         return None
-    fit, k, offset = full
+    fit, k, offset, model_std = full
 
     def replicate(keep: NDArray[np.bool_]) -> tuple[float, float] | None:
         # the replicates keep the full fit's offset; the GLS weighting changes the scale by far less than its spread
@@ -327,7 +325,7 @@ def _speed_fit(t: FloatArray, g: FloatArray, sig: DriveSignals) -> _SpeedFit | N
     zero = float(np.mean(np.abs(c[moving]) < MIN_SPEED_MPS / 4))
     sign = -1.0 if negative > 0.5 else 1.0
     lag_std = max(fit.std_s, float(jack[0])) if jack is not None else fit.std_s
-    scale_std = float(jack[1]) if jack is not None else math.inf
+    scale_std = max(float(jack[1]), model_std) if jack is not None else math.inf
     origin = at_lag(everything, 0.0)
     origin_k = origin[1] if origin is not None else k
     return _SpeedFit(fit, sign * k, offset, negative, zero, lag_std, scale_std, sign * origin_k)
@@ -362,12 +360,14 @@ def _azimuth_series(sig: DriveSignals) -> tuple[FloatArray, FloatArray, str, boo
     return None
 
 
-def _yaw_fit(sig: DriveSignals, speed_scale: float) -> _YawFit | None:
+def _yaw_fit(sig: DriveSignals) -> _YawFit | None:
+    """The azimuth's fit (its speed threshold and lever term take the CAN speed as the speed: a few per cent of
+    scale do not matter there)."""
     series = _azimuth_series(sig)
     if series is None or len(sig.t_yaw) < 2:
         return None
     t, azimuth, source, lever = series
-    speed = np.abs(np.interp(t, sig.t_speed, sig.speed) * speed_scale)
+    speed = np.abs(np.interp(t, sig.t_speed, sig.speed))
     prior = LEVER_PRIOR_M if lever else None
 
     def fit_on(keep: NDArray[np.bool_], scale: float | None) -> LagFit | None:
@@ -405,6 +405,15 @@ def _yaw_fit(sig: DriveSignals, speed_scale: float) -> _YawFit | None:
     return _YawFit(full, source, lever, max(full.std_s, stds[0]), scale, scale_std, stds[2], v_eff)
 
 
+def _rear_axle_speed(t: FloatArray, g: FloatArray, yf: _YawFit, sig: DriveSignals) -> FloatArray:
+    """The receiver's speeds ``g`` (m/s, at times ``t``) less the antenna's sideways speed ``l omega`` in turns
+    (``sqrt(g^2 - (l omega)^2)``, the yaw rate from the fit): an antenna ahead of the rear axle runs faster than
+    the axle in turns, by 0.6 % at 5 m/s and 0.3 rad/s with 1.85 m, which would bias the scale of a town drive."""
+    fit = yf.fit
+    omega = fit.scale * (np.interp(t - fit.lag_s, sig.t_yaw, sig.yaw) - fit.offset)
+    return np.sign(g) * np.sqrt(np.maximum(np.square(g) - np.square(fit.lever_m * omega), 0.0))  # type: ignore[no-any-return]
+
+
 def _standstill_bias(sig: DriveSignals) -> tuple[float, float, float] | None:
     """Mean, standard error and duration (rad/s, rad/s, s) of the CAN yaw rate while the CAN speed reads zero
     before and after; None with less than :data:`STANDSTILL_MIN_S` of it."""
@@ -440,9 +449,12 @@ def calibrate(sig: DriveSignals, delay_s: float = 0.0) -> Calibration:
             + ("no speed over ground" if moving_fixes == 0 else f"a speed over ground above 2 m/s {moving_fixes} times")
             + ")"
         )
+    yf = _yaw_fit(sig)
+    if yf is not None and yf.lever:
+        g = _rear_axle_speed(t_g, g, yf, sig)
+        g_source += ", less the antenna's sideways speed in turns"
     sf = _speed_fit(t_g, g, sig) if len(t_g) else None
     offset, scale, speed_sign = _speed_parameters(sf, g_source, delay_s, sig, notes)
-    yf = _yaw_fit(sig, sf.scale if sf is not None else 1.0)
     bias, yaw_scale, yaw_sign = _yaw_parameters(yf, sig, notes)
     return Calibration(
         gps_time_offset_s=offset,

@@ -28,6 +28,11 @@ BENCHMARKS: dict[str, tuple[str, str, str]] = {
         "sumhe.commands.bench:add_mhe_arguments",
         "sumhe.commands.bench:run_mhe",
     ),
+    "calibrate": (
+        "sumhe calibrate on realistic simulated drives against their true installation parameters",
+        "sumhe.commands.bench:add_calibrate_arguments",
+        "sumhe.commands.bench:run_calibrate",
+    ),
     "live": (
         "the daemon in real time against a player process: output rate, end-to-end latency, CPU use",
         "sumhe.commands.bench:add_live_arguments",
@@ -84,6 +89,33 @@ def run_mhe(args: argparse.Namespace) -> int:
             bs = dataclasses.replace(bs, parts=tuple(s.strip() for s in args.parts.split(",") if s.strip()))
         except ValueError as e:
             raise SystemExit(f"error: --{e}") from e
+    for line in run_benchmark(bs, lambda msg: print(msg, file=sys.stderr, flush=True)):
+        print(line, flush=True)
+    return 0
+
+
+def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--quick", action="store_true", help="an urban and a highway drive of 300 s")
+    parser.add_argument("--scenarios", metavar="A,B", help="simulated scenarios (default urban,highway,offroad)")
+    parser.add_argument("--seeds", metavar="1,2,3", help="simulation seeds (default 1,2,3,4)")
+    parser.add_argument("--duration", type=float, metavar="S", help="length of each drive (default 600 s)")
+
+
+def run_calibrate(args: argparse.Namespace) -> int:
+    from sumhe.bench.calibrate import CalibrateBenchSettings, run_benchmark
+    from sumhe.errors import ConfigError
+
+    changes: dict[str, Any] = {}
+    try:
+        if args.scenarios:
+            changes["scenarios"] = _names(args.scenarios)
+        if args.seeds:
+            changes["seeds"] = tuple(int(s) for s in _names(args.seeds))
+        if args.duration is not None:
+            changes["duration_s"] = args.duration
+        bs = dataclasses.replace(CalibrateBenchSettings.quick() if args.quick else CalibrateBenchSettings(), **changes)
+    except ValueError as e:
+        raise ConfigError(f"bench calibrate: {e}") from e
     for line in run_benchmark(bs, lambda msg: print(msg, file=sys.stderr, flush=True)):
         print(line, flush=True)
     return 0
