@@ -19,6 +19,7 @@ def test_the_accuracy_part_compares_with_the_ekf_raw_and_net_of_the_gnss_offset(
         duration_s=80.0,
         baselines=("ekf",),
         parts=("accuracy",),
+        profiles=("kind",),
     )
     progress: list[str] = []
     text = "\n".join(run_benchmark(bs, progress.append))
@@ -31,8 +32,28 @@ def test_the_accuracy_part_compares_with_the_ekf_raw_and_net_of_the_gnss_offset(
     assert any("outages 5 s" in p for p in progress)
 
 
+def test_the_accuracy_part_runs_the_realistic_profile_apart() -> None:
+    bs = MheBenchSettings(
+        seeds=(22,),
+        realistic_scenarios=("urban",),
+        outage_lengths_s=(5.0,),
+        duration_s=80.0,
+        baselines=("ekf",),
+        parts=("accuracy",),
+        profiles=("realistic",),
+    )
+    progress: list[str] = []
+    text = "\n".join(run_benchmark(bs, progress.append))
+    assert "kind profile" not in text and "realistic profile: 1 scenarios x 1 seeds" in text
+    means = [float(m) for m in re.findall(r"ekf\s+mean\s+([\d.]+)", text)]
+    assert len(means) == 2 and all(m > 0.0 for m in means)  # raw, and net of the offset (its GNSS errors walk)
+    assert any("realistic urban seed 22" in p for p in progress)
+
+
 def test_unknown_parts_are_refused() -> None:
     with pytest.raises(ValueError, match="parts"):
         MheBenchSettings(parts=("latency", "speed"))
     with pytest.raises(ValueError, match="parts"):
         MheBenchSettings(parts=())
+    with pytest.raises(ValueError, match="profiles"):
+        MheBenchSettings(profiles=("cruel",))

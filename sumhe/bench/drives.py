@@ -21,6 +21,7 @@ import logging
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 
@@ -33,12 +34,14 @@ from sumhe.io.can import si_factor
 from sumhe.io.fixtime import stamp_fix
 from sumhe.io.replay import merge_by_time
 from sumhe.messages import GnssFix, Sample
-from sumhe.settings import SensorSettings, with_changes
+from sumhe.settings import EstimationSettings, SensorSettings, with_changes
 from sumhe.sim import PROFILES, SimSettings, Truth, profile_settings, simulate
 from sumhe.sim.production import signal_specs, vehicle_db
 from sumhe.sim.settings import GPS_ERROR_MODELS, SCENARIO_NAMES
 
 log = logging.getLogger(__name__)
+
+WithCan = TypeVar("WithCan", SensorSettings, EstimationSettings)
 
 MAX_DURATION_S = 3600.0
 
@@ -220,11 +223,12 @@ def drive_quanta(settings: SimSettings) -> dict[str, float]:
     return out
 
 
-def realistic_sensors(settings: SimSettings, sensors: SensorSettings) -> SensorSettings:
-    """``sensors`` with the drive's CAN quanta (:func:`drive_quanta`) and its chassis sensors' delay."""
+def with_drive_can(settings: SimSettings, target: WithCan) -> WithCan:
+    """``target`` (sensor or estimation settings: anything with a ``can`` table) with the drive's CAN quanta
+    (:func:`drive_quanta`) and its chassis sensors' delay."""
     quanta = drive_quanta(settings)
     return with_changes(
-        sensors,
+        target,
         {
             "can.delay_s": settings.can_sensor_delay_s,
             "can.speed_resolution_mps": quanta["speed"],
@@ -245,7 +249,7 @@ def simulated_drive(
     drive = simulate(sim)
     config = drive_config(base, drive.frame, sim.can_sensor_delay_s)
     if profile != "kind":  # the samples come decoded: of its config the estimators need the quanta
-        config = dataclasses.replace(config, sensors=realistic_sensors(sim, config.sensors))
+        config = dataclasses.replace(config, sensors=with_drive_can(sim, config.sensors))
     rng = np.random.default_rng([seed, SCENARIO_NAMES.index(scenario), GPS_ERROR_MODELS.index(sim.gps_error)])
     plan = outage_plan(ps.duration_s, ps.outage_lengths_s, ps.recover_s, ps.warm_up_s, rng)
     outages = place_outages(drive.truth, plan, sim.start_unix_s)

@@ -2,9 +2,9 @@
 
 Drives (:mod:`sumhe.bench.drives`): simulated ones of the ``kind`` profile (scenarios x GPS error models x seeds;
 the seeds are test seeds, never the training seeds 100-105 the baselines were tuned on) and of the ``realistic``
-one (scenarios x seeds), with outages placed on them; the report keeps the profiles apart. Every estimator gets exactly the same samples, pushed one by one through
-:class:`~sumhe.service.pipeline.Pipeline` (the code path of the service and of ``sumhe replay``), then
-``pipeline.finish()``; the report is :mod:`sumhe.bench.report`'s.
+one (scenarios x seeds), with outages placed on them; the report keeps the profiles apart. Every estimator gets
+exactly the same samples, pushed one by one through :class:`~sumhe.service.pipeline.Pipeline` (the code path of
+the service and of ``sumhe replay``), then ``pipeline.finish()``; the report is :mod:`sumhe.bench.report`'s.
 
 Figures, per estimator over all drives: position error of every estimate (GNSS epochs and CAN rate) inside the
 outages (all, per length, per motion; an outage lasts until the first fix after it) and outside them after the

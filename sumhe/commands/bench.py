@@ -75,6 +75,9 @@ def add_mhe_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quick", action="store_true", help="one seed, short latency runs, a 10 min replay")
     parser.add_argument("--solvers", help="comma-separated solvers to time (default sqp,ipopt,fatrop)")
     parser.add_argument("--parts", metavar="A,B", help="parts to run (default latency,accuracy,multipath,replay)")
+    parser.add_argument(
+        "--profile", metavar="A,B", help="simulator profiles of the accuracy part (default kind,realistic)"
+    )
 
 
 def run_mhe(args: argparse.Namespace) -> int:
@@ -84,11 +87,12 @@ def run_mhe(args: argparse.Namespace) -> int:
     bs = MheBenchSettings.quick() if args.quick else MheBenchSettings()
     if args.solvers:
         bs = dataclasses.replace(bs, solvers=tuple(s.strip() for s in args.solvers.split(",") if s.strip()))
-    if args.parts:
-        try:
-            bs = dataclasses.replace(bs, parts=tuple(s.strip() for s in args.parts.split(",") if s.strip()))
-        except ValueError as e:
-            raise SystemExit(f"error: --{e}") from e
+    for option, key in (("parts", "parts"), ("profile", "profiles")):
+        if getattr(args, option):
+            try:
+                bs = dataclasses.replace(bs, **{key: _names(getattr(args, option))})
+            except ValueError as e:
+                raise SystemExit(f"error: --{e}") from e
     for line in run_benchmark(bs, lambda msg: print(msg, file=sys.stderr, flush=True)):
         print(line, flush=True)
     return 0
