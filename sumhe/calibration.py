@@ -214,28 +214,33 @@ def read_signals(config: Config, can_logs: Paths, nmea_logs: Paths = None) -> Dr
 # ---- the fits ------------------------------------------------------------------------------------------------------
 
 
-def speed_scale_fit(gnss: FloatArray, can: FloatArray, quantum_mps: float) -> tuple[float, float, float]:
+def speed_scale_fit(
+    gnss: FloatArray, can: FloatArray, quantum_mps: float, turn_rps: FloatArray | None = None
+) -> tuple[float, float, float]:
     """``(scale, offset_mps, std)`` of ``gnss = scale * (can + offset)`` (speeds > 0, m/s, paired at one time) by
     generalised least squares: the CAN speed's rounding error is one random value per quantum step (uniform over
     a quantum: at a steady speed it does not average out), white noise besides; ``std`` is the scale's standard
     error under that model. ``offset`` is 0 (rounded) or, for a quantum of at least :data:`COARSE_QUANTUM_MPS`,
-    half a quantum (truncated) if that fits better."""
+    half a quantum (truncated) if that fits better. With the yaw rate ``turn_rps`` (rad/s) at the same times, a
+    term ``- y turn_rps`` is fitted beside: an antenna ``y`` left of the rear axle's middle runs slower in left
+    turns, and a drive turns one way more than the other."""
     offsets = (0.0, quantum_mps / 2.0) if quantum_mps >= COARSE_QUANTUM_MPS else (0.0,)
     level = np.unique(np.round(can / quantum_mps), return_inverse=True)[1]
     n = np.bincount(level).astype(float)
     best = (math.inf, math.nan, 0.0, math.inf)
     for offset in offsets:
-        x = can + offset
-        k0 = float(x @ gnss / (x @ x))
-        tau2 = (k0 * quantum_mps) ** 2 / 12.0
-        sigma2 = max(float(np.var(gnss - k0 * x)) - tau2, 1e-4)
-        sx, sy = np.bincount(level, weights=x), np.bincount(level, weights=gnss)
+        x = np.column_stack([can + offset] + ([turn_rps] if turn_rps is not None else []))
+        coef0, *_ = np.linalg.lstsq(x, gnss, rcond=None)
+        tau2 = (coef0[0] * quantum_mps) ** 2 / 12.0
+        sigma2 = max(float(np.var(gnss - x @ coef0)) - tau2, 1e-4)
+        sx = np.column_stack([np.bincount(level, weights=col) for col in x.T])
+        sy = np.bincount(level, weights=gnss)
         shrink = tau2 / (sigma2 + n * tau2)
-        a = float(x @ x - np.sum(shrink * sx * sx))
-        k = float(x @ gnss - np.sum(shrink * sx * sy)) / a
-        rss = float(np.sum(np.square(gnss - k * x)))
+        a = x.T @ x - (sx * shrink[:, None]).T @ sx
+        coef = np.linalg.solve(a, x.T @ gnss - (sx * shrink[:, None]).T @ sy)
+        rss = float(np.sum(np.square(gnss - x @ coef)))
         if rss < best[0]:
-            best = (rss, k, offset, math.sqrt(sigma2 / a))
+            best = (rss, float(coef[0]), offset, math.sqrt(sigma2 * float(np.linalg.inv(a)[0, 0])))
     return best[1], best[2], best[3]
 
 
@@ -288,7 +293,8 @@ class _SpeedFit:
     """The one factor (signed) that fits the drive's speeds best without an offset (= ``scale`` unless truncated)."""
 
 
-def _speed_fit(t: FloatArray, g: FloatArray, sig: DriveSignals) -> _SpeedFit | None:
+def _speed_fit(t: FloatArray, g: FloatArray, sig: DriveSignals, turn_rps: FloatArray | None) -> _SpeedFit | None:
+    """The speed's lag and scale (``turn_rps``: the yaw rate at the times ``t``, for :func:`speed_scale_fit`)."""
     q = sig.speed_quantum_mps
 
     def at_lag(keep: NDArray[np.bool_], offset: float | None) -> tuple[LagFit, float, float, float] | None:
@@ -301,7 +307,8 @@ def _speed_fit(t: FloatArray, g: FloatArray, sig: DriveSignals) -> _SpeedFit | N
         if np.count_nonzero(moving) < MIN_PAIRS:
             return None
         if offset is None:
-            k, off, std = speed_scale_fit(gk[moving], c[moving], q)
+            turns = turn_rps[keep][moving] if turn_rps is not None else None
+            k, off, std = speed_scale_fit(gk[moving], c[moving], q, turns)
         else:
             x = c[moving] + offset
             k, off, std = float(x @ gk[moving] / (x @ x)), offset, math.nan
@@ -405,13 +412,12 @@ def _yaw_fit(sig: DriveSignals) -> _YawFit | None:
     return _YawFit(full, source, lever, max(full.std_s, stds[0]), scale, scale_std, stds[2], v_eff)
 
 
-def _rear_axle_speed(t: FloatArray, g: FloatArray, yf: _YawFit, sig: DriveSignals) -> FloatArray:
-    """The receiver's speeds ``g`` (m/s, at times ``t``) less the antenna's sideways speed ``l omega`` in turns
-    (``sqrt(g^2 - (l omega)^2)``, the yaw rate from the fit): an antenna ahead of the rear axle runs faster than
-    the axle in turns, by 0.6 % at 5 m/s and 0.3 rad/s with 1.85 m, which would bias the scale of a town drive."""
+def _turn_rate(t: FloatArray, yf: _YawFit, sig: DriveSignals) -> FloatArray:
+    """The yaw rate (rad/s) at the times ``t``: the CAN's, corrected by the fit and moved by its lag. An antenna
+    ``l`` ahead of the rear axle runs faster than the axle in turns (``sqrt(v^2 + (l omega)^2)``: 0.6 % at 5 m/s
+    and 0.3 rad/s with 1.85 m), which would bias the scale of a town drive; ``calibrate`` removes it."""
     fit = yf.fit
-    omega = fit.scale * (np.interp(t - fit.lag_s, sig.t_yaw, sig.yaw) - fit.offset)
-    return np.sign(g) * np.sqrt(np.maximum(np.square(g) - np.square(fit.lever_m * omega), 0.0))  # type: ignore[no-any-return]
+    return fit.scale * (np.interp(t - fit.lag_s, sig.t_yaw, sig.yaw) - fit.offset)  # type: ignore[no-any-return]
 
 
 def _standstill_bias(sig: DriveSignals) -> tuple[float, float, float] | None:
@@ -450,10 +456,11 @@ def calibrate(sig: DriveSignals, delay_s: float = 0.0) -> Calibration:
             + ")"
         )
     yf = _yaw_fit(sig)
-    if yf is not None and yf.lever:
-        g = _rear_axle_speed(t_g, g, yf, sig)
+    turn = _turn_rate(t_g, yf, sig) if yf is not None else None
+    if yf is not None and turn is not None and yf.lever:
+        g = np.sign(g) * np.sqrt(np.maximum(np.square(g) - np.square(yf.fit.lever_m * turn), 0.0))
         g_source += ", less the antenna's sideways speed in turns"
-    sf = _speed_fit(t_g, g, sig) if len(t_g) else None
+    sf = _speed_fit(t_g, g, sig, turn) if len(t_g) else None
     offset, scale, speed_sign = _speed_parameters(sf, g_source, delay_s, sig, notes)
     bias, yaw_scale, yaw_sign = _yaw_parameters(yf, sig, notes)
     return Calibration(
@@ -652,8 +659,9 @@ def report_lines(cal: Calibration, sig: DriveSignals) -> list[str]:
             lines.append(f"{key:18s} = null: {p.method}")
         else:
             d = digits[key]
+            sign = "" if key.endswith("scale") else "+"
             std = f"{p.std:.{d}f}" if p.std is not None and math.isfinite(p.std) else "?"
-            lines.append(f"{key:18s} = {p.value:+.{d}f} +- {std}: {p.method}")
+            lines.append(f"{key:18s} = {p.value:{sign}.{d}f} +- {std}: {p.method}")
     for s in cal.signs:
         state = {True: "ok", False: "WRONG SIGN", None: "not checked"}[s.ok]
         lines.append(
