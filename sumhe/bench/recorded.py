@@ -32,16 +32,9 @@ from typing import Any
 
 import numpy as np
 
+from sumhe.bench import outages
 from sumhe.bench.floors import CanTrack, Fixes, calibrated_floor, plain_floor
 from sumhe.bench.metrics import interval_index, mean_p95_max
-from sumhe.bench.outages import (
-    MAX_INTERPOLATION_GAP_S,
-    FixCut,
-    ModeShares,
-    OutageErrors,
-    mode_shares,
-    outage_errors,
-)
 from sumhe.bench.peers import BenchRunError, call_isolated
 from sumhe.config import Config, load_config
 from sumhe.errors import ConfigError
@@ -189,9 +182,9 @@ class RunOutcome:
     (pooled over the outages) and, with a truth, every estimate's inside them against the truth; its epochs'
     modes; seconds of data and of pushing; the GNSS time offset its estimates were compared at (s)."""
 
-    fix_errors: OutageErrors
+    fix_errors: outages.OutageErrors
     truth_errors: np.ndarray
-    shares: ModeShares
+    shares: outages.ModeShares
     span_s: float
     wall_s: float
     offset_s: float
@@ -200,8 +193,8 @@ class RunOutcome:
 def run_estimator(name: str, rec: Recording, windows: Sequence[tuple[float, float]]) -> RunOutcome:
     """Push the drive without the fixes in ``windows`` through a Pipeline with the estimator ``name``; score it."""
     pipeline = Pipeline(rec.config, make_estimator(name, rec.config))
-    cut = FixCut(windows)
-    margin = MAX_INTERPOLATION_GAP_S
+    cut = outages.FixCut(windows)
+    margin = outages.MAX_INTERPOLATION_GAP_S
     near = [(a - margin, b + margin) for a, b in windows]
     kept: list[tuple[float, float, float]] = []
     modes: Counter[str] = Counter()
@@ -221,14 +214,14 @@ def run_estimator(name: str, rec: Recording, windows: Sequence[tuple[float, floa
     est = np.array(kept, dtype=float).reshape(-1, 3)
     shifted = [dataclasses.replace(f, t=f.t + offset) for f in cut.removed]
     moved = [(a + offset, b + offset) for a, b in windows]
-    _, errors = outage_errors(moved, shifted, est[:, 0], est[:, 1], est[:, 2])
+    _, errors = outages.outage_errors(moved, shifted, est[:, 0], est[:, 1], est[:, 2])
     truth_errors = np.zeros(0)
     if rec.truth is not None and len(est):
         inside = interval_index(est[:, 0], windows) >= 0
         en = rec.frame.to_enu(est[inside, 1], est[inside, 2])
         at = rec.truth.at(est[inside, 0])
         truth_errors = np.hypot(en[:, 0] - at.east, en[:, 1] - at.north)
-    return RunOutcome(errors, truth_errors, mode_shares(modes.elements()), rec.span_s, wall, offset)
+    return RunOutcome(errors, truth_errors, outages.mode_shares(modes.elements()), rec.span_s, wall, offset)
 
 
 @dataclass(frozen=True)

@@ -14,8 +14,8 @@ import argparse
 import dataclasses
 import importlib
 import sys
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Sequence
+from typing import Any, TypeVar
 
 BENCHMARKS: dict[str, tuple[str, str, str]] = {
     "peers": (
@@ -84,15 +84,8 @@ def run_mhe(args: argparse.Namespace) -> int:
     from sumhe.bench.mhe import MheBenchSettings
     from sumhe.bench.mhe_report import run_benchmark
 
-    bs = MheBenchSettings.quick() if args.quick else MheBenchSettings()
-    if args.solvers:
-        bs = dataclasses.replace(bs, solvers=tuple(s.strip() for s in args.solvers.split(",") if s.strip()))
-    for option, key in (("parts", "parts"), ("profile", "profiles")):
-        if getattr(args, option):
-            try:
-                bs = dataclasses.replace(bs, **{key: _names(getattr(args, option))})
-            except ValueError as e:
-                raise SystemExit(f"error: --{e}") from e
+    options = (("solvers", "solvers", _names), ("parts", "parts", _names), ("profile", "profiles", _names))
+    bs = _with_options(MheBenchSettings.quick() if args.quick else MheBenchSettings(), "bench mhe", args, options)
     for line in run_benchmark(bs, lambda msg: print(msg, file=sys.stderr, flush=True)):
         print(line, flush=True)
     return 0
@@ -105,21 +98,38 @@ def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, metavar="S", help="length of each drive (default 600 s)")
 
 
-def run_calibrate(args: argparse.Namespace) -> int:
-    from sumhe.bench.calibrate import CalibrateBenchSettings, run_benchmark
+T = TypeVar("T")
+Options = Sequence[tuple[str, str, Callable[[Any], Any]]]
+"""Command-line options that change settings: (option, settings field, conversion of the option's value)."""
+
+
+def _with_options(defaults: T, label: str, args: argparse.Namespace, options: Options) -> T:
+    """``defaults`` (a settings dataclass) with the fields of ``options`` the command line gives; ConfigError
+    naming ``label`` for a bad value (the settings validate themselves)."""
     from sumhe.errors import ConfigError
 
-    changes: dict[str, Any] = {}
     try:
-        if args.scenarios:
-            changes["scenarios"] = _names(args.scenarios)
-        if args.seeds:
-            changes["seeds"] = tuple(int(s) for s in _names(args.seeds))
-        if args.duration is not None:
-            changes["duration_s"] = args.duration
-        bs = dataclasses.replace(CalibrateBenchSettings.quick() if args.quick else CalibrateBenchSettings(), **changes)
+        changes = {key: convert(getattr(args, opt)) for opt, key, convert in options if getattr(args, opt) is not None}
+        return dataclasses.replace(defaults, **changes)  # type: ignore[type-var]
     except ValueError as e:
-        raise ConfigError(f"bench calibrate: {e}") from e
+        raise ConfigError(f"{label}: {e}") from e
+
+
+def _seeds(text: str) -> tuple[int, ...]:
+    return tuple(int(s) for s in _names(text))
+
+
+def _floats(text: str) -> tuple[float, ...]:
+    return tuple(float(v) for v in _names(text))
+
+
+def run_calibrate(args: argparse.Namespace) -> int:
+    from sumhe.bench.calibrate import CalibrateBenchSettings, run_benchmark
+
+    options = (("scenarios", "scenarios", _names), ("seeds", "seeds", _seeds), ("duration", "duration_s", float))
+    bs = _with_options(
+        CalibrateBenchSettings.quick() if args.quick else CalibrateBenchSettings(), "bench calibrate", args, options
+    )
     for line in run_benchmark(bs, lambda msg: print(msg, file=sys.stderr, flush=True)):
         print(line, flush=True)
     return 0
@@ -159,22 +169,16 @@ def _peers_settings(args: argparse.Namespace) -> Any:
     from sumhe.bench.drives import PeersSettings
     from sumhe.errors import ConfigError
 
-    changes: dict[str, Any] = {}
-    if args.estimators:
-        changes["estimators"] = _estimators(args.estimators)
-    for option, key in (("scenarios", "scenarios"), ("gps_errors", "gps_errors"), ("profile", "profiles")):
-        if getattr(args, option):
-            changes[key] = _names(getattr(args, option))
-    try:
-        if args.seeds:
-            changes["seeds"] = tuple(int(s) for s in _names(args.seeds))
-        if args.duration is not None:
-            changes["duration_s"] = args.duration
-        if args.timeout is not None:
-            changes["timeout_s"] = args.timeout
-        ps = dataclasses.replace(PeersSettings.quick() if args.quick else PeersSettings(), **changes)
-    except ValueError as e:
-        raise ConfigError(f"bench: {e}") from e
+    options = (
+        ("estimators", "estimators", _estimators),
+        ("scenarios", "scenarios", _names),
+        ("gps_errors", "gps_errors", _names),
+        ("profile", "profiles", _names),
+        ("seeds", "seeds", _seeds),
+        ("duration", "duration_s", float),
+        ("timeout", "timeout_s", float),
+    )
+    ps = _with_options(PeersSettings.quick() if args.quick else PeersSettings(), "bench", args, options)
     if ps.drive_count() == 0:
         raise ConfigError("bench: no drives to run")
     return ps
@@ -264,19 +268,13 @@ def run_recorded(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from sumhe.bench.recorded import RecordedBenchSettings, load_recording, markdown, run_recording, summary
-    from sumhe.errors import ConfigError
 
-    changes: dict[str, Any] = {}
-    try:
-        if args.estimators:
-            changes["estimators"] = _estimators(args.estimators)
-        if args.lengths:
-            changes["lengths_s"] = tuple(float(v) for v in _names(args.lengths))
-        if args.timeout is not None:
-            changes["timeout_s"] = args.timeout
-        bs = dataclasses.replace(RecordedBenchSettings(), **changes)
-    except ValueError as e:
-        raise ConfigError(f"bench --drive: {e}") from e
+    options = (
+        ("estimators", "estimators", _estimators),
+        ("lengths", "lengths_s", _floats),
+        ("timeout", "timeout_s", float),
+    )
+    bs = _with_options(RecordedBenchSettings(), "bench --drive", args, options)
     out = []
     for spec in args.drive:
         recording = load_recording(spec, args.config)
