@@ -413,9 +413,7 @@ def _yaw_fit(sig: DriveSignals) -> _YawFit | None:
 
 
 def _turn_rate(t: FloatArray, yf: _YawFit, sig: DriveSignals) -> FloatArray:
-    """The yaw rate (rad/s) at the times ``t``: the CAN's, corrected by the fit and moved by its lag. An antenna
-    ``l`` ahead of the rear axle runs faster than the axle in turns (``sqrt(v^2 + (l omega)^2)``: 0.6 % at 5 m/s
-    and 0.3 rad/s with 1.85 m), which would bias the scale of a town drive; ``calibrate`` removes it."""
+    """The yaw rate (rad/s) at the times ``t``: the CAN's, corrected by the fit and moved by its lag."""
     fit = yf.fit
     return fit.scale * (np.interp(t - fit.lag_s, sig.t_yaw, sig.yaw) - fit.offset)  # type: ignore[no-any-return]
 
@@ -458,8 +456,12 @@ def calibrate(sig: DriveSignals, delay_s: float = 0.0) -> Calibration:
     yf = _yaw_fit(sig)
     turn = _turn_rate(t_g, yf, sig) if yf is not None else None
     if yf is not None and turn is not None and yf.lever:
+        # an antenna l ahead of the rear axle runs faster than the axle in turns, sqrt(v^2 + (l omega)^2): 0.6 %
+        # at 5 m/s and 0.3 rad/s with 1.85 m, enough to bias the scale of a town drive
         g = np.sign(g) * np.sqrt(np.maximum(np.square(g) - np.square(yf.fit.lever_m * turn), 0.0))
         g_source += ", less the antenna's sideways speed in turns"
+    if turn is not None and not float(np.std(turn)) >= TURN_RATE_RPS / 2:
+        turn = None  # a drive that hardly turns tells no lateral antenna offset
     sf = _speed_fit(t_g, g, sig, turn) if len(t_g) else None
     offset, scale, speed_sign = _speed_parameters(sf, g_source, delay_s, sig, notes)
     bias, yaw_scale, yaw_sign = _yaw_parameters(yf, sig, notes)

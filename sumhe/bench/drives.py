@@ -60,7 +60,7 @@ class PeersSettings:
     recover_s: float = 15.0
     warm_up_s: float = 20.0
     estimators: tuple[str, ...] = ()
-    timeout_s: float = 1800.0
+    timeout_s: float = 600.0
     heading_min_speed_mps: float = 2.0
 
     def __post_init__(self) -> None:
@@ -90,7 +90,8 @@ class PeersSettings:
     @classmethod
     def quick(cls) -> PeersSettings:
         """A minute or two on two cores: a 120 s urban drive of each profile (walk GPS errors on the kind one),
-        outages of 5, 10 and 30 s."""
+        outages of 5, 10 and 30 s, each run limited to a minute (a run that takes longer is a failed run: today the
+        MHE and su-batch on the realistic drive)."""
         return cls(
             scenarios=("urban",),
             gps_errors=("walk",),
@@ -98,7 +99,7 @@ class PeersSettings:
             duration_s=120.0,
             outage_lengths_s=(5.0, 10.0, 30.0),
             recover_s=10.0,
-            timeout_s=300.0,
+            timeout_s=60.0,
         )
 
     def names(self) -> tuple[str, ...]:
