@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,7 +47,7 @@ from sumhe.frontend.alignment import MIN_PAIRS, MIN_SPEED_MPS, LagFit, course_la
 from sumhe.geo import LocalFrame
 from sumhe.io.quanta import signal_quanta
 from sumhe.io.replay import Paths, RecordedDrive
-from sumhe.messages import CanSample, GnssFix
+from sumhe.messages import CanSample, GnssFix, Sample
 from sumhe.settings import GnssModel
 from sumhe.settings.sensors import FALLBACK_SPEED_RESOLUTION_MPS
 
@@ -100,6 +100,8 @@ class DriveSignals:
     yaw: FloatArray
     speed_quantum_mps: float
     fixes: int
+    origin_deg: tuple[float, float] = (0.0, 0.0)
+    """Latitude and longitude (deg) of the east/north frame's origin: the first valid fix."""
 
     @property
     def span_s(self) -> float:
@@ -165,10 +167,17 @@ def read_signals(config: Config, can_logs: Paths, nmea_logs: Paths = None) -> Dr
     or unreadable log, ConfigError for a mapping the DBCs lack, CalibrationError without a valid fix or a CAN
     speed."""
     drive = RecordedDrive(config, can_logs, nmea_logs)
+    return signals_of(drive, drive.samples())
+
+
+def signals_of(drive: RecordedDrive, samples: Iterable[Sample]) -> DriveSignals:
+    """:class:`DriveSignals` of ``samples`` (the drive's, in time order; the drive gives its config and counters).
+    CalibrationError without a valid fix or a CAN speed."""
+    config = drive.config
     fixes: list[GnssFix] = []
     can: dict[str, list[tuple[float, float]]] = {"speed": [], "yaw_rate": []}
     total = 0
-    for s in drive.samples():
+    for s in samples:
         if isinstance(s, GnssFix):
             total += 1
             if s.valid and s.lat_deg is not None and s.lon_deg is not None and math.isfinite(s.t):
@@ -208,6 +217,7 @@ def read_signals(config: Config, can_logs: Paths, nmea_logs: Paths = None) -> Dr
         yaw=yaw[:, 1],
         speed_quantum_mps=float(quantum),
         fixes=total,
+        origin_deg=(frame.lat0_deg, frame.lon0_deg),
     )
 
 

@@ -199,7 +199,7 @@ def test_bad_bench_input_is_an_error_not_a_crash(tmp_path, capsys):
     assert "no drive.log" in capsys.readouterr().err
     (tmp_path / "drive.log").write_text("")
     assert main(["bench", "--drive", str(tmp_path)]) == 1
-    assert "needs valid fixes" in capsys.readouterr().err
+    assert "no valid GNSS fix" in capsys.readouterr().err
     assert main(["bench", "--estimators", "ekf,nosuch"]) == 1
     assert "unknown nosuch" in capsys.readouterr().err
     assert main(["bench", "--profile", "cruel"]) == 1

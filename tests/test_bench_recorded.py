@@ -19,6 +19,7 @@ from sumhe.bench.recorded import (
     run_estimator,
 )
 from sumhe.cli import main
+from sumhe.commands.candump import reference_config
 from sumhe.estimator.registry import ESTIMATORS
 from sumhe.sim import SimSettings, simulate, write_drive
 
@@ -75,7 +76,7 @@ def test_without_a_course_the_floor_takes_the_direction_between_fixes():
 
 
 def test_outages_are_placed_while_moving_and_reproducibly(drive_dir):
-    rec = load_recording([str(drive_dir)])
+    rec = load_recording([str(drive_dir)], None, reference_config())
     bs = RecordedBenchSettings()
     windows = place_outages(rec, 10.0, bs)
     assert windows == place_outages(rec, 10.0, bs)
@@ -88,7 +89,7 @@ def test_outages_are_placed_while_moving_and_reproducibly(drive_dir):
 
 def test_an_estimators_learned_time_offset_moves_the_fixes_it_is_compared_with(drive_dir, monkeypatch):
     monkeypatch.setitem(ESTIMATORS, "offset-ekf", (__name__, "OffsetEkf"))
-    rec = load_recording([str(drive_dir)])
+    rec = load_recording([str(drive_dir)], None, reference_config())
     windows = place_outages(rec, 10.0, RecordedBenchSettings())
     plain, shifted = run_estimator("ekf", rec, windows), run_estimator("offset-ekf", rec, windows)
     assert plain.offset_s == 0.0 and shifted.offset_s == 0.5

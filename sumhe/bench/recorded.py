@@ -36,13 +36,13 @@ from sumhe.bench import outages
 from sumhe.bench.floors import CanTrack, Fixes, calibrated_floor, plain_floor
 from sumhe.bench.metrics import interval_index, mean_p95_max
 from sumhe.bench.peers import BenchRunError, call_isolated
+from sumhe.calibration import signals_of
 from sumhe.config import Config, load_config
 from sumhe.errors import ConfigError
 from sumhe.estimator.registry import estimator_names, make_estimator
 from sumhe.geo import LocalFrame
-from sumhe.io.can import REFERENCE_SIGNALS
 from sumhe.io.replay import RecordedDrive
-from sumhe.messages import CanSample, GnssFix, Sample
+from sumhe.messages import Sample
 from sumhe.service.pipeline import Pipeline
 from sumhe.sim import Truth, load_truth
 
@@ -93,8 +93,9 @@ class Recording:
         return self.samples[-1].t - self.samples[0].t if self.samples else 0.0
 
 
-def load_recording(spec: Sequence[str], config_path: str | None = None) -> Recording:
-    """One drive from a folder or log files (see the module docstring); ConfigError naming what is missing."""
+def load_recording(spec: Sequence[str], config_path: str | None, fallback: Config) -> Recording:
+    """One drive from a folder or log files (see the module docstring), with the config of ``config_path``, else
+    the folder's ``config.toml``, else ``fallback``; ConfigError naming what is missing."""
     paths = [Path(p) for p in spec]
     truth_path = None
     if len(paths) == 1 and paths[0].is_dir():
@@ -109,45 +110,27 @@ def load_recording(spec: Sequence[str], config_path: str | None = None) -> Recor
         can_logs = [p for p in paths if p.suffix.lower() != ".nmea"]
         nmea_logs = [p for p in paths if p.suffix.lower() == ".nmea"]
         name = paths[0].parent.name or paths[0].name
-    config = load_config(config_path) if config_path else load_config(None, overrides=_reference_signals())
+    config = load_config(config_path) if config_path else fallback
     drive = RecordedDrive(config, can_logs, nmea_logs or None)
     samples = list(drive.samples())
-    return _recording(name, drive.config, samples, drive.first_t, load_truth(truth_path) if truth_path else None)
-
-
-def _reference_signals() -> dict[str, Any]:
-    """The reference vehicle's mapping (as ``sumhe replay`` without ``--config``)."""
-    return {f"can.signals.{q}": name for q, name in REFERENCE_SIGNALS.items()}
-
-
-def _recording(name: str, config: Config, samples: list[Sample], t0: float, truth: Truth | None) -> Recording:
-    fixes = [s for s in samples if isinstance(s, GnssFix) and s.valid and s.lat_deg is not None]
-    speed = np.array([(s.t, s.value) for s in samples if isinstance(s, CanSample) and s.quantity == "speed"])
-    yaw = np.array([(s.t, s.value) for s in samples if isinstance(s, CanSample) and s.quantity == "yaw_rate"])
-    if len(fixes) < 2 or len(speed) < 2 or len(yaw) < 2:
-        raise ConfigError(
-            f"--drive {name}: needs valid fixes and a CAN speed and yaw rate "
-            f"({len(fixes)} valid fixes, {len(speed)} speeds, {len(yaw)} yaw rates decoded)"
-        )
-    frame = LocalFrame(float(fixes[0].lat_deg), float(fixes[0].lon_deg), 0.0)  # type: ignore[arg-type]
-    enu = frame.to_enu([f.lat_deg for f in fixes], [f.lon_deg for f in fixes])
-
-    def column(values: list[float | None]) -> np.ndarray:
-        return np.array([math.nan if v is None else v for v in values], dtype=float)
-
-    local = Fixes(
-        np.array([f.t for f in fixes]),
-        enu[:, 0],
-        enu[:, 1],
-        column([f.course_rad for f in fixes]),
-        column([f.heading_rad for f in fixes]),
-    )
-    track = CanTrack.of(speed[:, 0], speed[:, 1], yaw[:, 0], yaw[:, 1], config.sensors.can.delay_s)
+    sig = signals_of(drive, samples)
+    frame = LocalFrame(*sig.origin_deg, 0.0)
+    truth = load_truth(truth_path) if truth_path else None
     if truth is not None:
         en = frame.to_enu(truth.lat, truth.lon)
         truth = dataclasses.replace(truth, east=en[:, 0], north=en[:, 1])
-    t0 = t0 if math.isfinite(t0) else samples[0].t
-    return Recording(name, config, samples, frame, local, track, t0, truth)
+    if len(sig.t_yaw) < 2:
+        raise ConfigError(f"--drive {name}: no CAN yaw rate decoded (can.signals.yaw_rate in {drive.config.source})")
+    return Recording(
+        name,
+        drive.config,
+        samples,
+        frame,
+        Fixes(sig.t_fix, sig.east, sig.north, sig.course, sig.heading),
+        CanTrack.of(sig.t_speed, sig.speed, sig.t_yaw, sig.yaw, drive.config.sensors.can.delay_s),
+        drive.first_t if math.isfinite(drive.first_t) else samples[0].t,
+        truth,
+    )
 
 
 def place_outages(rec: Recording, length_s: float, bs: RecordedBenchSettings) -> list[tuple[float, float]]:

@@ -268,6 +268,7 @@ def run_recorded(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from sumhe.bench.recorded import RecordedBenchSettings, load_recording, markdown, run_recording, summary
+    from sumhe.commands.candump import reference_config
 
     options = (
         ("estimators", "estimators", _estimators),
@@ -277,7 +278,7 @@ def run_recorded(args: argparse.Namespace) -> int:
     bs = _with_options(RecordedBenchSettings(), "bench --drive", args, options)
     out = []
     for spec in args.drive:
-        recording = load_recording(spec, args.config)
+        recording = load_recording(spec, args.config, reference_config())
         data = summary(recording, run_recording(recording, bs, lambda m: print(m, file=sys.stderr, flush=True)))
         out.append(data)
         for line in markdown(data):
