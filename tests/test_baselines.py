@@ -171,7 +171,7 @@ def numeric_jacobian(f, x: np.ndarray, eps: float = 1e-6) -> np.ndarray:  # type
     return np.column_stack(cols)
 
 
-STATE = np.array([3.0, -2.0, 2.5, 12.0, 0.3, 0.01, 1.02])
+STATE = np.array([3.0, -2.0, 2.5, 12.0, 0.3, 0.01, 1.02, 0.98])
 
 
 @pytest.mark.parametrize("dt", [0.02, -0.08, 0.5])
@@ -193,7 +193,7 @@ def test_can_jacobian_is_the_derivative() -> None:
     layout = Layout()
     expected = numeric_jacobian(lambda x: kin.can_model(x, rows, layout), STATE)
     np.testing.assert_allclose(kin.can_jacobian(STATE, rows, layout), expected, atol=1e-7)
-    assert kin.can_model(STATE, rows, layout) == pytest.approx([1.02 * 12.0, 0.31, 0.3])
+    assert kin.can_model(STATE, rows, layout) == pytest.approx([1.02 * 12.0, 0.98 * 0.3 + 0.01, 0.3])
 
 
 def test_step_follows_a_circle() -> None:
@@ -330,9 +330,14 @@ def test_registry_reports_a_broken_entry(monkeypatch: pytest.MonkeyPatch) -> Non
 
 
 def test_registry_uses_the_config_settings() -> None:
-    config = load_config(overrides={"estimator.yaw_rate_bias": False, "estimator.speed_scale": False})
+    config = load_config(
+        overrides={"estimator.yaw_rate_bias": False, "estimator.speed_scale": False, "estimator.yaw_rate_gain": False}
+    )
     est = make_estimator("ekf", config)
     assert isinstance(est, Ekf) and est.layout.n == 5
+    assert make_estimator("ekf", load_config()).layout.n == 7  # bias and scale; the gain only with a prior sigma
+    with_gain = load_config(overrides={"estimator.ekf.gain0": 0.02})
+    assert make_estimator("ekf", with_gain).layout.n == 8
 
 
 # ---- tuning command ---------------------------------------------------------------------------------------------

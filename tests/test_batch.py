@@ -8,7 +8,7 @@ import su_samples as S
 
 from sumhe.config import build_section
 from sumhe.errors import EstimatorInputError
-from sumhe.estimator.batch import antenna_distance_error, estimate_batch, model_for, state_box
+from sumhe.estimator.batch import antenna_distance_error, estimate_batch, model_args, model_for, state_box
 from sumhe.estimator.grid import build_grid
 from sumhe.estimator.problem import build_nlp
 from sumhe.frontend.epochs import nominal_period
@@ -35,7 +35,7 @@ def test_solution_satisfies_every_box_it_claims() -> None:
     samples = S.window(S.Motion(omega=-0.4), 3.0, outage=(1.0, 2.0), gps_noise_m=0.03, bias_rps=0.005, seed=5)
     res = estimate_batch(samples, SETTINGS, frame=S.FRAME)
     assert res.success, res.status
-    model = model_for(SETTINGS)
+    model = model_for(SETTINGS, streaming=False)
     grid = build_grid(samples, model, SETTINGS, S.FRAME)
     b = res.bounds
     widen = 1.0 + SETTINGS.estimator.batch.centre_margin  # the centre lies in S(q', r') with q' = (1 + margin) q
@@ -53,9 +53,9 @@ def test_solution_satisfies_every_box_it_claims() -> None:
 
 def test_missing_outputs_drop_exactly_their_constraints() -> None:
     samples = S.window(S.Motion(), 2.0, gps_noise_m=0.02, seed=6)
-    model = model_for(SETTINGS)
+    model = model_for(SETTINGS, streaming=False)
     grid = build_grid(samples, model, SETTINGS, S.FRAME)
-    nlp = build_nlp("su5", True, True, "trapezoid", 0.0, True, grid.n_steps, 300, 1e-8)
+    nlp = build_nlp(*model_args(SETTINGS, streaming=False), grid.n_steps, 300, 1e-8)
     res = estimate_batch(samples, SETTINGS, frame=S.FRAME)
     N, m, n = grid.n_steps, model.n_states, model.n_outputs
     origin = np.mean(grid.y[grid.gps, :2], axis=0)
@@ -218,5 +218,5 @@ def test_the_grid_period_ignores_outage_gaps_and_needs_three_epochs() -> None:
         for s in S.window(S.Motion(), 3.0, outage=(0.05, 2.95))
         if not isinstance(s, GnssFix) or s.t in (S.T0, S.T0 + 3.0)
     ]
-    grid = build_grid(samples, model_for(SETTINGS), SETTINGS, S.FRAME)
+    grid = build_grid(samples, model_for(SETTINGS, streaming=False), SETTINGS, S.FRAME)
     assert grid.gps.sum() == 2 and np.allclose(np.diff(grid.t), 0.1)

@@ -364,7 +364,9 @@ def test_outage_recovery_and_jump(estimator: Estimator, sim_run: SimRun) -> None
     after = [e for e, r in zip(out, rel, strict=True) if start + length + 2.0 <= r < start + length + 8.0]
     assert after
     assert np.max(sim_errors(sim_run, after)) < 3.0
-    jumped = [e for e in out if e.t in sim_run.jumped]
+    # the jumped fixes' epochs, at their times on the CAN clock (moved by the learned GNSS time offset: the CAN
+    # sensor delay of the drive, 0.02 s, is not configured here)
+    jumped = [e for e in outputs.epochs if min(abs(e.t - t) for t in sim_run.jumped) < 0.05]
     assert len(jumped) == 3
     if estimator.name in UNGATED:
         assert all(e.gps == "ok" for e in jumped)

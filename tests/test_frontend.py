@@ -203,3 +203,59 @@ def test_every_family_reads_the_same_fix_sigma() -> None:
     k = settings.estimator.r_cap_sigmas
     assert mhe.window.allow[0, mhe.model.j_position[0]] == pytest.approx(k * 0.02)
     assert ekf.P[0, 0] == pytest.approx((ekf.noise.gps_scale * 0.02) ** 2)
+
+
+# ---- the GNSS time offset -----------------------------------------------------------------------------------------
+
+
+def test_a_configured_time_offset_moves_every_fix_onto_the_can_clock() -> None:
+    fe = _frontend(**{"gnss.time_offset_s": -0.3, "gnss.learn_time_offset": False})
+    fe.push(CanSample(10.0, "speed", 10.0))
+    (start,) = fe.push(_fix(10.5))
+    assert start.t == pytest.approx(10.2) and start.fix.t == pytest.approx(10.2)  # type: ignore[union-attr]
+    assert fe.time_offset_s == -0.3
+
+
+def test_the_learned_time_offset_is_applied_gradually_and_keeps_epochs_in_order() -> None:
+    """A receiver whose fixes are true 0.3 s before their stamp (speed over ground behind the CAN speed): the
+    front-end learns it from the speeds and moves the fixes, by at most a fifth of a period per fix."""
+    fe = _frontend(**{"can.delay_s": 0.0})
+
+    def speed(t: float) -> float:
+        return 12.0 + 5.0 * math.sin(t / 6.0)
+
+    times = []
+    for k in range(1, 3000):
+        t = 0.1 * k
+        if k % 2 == 0:
+            fe.push(CanSample(t, "speed", speed(t)))
+        if k % 10 == 0:
+            fix = LocalFix(t=t, valid=True, east_m=1.0, north_m=2.0, hdop=1.0, speed_mps=speed(t - 0.3))
+            times += [e.t for e in fe.push(fix) if isinstance(e, Epoch)]
+    assert fe.time_offset_s == pytest.approx(-0.3, abs=0.02)
+    assert all(np.diff(times) > 0.5)  # 1 Hz epochs, each moved by at most 0.2 s more than the one before
+    assert times[-1] == pytest.approx(299.0 + fe.time_offset_s)
+
+
+def test_missed_epochs_wait_for_the_period() -> None:
+    """A 1 Hz receiver whose fixes come 0.4 s behind the CAN data: before two intervals have shown the period, the
+    default 0.1 s must not turn the silence between its first fixes into missed epochs (its second fix would be
+    dropped as back in time, and the period never measured)."""
+    fe = _frontend(**{"gnss.time_offset_s": -0.4, "gnss.learn_time_offset": False})
+    epochs = []
+    for k in range(1, 60):
+        t = 0.1 * k
+        fe.push(CanSample(t, "speed", 10.0))
+        if k % 10 == 5:
+            epochs += [e for e in fe.push(_fix(t)) if isinstance(e, Epoch)]
+    assert [e.missed for e in epochs] == [False] * 6
+    assert fe.period_s == pytest.approx(1.0) and fe.tally.counts["dropped_backwards"] == 0
+
+
+def test_the_can_buffer_interpolates_between_samples() -> None:
+    buf = CanBuffer()
+    buf["speed"].add(1.0, 10.0)
+    buf["speed"].add(1.5, 11.0)
+    assert buf["speed"].interpolate(1.2, 0.5) == pytest.approx(10.4)
+    assert buf["speed"].interpolate(1.6, 0.5) is None  # nothing after
+    assert buf["speed"].interpolate(1.2, 0.1) is None  # the samples too far

@@ -18,7 +18,7 @@ SETTINGS = with_changes(EstimationSettings(), {"estimator.yaw_rate_bias": False,
 
 
 def _lp(samples, settings=SETTINGS, grid: Grid | None = None):
-    model = model_for(settings)
+    model = model_for(settings, streaming=False)
     grid = grid or build_grid(samples, model, settings, S.FRAME)
     bounds = noise_bounds(model, grid, settings)
     origin = np.mean(grid.y[grid.gps, :2], axis=0)
@@ -39,7 +39,7 @@ def test_noise_free_lp_follows_the_truth_through_an_outage() -> None:
 def test_lp_solution_satisfies_its_constraints() -> None:
     samples = S.window(S.Motion(omega=0.3), 3.0, outage=(1.0, 2.0), gps_noise_m=0.03, seed=3)
     grid, bounds, lp = _lp(samples)
-    model = model_for(SETTINGS)
+    model = model_for(SETTINGS, streaming=False)
     move = displacements(model, grid.h, lp.phi, lp.speed, lp.yaw_rate)
     w = np.diff(lp.p, axis=0) - move
     tol = 1e-4

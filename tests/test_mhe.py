@@ -69,7 +69,9 @@ def test_contract_one_estimate_per_epoch_and_per_speed_sample(drive: Drive, stre
             assert out == [], "nothing before the first valid fix"
             continue
         if isinstance(item, LocalFix):
-            assert [e.t for e in out if e.mode != "can"][-1] == item.t
+            # at the fix's time on the CAN clock: its stamped time plus the GNSS time offset learned so far
+            offset = est.stats()["gps_time_offset_s"]
+            assert [e.t for e in out if e.mode != "can"][-1] == pytest.approx(item.t + offset, abs=1e-9)
             epochs += 1
         elif item.quantity == "speed":
             can = [e for e in out if e.mode == "can"]
@@ -132,7 +134,8 @@ def test_a_50_m_jump_is_rejected_and_the_estimate_stays(drive: Drive, stream: li
     bad = dataclasses.replace(stream[jumped], east_m=stream[jumped].east_m + 50.0)
     est = MovingHorizonEstimator(SETTINGS)
     out = run_stream(est, [*stream[:jumped], bad, *stream[jumped + 1 : jumped + 2000]]).estimates
-    at_jump = [e for e in out if e.t == bad.t and e.mode != "can"]
+    # the jumped fix's epoch, at its time on the CAN clock (the learned GNSS time offset: milliseconds here)
+    at_jump = [e for e in out if abs(e.t - bad.t) < 0.05 and e.mode != "can"]
     assert [e.gps for e in at_jump] == ["rejected"]
     after = [e for e in out if e.t >= bad.t]
     assert np.max(errors(drive, after)) < 3.0
@@ -260,7 +263,7 @@ def _window_problems(drive: Drive) -> tuple[WindowProblem, WindowProblem]:
     """Two consecutive 50-step windows of a drive (the second starts one step later), built like the batch
     estimator's centre stage; the second's start point is left to the caller."""
     settings = SETTINGS
-    model = model_for(settings)
+    model = model_for(settings, streaming=False)
     fixes, cans = [stamp_fix(f, GpsSettings()) for f in drive.fixes()], drive.can_samples()
     out = []
     for k0 in (100, 101):
@@ -299,7 +302,9 @@ def _window_problems(drive: Drive) -> tuple[WindowProblem, WindowProblem]:
 
 def test_osqp_warm_started_with_its_duals_needs_fewer_iterations(drive: Drive) -> None:
     first, _ = _window_problems(drive)
-    solver = SqpSolver(model_for(SETTINGS), first.capacity, max_iter=4000, tol=1e-6, iterations=5, banded=False)
+    solver = SqpSolver(
+        model_for(SETTINGS, streaming=False), first.capacity, max_iter=4000, tol=1e-6, iterations=5, banded=False
+    )
     solved = solver.solve(first, None)
     again = dataclasses.replace(first, x=solved.x)
     warm = solver.solve(again, 0, iterations=1)
@@ -310,7 +315,7 @@ def test_osqp_warm_started_with_its_duals_needs_fewer_iterations(drive: Drive) -
 
 def test_banded_solve_equals_osqp(drive: Drive) -> None:
     first, _ = _window_problems(drive)
-    model = model_for(SETTINGS)
+    model = model_for(SETTINGS, streaming=False)
     banded = SqpSolver(model, first.capacity, iterations=5).solve(first, None)
     qp = SqpSolver(model, first.capacity, max_iter=20000, tol=1e-9, iterations=5, banded=False).solve(first, None)
     assert banded.status == "banded" and qp.success
@@ -321,7 +326,7 @@ def test_banded_solve_equals_osqp(drive: Drive) -> None:
 @pytest.mark.parametrize("solver", ["ipopt", "fatrop"])
 def test_warm_start_reduces_nlp_iterations(drive: Drive, solver: str) -> None:
     first, second = _window_problems(drive)
-    nlp = NlpSolver(model_for(SETTINGS), first.capacity, solver, 200, 1e-8)
+    nlp = NlpSolver(model_for(SETTINGS, streaming=False), first.capacity, solver, 200, 1e-8)
     solved = nlp.solve(first, None)
     assert solved.success
     # warm: the previous solution shifted by one step (and, for IPOPT, its multipliers); cold: the rough start
@@ -336,8 +341,11 @@ def test_warm_start_reduces_nlp_iterations(drive: Drive, solver: str) -> None:
 @pytest.mark.parametrize("solver", ["ipopt", "fatrop"])
 def test_the_nlp_solvers_agree_with_the_sqp(drive: Drive, stream: list, solver: str) -> None:
     part = stream[:12000]
-    ref = [e for e in run_stream(MovingHorizonEstimator(SETTINGS), part).estimates if e.mode != "can"]
-    est = MovingHorizonEstimator(with_changes(SETTINGS, {"estimator.mhe.solver": solver}))
+    # without the antenna's lever arm as a state: on this drive it is barely observable, and the real-time iteration
+    # (three QPs per epoch) approaches the converged NLP's value of it over many epochs, not within each
+    settings = with_changes(SETTINGS, {"estimator.antenna_offset": False})
+    ref = [e for e in run_stream(MovingHorizonEstimator(settings), part).estimates if e.mode != "can"]
+    est = MovingHorizonEstimator(with_changes(settings, {"estimator.mhe.solver": solver}))
     out = [e for e in run_stream(est, part).estimates if e.mode != "can"]
     assert len(out) == len(ref)
     diff = [math.hypot(a.east_m - b.east_m, a.north_m - b.north_m) for a, b in zip(out, ref, strict=True)]

@@ -21,7 +21,7 @@ from sumhe.model import (
     su_model,
     wrap_angle,
 )
-from sumhe.model.su import can_motion
+from sumhe.model.su import MIN_COURSE_SPEED_MPS, Installation, antenna_motion, can_motion, can_outputs
 
 
 def test_su5_step_by_hand() -> None:
@@ -63,7 +63,7 @@ def test_lever_arm_swings_rear_antenna_right_in_a_left_turn() -> None:
 
 def test_outputs_with_can_bias_and_scale() -> None:
     x = [3.0, 4.0, 0.1, 20.0, 0.05, 0.007, 1.02]
-    assert su5_output(x, bias_index=5, scale_index=6) == pytest.approx([3.0, 4.0, 0.1, 20.4, 0.057])
+    assert su5_output(x, inst=Installation(bias=5, scale=6)) == pytest.approx([3.0, 4.0, 0.1, 20.4, 0.057])
     assert su5_output(x[:5]) == [3.0, 4.0, 0.1, 20.0, 0.05]
     y = su7_output([1.0, 1.0, 0.0, 0.0, 0.7, 8.0, 0.1])
     assert y[:4] == [1.0, 1.0, 0.0, 0.0]
@@ -198,16 +198,18 @@ def test_odometry_is_exact_on_a_line_and_second_order_on_a_circle() -> None:
 # ---- the Kalman peers run this model ---------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize(("bias", "scale"), [(False, False), (True, False), (True, True)])
+@pytest.mark.parametrize(
+    ("bias", "scale", "gain"), [(False, False, False), (True, False, False), (True, True, False), (True, True, True)]
+)
 @pytest.mark.parametrize("dt", [0.02, -0.15])
-def test_kalman_kinematics_are_su5(bias: bool, scale: bool, dt: float) -> None:
+def test_kalman_kinematics_are_su5(bias: bool, scale: bool, gain: bool, dt: float) -> None:
     from sumhe.baseline import kinematics as kin
 
-    layout = kin.Layout(bias=bias, scale=scale)
-    su5 = su_model("su5", bias, scale, "trapezoid")
-    assert (layout.b, layout.k) == (su5.i_bias, su5.i_scale)
+    layout = kin.Layout(bias=bias, scale=scale, gain=gain)
+    su5 = su_model("su5", bias, scale, "trapezoid", yaw_rate_gain=gain)
+    assert (layout.b, layout.k, layout.g) == (su5.i_bias, su5.i_scale, su5.i_gain)
     rng = np.random.default_rng(4)
-    x = rng.normal(size=layout.n) + np.r_[0.0, 0.0, 0.0, 12.0, 0.0, [0.0] * bias, [1.0] * scale]
+    x = rng.normal(size=layout.n) + np.r_[0.0, 0.0, 0.0, 12.0, 0.0, [0.0] * bias, [1.0] * scale, [1.0] * gain]
     # the step is su5's transition at constant speed and yaw rate: the midpoint rule
     assert kin.step(x, dt) == pytest.approx(su5.transition(x, x, dt))
     mid = x[2] - 0.5 * dt * x[4]
@@ -229,3 +231,39 @@ def test_kalman_kinematics_are_su5(bias: bool, scale: bool, dt: float) -> None:
         ]
     )
     assert kin.can_jacobian(x, rows, layout) == pytest.approx(fd, abs=1e-7)
+
+
+# ---- the sensor and installation states of issue 12 -------------------------------------------------------------
+
+
+def test_the_yaw_rate_gain_scales_the_can_yaw_rate_and_can_motion_inverts_it() -> None:
+    x = [0.0, 0.0, 0.3, 15.0, 0.2, 0.007, 1.02, 0.95]
+    speed, yaw = can_outputs(15.0, 0.2, x, 5, 6, 7)
+    assert (speed, yaw) == pytest.approx((15.3, 0.95 * 0.2 + 0.007))
+    assert can_motion(speed, yaw, x, 5, 6, 7) == pytest.approx([15.0, 0.2])
+
+
+def test_an_antenna_ahead_sees_the_turn_in_its_course() -> None:
+    """At 10 m/s and 0.2 rad/s (left), an antenna 1.5 m ahead moves 0.3 m/s to the left: its course is the azimuth
+    minus atan(0.03) (1.7 deg); one 0.4 m to the left drives 0.08 m/s slower."""
+    de, dn, course, sog = antenna_motion(0.0, 10.0, 0.2, 1.5, 0.0)
+    assert (de, dn) == pytest.approx((0.0, 1.5))
+    assert course == pytest.approx(-math.atan2(0.3, math.sqrt(100.0 + MIN_COURSE_SPEED_MPS**2)))
+    assert sog == pytest.approx(10.0 + 0.09 / 20.0, abs=1e-3)
+    de, dn, course, sog = antenna_motion(math.pi / 2, 10.0, 0.2, 0.0, 0.4)  # heading east: left is north
+    assert (de, dn) == pytest.approx((0.0, 0.4)) and course == pytest.approx(math.pi / 2)
+    assert sog == pytest.approx(10.0 - 0.08, abs=1e-3)
+    # at rest the derivatives stay finite (an NLP linearises there)
+    assert all(math.isfinite(v) for v in antenna_motion(0.0, 0.0, 0.0, 2.0, 0.3))
+
+
+def test_su5_outputs_with_the_installation_states() -> None:
+    model = su_model("su5", True, True, "trapezoid", 0.0, True, True, True, True, 0.0, 0.3)
+    assert model.states[5:] == ("yaw_rate_bias", "speed_scale", "yaw_rate_gain", "azimuth_offset", "antenna_forward")
+    assert (model.i_gain, model.i_azimuth_offset, model.i_lever) == (7, 8, 9)
+    x = np.array([10.0, 20.0, 0.0, 10.0, 0.0, 0.0, 1.0, 1.0, 0.01, 1.2])
+    y = model.output(x)
+    assert y[:2] == pytest.approx([10.0 - 0.3, 20.0 + 1.2])  # the antenna 1.2 m ahead (north), 0.3 m left (west)
+    assert y[model.j_azimuth] == pytest.approx(0.01)  # straight ahead: the azimuth plus its offset
+    with pytest.raises(ValueError, match="su5"):
+        su_model("su7", yaw_rate_gain=True)

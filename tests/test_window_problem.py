@@ -25,12 +25,12 @@ def case() -> tuple:
     samples = S.window(S.Motion(v=12.0, omega=0.15), 4.0, outage=(1.5, 2.5), gps_noise_m=0.3, bias_rps=0.004, seed=3)
     batch = estimate_batch(samples, SETTINGS, frame=S.FRAME)
     assert batch.success and batch.widenings == 0
-    model = model_for(SETTINGS)
+    model = model_for(SETTINGS, streaming=False)
     grid = build_grid(samples, model, SETTINGS, S.FRAME)
     bounds = noise_bounds(model, grid, SETTINGS, lever_m(SETTINGS))
     origin = np.mean(grid.y[grid.gps, :2], axis=0)
     lo, hi = state_box(model, 1, SETTINGS)
-    x0 = np.clip(start_states(solve_lp(grid, model, bounds, SETTINGS, origin), model, np.zeros(2)), lo, hi)
+    x0 = np.clip(start_states(solve_lp(grid, model, bounds, SETTINGS, origin), model, np.zeros(2), SETTINGS), lo, hi)
     m, md, L = model.n_states, model.n_dynamic, grid.n_steps
     problem = WindowProblem(
         n_steps=L,

@@ -80,6 +80,8 @@ class ParticleFilter(RecursiveEstimator):
             dens[self.layout.b] = self.noise.bias_rw
         if self.layout.k is not None:
             dens[self.layout.k] = self.noise.scale_rw
+        if self.layout.g is not None:
+            dens[self.layout.g] = self.noise.gain_rw
         self._density = dens
 
     def _start(self, x0: FloatArray, P0: FloatArray) -> None:
@@ -92,7 +94,7 @@ class ParticleFilter(RecursiveEstimator):
         """Speed and yaw rate of every particle from the CAN inputs and its own scale and bias."""
         speed = inputs.speed if inputs.speed is not None else 0.0
         yaw_rate = inputs.yaw_rate if inputs.yaw_rate is not None else 0.0
-        self.X[V], omega = can_motion(speed, yaw_rate, self.X, self.layout.b, self.layout.k)
+        self.X[V], omega = can_motion(speed, yaw_rate, self.X, self.layout.b, self.layout.k, self.layout.g)
         self.X[OMEGA] = 0.0 if inputs.standstill or inputs.yaw_rate is None else omega
 
     def _predict(self, dt: float, inputs: Inputs) -> None:
@@ -123,8 +125,8 @@ class ParticleFilter(RecursiveEstimator):
         return Pending(nu, S, commit)
 
     def _resample(self) -> None:
-        """Systematic resampling; the static rows (bias, scale) get Liu-West kernel shrinkage."""
-        rows = [r for r in (self.layout.b, self.layout.k) if r is not None]
+        """Systematic resampling; the static rows (bias, scale, gain) get Liu-West kernel shrinkage."""
+        rows = list(self.layout.sensor_rows)
         mean = self.X[rows] @ self.w
         var = np.square(self.X[rows] - mean[:, None]) @ self.w
         keep = systematic_resample(self.w, self.rng)

@@ -130,7 +130,7 @@ class RecursiveEstimator(StreamEstimator):
 
     def __init__(self, settings: EstimationSettings, noise: NoiseSettings) -> None:
         self.noise = noise
-        self.layout = Layout.from_settings(settings)
+        self.layout = Layout.from_settings(settings, noise)
         prob = noise.gate_prob if self.gated else 1.0
         self._pos_gate = Gate(chi2_threshold(prob, 2), noise.reacquire_s)
         self._az_gate = Gate(chi2_threshold(prob, 1), noise.reacquire_s)
@@ -261,6 +261,9 @@ class RecursiveEstimator(StreamEstimator):
         if self.layout.k is not None:
             x0[self.layout.k] = 1.0
             sig.append(0.5 * self.settings.can.speed_scale_max)
+        if self.layout.g is not None:
+            x0[self.layout.g] = 1.0
+            sig.append(self.noise.gain0)
         self._reset_filter()
         self._pos_gate.clear()
         self._az_gate.clear()

@@ -184,7 +184,7 @@ def dead_reckoning(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """East, north (m, in ``frame``) at the window's epochs: fixes where present; in the outage, CAN speed
     and yaw rate integrated from the last fix, azimuth from its course (else from the last two fixes)."""
-    grid = build_grid(window.samples, model_for(est), est, frame)
+    grid = build_grid(window.samples, model_for(est, streaming=False), est, frame)
     east = np.interp(window.epoch_t, grid.t, grid.y[:, 0])
     north = np.interp(window.epoch_t, grid.t, grid.y[:, 1])
     fixes = [s for s in window.samples if isinstance(s, GnssFix) and s.antenna == 1 and s.valid]

@@ -118,8 +118,13 @@ class StreamEstimator(ABC):
         return out
 
     def stats(self) -> Mapping[str, float | int | str]:
-        """The estimator's name, the nominal GNSS period and every counter (front-end and estimator)."""
-        out: dict[str, float | int | str] = {"estimator": self.name, "period_s": self.frontend.period_s}
+        """The estimator's name, the nominal GNSS period, the GNSS time offset applied (s: a fix's stamped time plus
+        it is its time on the CAN clock) and every counter (front-end and estimator)."""
+        out: dict[str, float | int | str] = {
+            "estimator": self.name,
+            "period_s": self.frontend.period_s,
+            "gps_time_offset_s": self.frontend.time_offset_s,
+        }
         out.update(self.tally.counts)
         return out
 

@@ -51,7 +51,10 @@ from sumhe.estimator.problem import NlpSolution, SuNlp, build_nlp
 from sumhe.geo import LocalFrame
 from sumhe.messages import Sample
 from sumhe.model.su import (
+    AZIMUTH_OFFSET_STATE,
     BIAS_STATE,
+    GAIN_STATE,
+    LEVER_STATE,
     SCALE_STATE,
     SuModel,
     antenna_distance_residual,
@@ -115,22 +118,40 @@ class SuResult:
         return self.states[:, 1]
 
 
-def model_args(settings: EstimationSettings) -> tuple[str, bool, bool, str, float, bool]:
+ModelArgs = tuple[str, bool, bool, str, float, bool, bool, bool, bool, float, float]
+
+
+def model_args(settings: EstimationSettings, streaming: bool = True) -> ModelArgs:
     """The arguments of :func:`~sumhe.model.su.su_model` the settings select (``model``, ``yaw_rate_bias``,
-    ``speed_scale``, ``discretisation``, the lever arm, ``gps_speed``): hashable, a cache key too."""
+    ``speed_scale``, ``discretisation``, the lever arm, ``gps_speed``, and for su5 the yaw-rate gain, azimuth
+    offset and antenna lever-arm states and the antenna's lever arm): hashable, a cache key too.
+
+    The yaw-rate gain, the azimuth offset and the forward lever arm are states only for the streaming estimators
+    (``streaming``), which carry them over the whole drive in their arrival cost and hold them to their nominal
+    values by a prior: within one batch window a steady turn cannot tell the gain from the bias, nor a straight
+    road the lever arm from a shift of the whole trajectory, and without a prior they would run to their bounds
+    (the batch windows take the lever arm as configured)."""
+    e, su5 = settings.estimator, settings.estimator.model == "su5"
+    streaming_su5 = su5 and streaming
+    forward_state = e.antenna_offset and streaming_su5
     return (
-        settings.estimator.model,
-        settings.estimator.yaw_rate_bias,
-        settings.estimator.speed_scale,
-        settings.estimator.discretisation,
+        e.model,
+        e.yaw_rate_bias,
+        e.speed_scale,
+        e.discretisation,
         lever_m(settings),
         settings.gnss.use_speed,
+        e.yaw_rate_gain and streaming_su5,
+        e.azimuth_offset and streaming_su5,
+        forward_state,
+        settings.vehicle.antenna_forward_m if su5 and not forward_state else 0.0,
+        settings.vehicle.antenna_left_m if su5 else 0.0,
     )
 
 
-def model_for(settings: EstimationSettings) -> SuModel:
+def model_for(settings: EstimationSettings, streaming: bool = True) -> SuModel:
     """The SU model the settings select (:func:`model_args`)."""
-    return su_model(*model_args(settings))
+    return su_model(*model_args(settings, streaming))
 
 
 def lever_m(settings: EstimationSettings) -> float:
@@ -139,14 +160,20 @@ def lever_m(settings: EstimationSettings) -> float:
 
 
 def state_box(model: SuModel, n_steps: int, settings: EstimationSettings) -> tuple[NDArray, NDArray]:
-    """Bounds (11) on every x_t (N x m): speed, yaw rate, CAN bias and scale limits; positions, phi free."""
+    """Bounds (11) on every x_t (N x m): speed, yaw rate, the limits of the sensor and installation states;
+    positions, phi free."""
     lo = np.full(model.n_states, -np.inf)
     hi = np.full(model.n_states, np.inf)
+    can, vehicle = settings.can, settings.vehicle
+    forward, reach = vehicle.antenna_forward_m, vehicle.antenna_forward_range_m
     limits = {
-        "v": (-settings.vehicle.max_reverse_speed_mps, settings.vehicle.max_speed_mps),
-        "omega": (-settings.vehicle.max_yaw_rate_rps, settings.vehicle.max_yaw_rate_rps),
-        BIAS_STATE: (-settings.can.yaw_rate_bias_max_rps, settings.can.yaw_rate_bias_max_rps),
-        SCALE_STATE: (1.0 - settings.can.speed_scale_max, 1.0 + settings.can.speed_scale_max),
+        "v": (-vehicle.max_reverse_speed_mps, vehicle.max_speed_mps),
+        "omega": (-vehicle.max_yaw_rate_rps, vehicle.max_yaw_rate_rps),
+        BIAS_STATE: (-can.yaw_rate_bias_max_rps, can.yaw_rate_bias_max_rps),
+        SCALE_STATE: (1.0 - can.speed_scale_max, 1.0 + can.speed_scale_max),
+        GAIN_STATE: (1.0 - can.yaw_rate_gain_max, 1.0 + can.yaw_rate_gain_max),
+        AZIMUTH_OFFSET_STATE: (-settings.gnss.azimuth_offset_max_rad, settings.gnss.azimuth_offset_max_rad),
+        LEVER_STATE: (forward - reach, forward + reach),
     }
     for name, (a, b) in limits.items():
         if name in model.states:
@@ -154,16 +181,28 @@ def state_box(model: SuModel, n_steps: int, settings: EstimationSettings) -> tup
     return np.tile(lo, (n_steps, 1)), np.tile(hi, (n_steps, 1))
 
 
-def start_states(lp: LpSolution, model: SuModel, origin: NDArray[np.float64]) -> NDArray[np.float64]:
+def start_states(
+    lp: LpSolution, model: SuModel, origin: NDArray[np.float64], settings: EstimationSettings
+) -> NDArray[np.float64]:
     """The NLP start X0 (000 sec. 4.2) from the LP: positions, its azimuth input, CAN speed and yaw rate."""
     N = len(lp.phi)
     x = np.zeros((N, model.n_states))
     n_pos = 2 * model.antennas
     x[:, :n_pos] = lp.p - np.tile(origin, model.antennas)
     x[:, model.i_phi], x[:, model.i_v], x[:, model.i_omega] = lp.phi, lp.speed, lp.yaw_rate
-    if model.i_scale is not None:
-        x[:, model.i_scale] = 1.0
+    x[:, model.n_dynamic :] = nominal_parameters(model, settings)
     return x
+
+
+def nominal_parameters(model: SuModel, settings: EstimationSettings) -> NDArray[np.float64]:
+    """The parameters Theta (the states after the dynamic ones) of a car and sensors as configured: no bias, unit
+    speed scale and yaw-rate gain, no azimuth offset, the antenna where ``[vehicle]`` says."""
+    nominal = {
+        SCALE_STATE: 1.0,
+        GAIN_STATE: 1.0,
+        LEVER_STATE: settings.vehicle.antenna_forward_m,
+    }
+    return np.array([nominal.get(name, 0.0) for name in model.states[model.n_dynamic :]])
 
 
 def _centred(grid: Grid, model: SuModel, origin: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -240,11 +279,14 @@ def estimate_batch(
     """
     t_start = time.perf_counter()
     settings = settings or EstimationSettings()
-    model = model_for(settings)
+    model = model_for(settings, streaming=False)
     grid = build_grid(samples, model, settings, frame)
     bounds = noise_bounds(model, grid, settings, lever_m(settings))
     nlp = build_nlp(
-        *model_args(settings), grid.n_steps, settings.estimator.batch.ipopt_max_iter, settings.estimator.batch.ipopt_tol
+        *model_args(settings, streaming=False),
+        grid.n_steps,
+        settings.estimator.batch.ipopt_max_iter,
+        settings.estimator.batch.ipopt_tol,
     )
     win = _Window(nlp, model, grid, bounds, settings)
     try:
@@ -252,7 +294,7 @@ def estimate_batch(
     except SolverError as e:
         log.warning("%s; the NLP starts from the interpolated fixes", e)
         lp = interpolated_start(grid, model, settings)
-    x0 = start_states(lp, model, win.origin)
+    x0 = start_states(lp, model, win.origin, settings)
     for widenings in range(settings.estimator.batch.max_widenings + 1):
         stages = _stages(win, x0)
         if stages.success or stages.status not in INFEASIBLE or widenings == settings.estimator.batch.max_widenings:
@@ -347,12 +389,12 @@ def estimate_lp(
     input phi-hat, speed and yaw rate from CAN; q and r only for the position states and outputs."""
     t_start = time.perf_counter()
     settings = settings or EstimationSettings()
-    model = model_for(settings)
+    model = model_for(settings, streaming=False)
     grid = build_grid(samples, model, settings, frame)
     bounds = noise_bounds(model, grid, settings, lever_m(settings))
     origin = np.mean(grid.y[grid.gps, :2], axis=0)
     lp = solve_lp(grid, model, bounds, settings, origin)
-    x = start_states(lp, model, np.zeros(2))
+    x = start_states(lp, model, np.zeros(2), settings)
     n_pos = 2 * model.antennas
     q = np.full(model.n_states, np.nan)
     r = np.full(model.n_outputs, np.nan)

@@ -224,11 +224,28 @@ def build_nlp(
     discretisation: str,
     lever_m: float,
     gps_speed: bool,
+    yaw_rate_gain: bool,
+    azimuth_offset: bool,
+    antenna_forward: bool,
+    antenna_forward_m: float,
+    antenna_left_m: float,
     n_steps: int,
     max_iter: int,
     tol: float,
 ) -> SuNlp:
     """The NLP for a model (the arguments of :func:`~sumhe.model.su.su_model`) and window size, built on first
     use and cached (never rebuilt per window)."""
-    model = su_model(model_name, yaw_rate_bias, speed_scale, discretisation, lever_m, gps_speed)
+    model = su_model(
+        model_name,
+        yaw_rate_bias,
+        speed_scale,
+        discretisation,
+        lever_m,
+        gps_speed,
+        yaw_rate_gain,
+        azimuth_offset,
+        antenna_forward,
+        antenna_forward_m,
+        antenna_left_m,
+    )
     return SuNlp(model, n_steps, max_iter, tol)

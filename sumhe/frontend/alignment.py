@@ -9,7 +9,10 @@ The offset is measured the way a test engineer would, by the lag that best lines
 quantity: the receiver's speed over ground against the CAN speed (every speed change carries it), and the rate of
 the receiver's course against the CAN yaw rate (every turn carries it). Both are linear least squares for a given
 lag (a scale, and for the yaw rate a bias); the lag is the minimum of the residual over a grid of lags, refined by
-the parabola through its neighbours, with the standard error from the parabola's curvature. Pure functions on
+the parabola through its neighbours. Its standard error is the larger of the parabola's (from its curvature) and
+the linearised least-squares one, ``rms / sqrt(sum (d model / d lag)^2)`` with the derivative taken over a second
+(:data:`SLOPE_S`): without speed changes (or turns) the residual's minimum is noise and the lag undetermined, which
+the second says even when noise makes a parabola look sharp. Pure functions on
 arrays (:func:`speed_lag`, :func:`course_lag`), used offline by ``sumhe calibrate`` and on line by
 :class:`ClockLearner`.
 """
@@ -28,6 +31,8 @@ LAGS_S = np.round(np.arange(-1.0, 1.0001, 0.02), 6)
 MIN_SPEED_MPS = 2.0
 """Course and Doppler speed are used above this speed only (below it the course is noise)."""
 MIN_PAIRS = 30
+SLOPE_S = 0.5
+"""Half the interval (s) over which the model's derivative with respect to the lag is taken (smooths sensor noise)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -63,6 +68,13 @@ def _refine(lags: NDArray[np.float64], rss: NDArray[np.float64], n: int, params:
     return lag, math.sqrt(sigma2 / curvature)
 
 
+def _linear_std(rms: float, slope: NDArray[np.float64]) -> float:
+    """The least-squares standard error of a lag whose model changes by ``slope`` per second of lag at each
+    measurement, with residuals of ``rms``."""
+    information = float(np.sum(np.square(slope)))
+    return rms / math.sqrt(information) if information > 0 else math.inf
+
+
 def speed_lag(
     t_fix: ArrayLike, gnss_speed: ArrayLike, t_can: ArrayLike, can_speed: ArrayLike, lags: ArrayLike = LAGS_S
 ) -> LagFit | None:
@@ -83,7 +95,10 @@ def speed_lag(
     rss = np.sum(np.square(g[None, :] - scale[:, None] * can), axis=1)
     lag, std = _refine(lags, rss, len(g), 2)
     i = int(np.argmin(rss))
-    return LagFit(lag, std, float(scale[i]), 0.0, math.sqrt(float(rss[i]) / len(g)), len(g))
+    rms = math.sqrt(float(rss[i]) / len(g))
+    ahead, behind = (np.abs(np.interp(tf - lag + d, tc, c)) for d in (-SLOPE_S, SLOPE_S))
+    std = max(std, _linear_std(rms, scale[i] * (ahead - behind) / (2.0 * SLOPE_S)))
+    return LagFit(lag, std, float(scale[i]), 0.0, rms, len(g))
 
 
 def _cumulative(t: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -159,7 +174,10 @@ def course_lag(
     scale, intercept = row[0], row[1]
     bias = -intercept / scale if scale else math.nan
     lever = float(row[2] / scale) if lever_prior_m is not None and scale else 0.0
-    return LagFit(lag, std, float(scale), float(bias), math.sqrt(float(rss[i]) / len(rate)), len(rate), lever)
+    rms = math.sqrt(float(rss[i]) / len(rate))
+    slope = root_w * (mean(t1 - lag - SLOPE_S, t2 - lag - SLOPE_S) - mean(t1 - lag + SLOPE_S, t2 - lag + SLOPE_S))
+    std = max(std, _linear_std(rms, scale * slope / (2.0 * SLOPE_S)))
+    return LagFit(lag, std, float(scale), float(bias), rms, len(rate), lever)
 
 
 LEVER_SMOOTH_S = 0.5

@@ -51,6 +51,15 @@ class Samples:
             return self.v[i]
         return None
 
+    def interpolate(self, t: float, max_gap: float) -> float | None:
+        """The samples on both sides of ``t`` interpolated linearly to it, when they are at most ``max_gap`` s from
+        it; None otherwise."""
+        i = bisect.bisect_right(self.t, t)
+        if not 0 < i < len(self.t) or t - self.t[i - 1] > max_gap or self.t[i] - t > max_gap:
+            return None
+        t0, t1 = self.t[i - 1], self.t[i]
+        return self.v[i - 1] + (t - t0) / (t1 - t0) * (self.v[i] - self.v[i - 1])
+
     @property
     def newest(self) -> float:
         """Time of the newest sample (-inf when empty)."""

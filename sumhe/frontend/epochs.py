@@ -4,7 +4,9 @@ One rule for every estimator (and the batch grid): the nominal period is the mea
 epochs that lie within 50 % of their median (the mean of consecutive intervals cancels the receive-time jitter;
 the median test leaves outage gaps out), from at least two intervals (two fixes around an outage say nothing of
 the period), else the GNSS model's ``period_s``. Silence longer than 1.5 periods, measured on the fix clock (the
-newest CAN time minus the typical delay of fixes behind the CAN data), is a missed epoch every period.
+newest CAN time minus the typical delay of fixes behind the CAN data), is a missed epoch every period, once the
+stream has shown its period (two intervals): before, a 1 Hz receiver's second fix would come after ten epochs
+"missed" at the default 0.1 s and be dropped as back in time, and its period never measured.
 """
 
 from __future__ import annotations
@@ -69,7 +71,9 @@ class EpochClock:
     def missed(self, t_fix_clock: float) -> list[float]:
         """Times of the epochs GNSS missed up to ``t_fix_clock`` (s), each a period after the last; they become the
         last epoch."""
-        out = []
+        out: list[float] = []
+        if len(self._intervals) < 2:
+            return out
         while self.last_epoch is not None and t_fix_clock - self.last_epoch > MISSED_AFTER_PERIODS * self.period_s:
             self.last_epoch += self.period_s
             out.append(self.last_epoch)

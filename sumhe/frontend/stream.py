@@ -11,13 +11,15 @@ is worth and when it counts:
 * GNSS timing (:class:`~sumhe.frontend.epochs.EpochClock`): the receiver's period, the fixes' delay behind the CAN
   data, the epochs it missed (silence over 1.5 periods: an :class:`Epoch` without a fix, ``missed=True``);
 * each fix's measurements by the one policy of :mod:`sumhe.frontend.measurements` (:class:`FixMeasurement`);
+* the GNSS time offset: a fix's time is moved by ``sensors.gnss.time_offset_s`` onto the CAN clock, or by the
+  offset learned on line (:class:`~sumhe.frontend.alignment.ClockLearner`, ``learn_time_offset``), which the
+  applied offset follows by at most ``OFFSET_SLEW`` of a period per fix (epochs stay in order);
 * the start: nothing before the first usable fix, which comes as ``Epoch(start=True)``; no sample at all for
   ``MAX_DATA_GAP_S`` restarts there (counted ``restarts``).
 
 Events come out in time order: an epoch a CAN sample's time reveals as missed comes before that sample's tick.
 
-Where the inputs still to come belong (each one place): a GNSS time offset against the CAN clock corrects the
-epoch's and the measurement's time in :meth:`FrontEnd._fix`; a course that errs by more than the speed says, or
+Where the inputs still to come belong (each one place): a course that errs by more than the speed says, or
 differs from the heading (sideslip, mounting), is :func:`~sumhe.frontend.measurements.azimuth_measurement`'s; NMEA
 without HDOP or GST falls to ``sensors.gnss.sigma_m`` in :func:`~sumhe.frontend.measurements.fix_sigmas`; sparse,
 quantised CAN speed (OBD-II polling) is the buffer's and the DBC quantum's (:mod:`sumhe.io.quanta`), and which
@@ -27,12 +29,14 @@ samples make an estimate is :data:`OUTPUT_QUANTITY`; a fix arriving after newer 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections import Counter
 from dataclasses import dataclass
 from typing import NamedTuple
 
+from sumhe.frontend.alignment import ClockLearner
 from sumhe.frontend.can import CAN_USED, CanBuffer
 from sumhe.frontend.epochs import EpochClock, bad_epoch_time
 from sumhe.frontend.fixes import LocalFix
@@ -48,6 +52,8 @@ OUTPUT_QUANTITY = "speed"
 """The CAN quantity whose samples the estimators answer with an estimate."""
 CAN_KEEP_S = 2.0
 """CAN samples are kept for this long, or three periods if longer, behind the newest epoch."""
+OFFSET_SLEW = 0.2
+"""The applied GNSS time offset moves towards the learned one by at most this fraction of a period per fix."""
 
 
 class Tally:
@@ -122,9 +128,13 @@ class FrontEnd:
         self.reset()
 
     def reset(self) -> None:
-        """Forget the CAN data and the stream's timing; the next usable fix starts over."""
+        """Forget the CAN data and the stream's timing (the learned time offset too: a clock jump may change it);
+        the next usable fix starts over."""
+        gnss = self.settings.gnss
         self.can = CanBuffer()
-        self.clock = EpochClock(self.settings.gnss.period_s)
+        self.clock = EpochClock(gnss.period_s)
+        self.aligner = ClockLearner(gnss.time_offset_s) if gnss.learn_time_offset else None
+        self.time_offset_s = gnss.time_offset_s
         self.started = False
         self._t_last = -math.inf
 
@@ -165,6 +175,8 @@ class FrontEnd:
             return []
         self._check_gap(t)
         store.add(t, float(value))
+        if q == "speed" and self.aligner is not None:
+            self.aligner.add_can_speed(t, float(value))
         if not self.started:
             return []
         events: list[Epoch | CanTick] = self._missed(t - self.clock.delay_s)
@@ -174,11 +186,15 @@ class FrontEnd:
     # ---- GNSS -------------------------------------------------------------------------------------------------
 
     def _fix(self, fix: LocalFix) -> list[Epoch | CanTick]:
-        t = fix.t
-        bad = bad_epoch_time(t, self.clock.last_epoch)
+        # the receiver's timing (period, delay, missed epochs) is kept on its own clock, the fixes' stamps; the
+        # epochs handed out are at their times on the CAN clock (the stamp plus the GNSS time offset)
+        stamp = fix.t
+        bad = bad_epoch_time(stamp, self.clock.last_epoch)
         if bad is not None:
             self.tally.count(*bad[:2], *bad[2])
             return []
+        fix = self._on_can_clock(fix)
+        t = fix.t
         newest_can = self.can.newest
         if self.started and t < newest_can - MAX_FIX_LAG_S:
             self.tally.count("late_fixes", "GNSS epoch %.2f s behind the CAN data dropped", newest_can - t)
@@ -187,22 +203,30 @@ class FrontEnd:
         usable = fix.usable(sigmas)
         if fix.valid and not usable:
             self.tally.count("bad_fixes", "valid fix without a usable position or sigma taken as no fix")
-        self.clock.observe(t, newest_can)
+        self.clock.observe(stamp, newest_can)
         self._check_gap(t)
         if not self.started:
             if not usable:
                 return []
-            self.clock.last_epoch = t
+            self.clock.last_epoch = stamp
             self.started = True
             self.tally.counts["epochs"] += 1
             self.can.trim(t - max(CAN_KEEP_S, 3.0 * self.period_s))
             return [Epoch(t, self.measure(fix, sigmas), start=True)]
-        events: list[Epoch | CanTick] = self._missed(t)
-        self.clock.last_epoch = t
+        events: list[Epoch | CanTick] = self._missed(stamp)
+        self.clock.last_epoch = stamp
         self.tally.counts["epochs"] += 1
         self.can.trim(t - max(CAN_KEEP_S, 3.0 * self.period_s))
         events.append(Epoch(t, self.measure(fix, sigmas) if usable else None))
         return events
+
+    def _on_can_clock(self, fix: LocalFix) -> LocalFix:
+        """The fix at its time on the CAN clock: its stamped time plus the GNSS time offset (module docstring)."""
+        if self.aligner is not None and isinstance(fix.t, float | int) and math.isfinite(fix.t):
+            self.aligner.add_fix(fix.t, fix.speed_mps if fix.valid else None)
+            step = OFFSET_SLEW * self.period_s
+            self.time_offset_s += min(max(self.aligner.offset_s - self.time_offset_s, -step), step)
+        return dataclasses.replace(fix, t=fix.t + self.time_offset_s) if self.time_offset_s else fix
 
     def measure(self, fix: LocalFix, sigmas: tuple[float, float]) -> FixMeasurement:
         """The measurements of a usable fix whose position ``sigmas`` are :meth:`LocalFix.sigmas`
@@ -230,11 +254,12 @@ class FrontEnd:
     # ---- timing -----------------------------------------------------------------------------------------------
 
     def _missed(self, t_fix_clock: float) -> list[Epoch | CanTick]:
+        """The epochs missed up to ``t_fix_clock`` (s, on the fixes' own clock), at their times on the CAN clock."""
         times = self.clock.missed(t_fix_clock)
         if times:
             self.tally.counts["epochs"] += len(times)
             self.tally.counts["missed_epochs"] += len(times)
-        return [Epoch(t, None, missed=True) for t in times]
+        return [Epoch(t + self.time_offset_s, None, missed=True) for t in times]
 
     def _check_gap(self, t: float) -> None:
         if self.started and t - self._t_last > MAX_DATA_GAP_S:

@@ -56,10 +56,10 @@ def kinematic_jacobian(n_states: int) -> JacobianFunction:
 
 
 @functools.lru_cache(maxsize=8)
-def can_jacobian(yaw_rate_bias: bool, speed_scale: bool) -> JacobianFunction:
+def can_jacobian(yaw_rate_bias: bool, speed_scale: bool, yaw_rate_gain: bool = False) -> JacobianFunction:
     """``x -> d (CAN speed, CAN yaw rate) / dx`` (2 x m) of :func:`~sumhe.model.su.can_outputs` for the
     single-antenna model with these CAN states."""
-    model = su_model("su5", yaw_rate_bias, speed_scale)
+    model = su_model("su5", yaw_rate_bias, speed_scale, yaw_rate_gain=yaw_rate_gain)
     x = ca.SX.sym("x", model.n_states)
-    out = ca.vertcat(*can_outputs(x[model.i_v], x[model.i_omega], x, model.i_bias, model.i_scale))
+    out = ca.vertcat(*can_outputs(x[model.i_v], x[model.i_omega], x, model.i_bias, model.i_scale, model.i_gain))
     return _dense(ca.Function("can_jacobian", [x], [ca.densify(ca.jacobian(out, x))]), 2)

@@ -10,10 +10,14 @@ one expression per state or output, as a list; stack them with ``numpy.array`` o
 Conventions (the whole package): px east, py north (m); azimuth phi clockwise from north (rad); yaw rate
 omega anticlockwise positive (rad/s), so a left turn decreases phi: ``phi_t = phi_{t-1} - h * omega_{t-1}``.
 
-Beyond the paper, two optional states model real CAN sensors (issue 7): a yaw-rate bias ``b``
-(CAN yaw rate = omega + b) and a speed scale factor ``k`` (CAN speed = k * v). They are appended after the
-kinematic states and carried unchanged by the state equation: within a window they are the time-invariant
-parameters Theta of paper 000 (2), with no state noise.
+Beyond the paper, optional states model real sensors and their installation (issues 7 and 12): a yaw-rate bias
+``b`` and gain ``g`` (CAN yaw rate = g omega + b), a speed scale factor ``k`` (CAN speed = k v), and, for the
+single-antenna model, an azimuth offset ``c`` of the receiver (its course or heading = the azimuth + c: sideslip
+in steady driving, a mounting angle) and the antenna's lever arm ``l`` ahead of the reference point (the fix is
+that point's position; it moves sideways in turns, so its course differs from the azimuth by ``atan(l omega /
+v)``); the lever arm aside, ``antenna_left_m``, is a fixed parameter. They are appended after the kinematic states
+and carried unchanged by the state equation: within a window they are the time-invariant parameters Theta of
+paper 000 (2), with no state noise.
 """
 
 from __future__ import annotations
@@ -36,6 +40,11 @@ SU5_STATES = ("px", "py", "phi", "v", "omega")
 SU5_OUTPUTS = ("px", "py", "course", "can_speed", "can_yaw_rate")
 BIAS_STATE = "yaw_rate_bias"
 SCALE_STATE = "speed_scale"
+GAIN_STATE = "yaw_rate_gain"
+AZIMUTH_OFFSET_STATE = "azimuth_offset"
+LEVER_STATE = "antenna_forward"
+MIN_COURSE_SPEED_MPS = 0.1
+"""Speed (m/s) below which the antenna's course is taken as the azimuth's (keeps :func:`antenna_motion` smooth)."""
 GPS_SPEED_OUTPUT = "gps_speed"
 """The receiver's speed over ground (Doppler), an output just before the CAN ones when the model has it."""
 
@@ -131,19 +140,43 @@ def antenna_distance_residual(x: Any) -> Any:
     return (x[0] - x[2]) ** 2 + (x[1] - x[3]) ** 2
 
 
-def can_outputs(v: Any, omega: Any, x: Any, bias_index: int | None, scale_index: int | None) -> list[Any]:
-    """CAN speed (m/s) and yaw rate (rad/s) as measured: ``k v`` and ``omega + b`` when those states exist."""
+def can_outputs(
+    v: Any, omega: Any, x: Any, bias_index: int | None, scale_index: int | None, gain_index: int | None = None
+) -> list[Any]:
+    """CAN speed (m/s) and yaw rate (rad/s) as measured: ``k v`` and ``g omega + b`` when those states exist."""
     speed = v * x[scale_index] if scale_index is not None else v
-    yaw_rate = omega + x[bias_index] if bias_index is not None else omega
+    yaw_rate = omega * x[gain_index] if gain_index is not None else omega
+    yaw_rate = yaw_rate + x[bias_index] if bias_index is not None else yaw_rate
     return [speed, yaw_rate]
 
 
-def can_motion(speed: Any, yaw_rate: Any, x: Any, bias_index: int | None, scale_index: int | None) -> list[Any]:
+def can_motion(
+    speed: Any, yaw_rate: Any, x: Any, bias_index: int | None, scale_index: int | None, gain_index: int | None = None
+) -> list[Any]:
     """The speed (m/s) and yaw rate (rad/s) of a vehicle whose CAN reads ``speed`` and ``yaw_rate``: the inverse of
-    :func:`can_outputs` at the CAN states of ``x``, ``speed / k`` and ``yaw_rate - b``."""
+    :func:`can_outputs` at the CAN states of ``x``, ``speed / k`` and ``(yaw_rate - b) / g``."""
     v = speed / x[scale_index] if scale_index is not None else speed
     omega = yaw_rate - x[bias_index] if bias_index is not None else yaw_rate
+    omega = omega / x[gain_index] if gain_index is not None else omega
     return [v, omega]
+
+
+def antenna_motion(
+    phi: Any, v: Any, omega: Any, forward_m: Any, left_m: float, ns: Any = np
+) -> tuple[Any, Any, Any, Any]:
+    """Where an antenna ``forward_m`` ahead of and ``left_m`` left of the reference point is and how it moves:
+    its offset (east, north) from the point (m), its course (rad) and its speed over ground (m/s).
+
+    Its velocity is ``(v - left omega)`` along the azimuth plus ``forward omega`` to the left (anticlockwise
+    rotation), so its course is the azimuth minus ``atan(forward omega / (v - left omega))`` and its speed
+    ``(v - left omega)`` plus the second-order ``(forward omega)^2 / 2|v|``; both smoothed below
+    :data:`MIN_COURSE_SPEED_MPS` so that an NLP's derivatives stay finite at rest."""
+    sin, cos = ns.sin(phi), ns.cos(phi)
+    along = v - left_m * omega
+    side = forward_m * omega
+    speed = ns.sqrt(along * along + MIN_COURSE_SPEED_MPS**2)
+    course = phi - ns.arctan2(side, speed)
+    return forward_m * sin - left_m * cos, forward_m * cos + left_m * sin, course, along + side * side / (2.0 * speed)
 
 
 def su7_output(
@@ -156,12 +189,34 @@ def su7_output(
     return [px1, py1, px2, py2, xi, *[x[5]] * gps_speed, *can_outputs(x[5], x[6], x, bias_index, scale_index)]
 
 
-def su5_output(
-    x: Any, ns: Any = np, bias_index: int | None = None, scale_index: int | None = None, gps_speed: bool = False
-) -> list[Any]:
+@dataclass(frozen=True)
+class Installation:
+    """Which optional states of the single-antenna model exist (their indices, None without) and the antenna's
+    fixed lever arm (m): ahead (where it is not a state) and aside."""
+
+    bias: int | None = None
+    scale: int | None = None
+    gain: int | None = None
+    azimuth_offset: int | None = None
+    lever: int | None = None
+    forward_m: float = 0.0
+    left_m: float = 0.0
+
+
+def su5_output(x: Any, ns: Any = np, gps_speed: bool = False, inst: Installation = Installation()) -> list[Any]:
     """Single-antenna outputs: GPS position (m), azimuth (course or heading, rad), (the GNSS speed over ground,
-    m/s, with ``gps_speed``), CAN speed and yaw rate."""
-    return [x[0], x[1], x[2], *[x[3]] * gps_speed, *can_outputs(x[3], x[4], x, bias_index, scale_index)]
+    m/s, with ``gps_speed``), CAN speed and yaw rate; with an antenna lever arm (:func:`antenna_motion`), the
+    antenna's position, course and speed; with an azimuth offset, the azimuth output plus it."""
+    px, py, phi, v, omega = (x[i] for i in range(5))
+    if inst.lever is not None or inst.forward_m or inst.left_m:
+        forward = x[inst.lever] if inst.lever is not None else inst.forward_m
+        de, dn, azimuth, sog = antenna_motion(phi, v, omega, forward, inst.left_m, ns)
+        px, py = px + de, py + dn
+    else:
+        azimuth, sog = phi, v
+    if inst.azimuth_offset is not None:
+        azimuth = azimuth + x[inst.azimuth_offset]
+    return [px, py, azimuth, *[sog] * gps_speed, *can_outputs(v, omega, x, inst.bias, inst.scale, inst.gain)]
 
 
 @dataclass(frozen=True)
@@ -230,6 +285,21 @@ class SuModel:
     def i_scale(self) -> int | None:
         """The CAN speed-scale state, None without it."""
         return self._optional(SCALE_STATE)
+
+    @property
+    def i_gain(self) -> int | None:
+        """The CAN yaw-rate gain state, None without it."""
+        return self._optional(GAIN_STATE)
+
+    @property
+    def i_azimuth_offset(self) -> int | None:
+        """The receiver's azimuth offset state, None without it."""
+        return self._optional(AZIMUTH_OFFSET_STATE)
+
+    @property
+    def i_lever(self) -> int | None:
+        """The antenna's lever arm ahead of the reference point, None without it."""
+        return self._optional(LEVER_STATE)
 
     @property
     def j_azimuth(self) -> int:
@@ -310,26 +380,49 @@ def su_model(
     discretisation: str = "euler",
     lever_m: float = 0.0,
     gps_speed: bool = False,
+    yaw_rate_gain: bool = False,
+    azimuth_offset: bool = False,
+    antenna_forward: bool = False,
+    antenna_forward_m: float = 0.0,
+    antenna_left_m: float = 0.0,
 ) -> SuModel:
     """The model ``"su7"`` (paper (19)-(20)) or ``"su5"`` (single antenna), with optional CAN-error states,
     discretised by ``"euler"`` (the paper's (19)) or ``"trapezoid"`` (:func:`trapezoid`); ``lever_m`` is
     the antenna-2 lever arm of :func:`su7_step` (0: the paper's rigid translation); ``gps_speed`` adds the
     receiver's speed over ground as an output (:data:`GPS_SPEED_OUTPUT`, a GNSS output before the CAN ones).
-    Built once per argument set (the models are immutable)."""
+    ``su5`` only: the yaw-rate gain, the receiver's azimuth offset and the antenna's lever arm ahead as states,
+    the lever arm (m) ahead ``antenna_forward_m`` (where it is not a state) and aside ``antenna_left_m`` as
+    parameters (module docstring). Built once per argument set (the
+    models are immutable)."""
     if name not in ("su7", "su5"):
         raise ValueError(f"model: unknown SU model {name!r} (su5, su7)")
     if discretisation not in ("euler", "trapezoid"):
         raise ValueError(f"discretisation: unknown scheme {discretisation!r} (euler, trapezoid)")
+    if name == "su7" and (yaw_rate_gain or azimuth_offset or antenna_forward or antenna_forward_m or antenna_left_m):
+        raise ValueError("model: the yaw-rate gain, azimuth offset and antenna lever arm are su5's only")
     base = SU7_STATES if name == "su7" else SU5_STATES
-    extra = (BIAS_STATE,) * yaw_rate_bias + (SCALE_STATE,) * speed_scale
+    extra = (BIAS_STATE,) * yaw_rate_bias + (SCALE_STATE,) * speed_scale + (GAIN_STATE,) * yaw_rate_gain
+    extra += (AZIMUTH_OFFSET_STATE,) * azimuth_offset + (LEVER_STATE,) * antenna_forward
     states = base + extra
-    bias_index = states.index(BIAS_STATE) if yaw_rate_bias else None
-    scale_index = states.index(SCALE_STATE) if speed_scale else None
+
+    def index(state: str) -> int | None:
+        return states.index(state) if state in states else None
+
+    inst = Installation(
+        index(BIAS_STATE),
+        index(SCALE_STATE),
+        index(GAIN_STATE),
+        index(AZIMUTH_OFFSET_STATE),
+        index(LEVER_STATE),
+        antenna_forward_m,
+        antenna_left_m,
+    )
     step: Step = functools.partial(su7_step, lever_m=lever_m) if name == "su7" else su5_step
-    out = su7_output if name == "su7" else su5_output
 
     def output(x: Any, ns: Any = np) -> list[Any]:
-        return out(x, ns, bias_index, scale_index, gps_speed)
+        if name == "su7":
+            return su7_output(x, ns, inst.bias, inst.scale, gps_speed)
+        return su5_output(x, ns, gps_speed, inst)
 
     speed_out = (GPS_SPEED_OUTPUT,) * gps_speed
 

@@ -28,7 +28,7 @@ def non_negative(obj: object, *names: str) -> None:
             raise ValueError(f"{name}: must be >= 0 and finite, got {value!r}")
 
 
-def at_least(obj: object, minimum: int, *names: str) -> None:
+def at_least(obj: object, minimum: float, *names: str) -> None:
     """Each ``obj.name`` is at least ``minimum``."""
     for name in names:
         value = getattr(obj, name)

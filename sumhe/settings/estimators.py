@@ -23,7 +23,9 @@ MHE_SOLVERS = ("sqp", "ipopt", "fatrop")
 @dataclass(frozen=True, slots=True)
 class MheSettings:
     """``[estimator.mhe]``: solver, window policy (steps: N, N_B, N_A, N_max, ...), QP, CAN states' drift, gate,
-    retries. ``nlp_max_iter`` limits the ``ipopt``/``fatrop`` solvers."""
+    retries, the output bounds learned from the residuals (``learn_bounds``: over the last ``bound_history`` steps,
+    times ``bound_margin``, at most ``bound_max_factor`` times the allowances; ``docs/mhe.md``). ``nlp_max_iter``
+    limits the ``ipopt``/``fatrop`` solvers."""
 
     solver: str = "sqp"
     steps: int = 50
@@ -42,10 +44,15 @@ class MheSettings:
     gate_m: float = 2.0
     gate_drift: float = 0.05
     max_retries: int = 2
+    learn_bounds: bool = True
+    bound_history: int = 3000
+    bound_margin: float = 1.1
+    bound_max_factor: float = 20.0
 
     def __post_init__(self) -> None:
         one_of(self, "solver", MHE_SOLVERS)
-        at_least(self, 1, "max_merge", "bucket_steps", "sqp_iterations", "qp_max_iter", "nlp_max_iter")
+        at_least(self, 1, "max_merge", "bucket_steps", "sqp_iterations", "qp_max_iter", "nlp_max_iter", "bound_history")
+        at_least(self, 1.0, "bound_margin", "bound_max_factor")
         at_least(self, 2, "steps")
         at_least(self, 0, "steps_before", "steps_after", "shrink_steps", "max_retries")
         if self.max_steps < self.steps:
@@ -83,7 +90,8 @@ class BatchSettings:
 
 @dataclass(frozen=True, slots=True)
 class EstimatorSettings:
-    """``[estimator]``: the estimator (``name``), the SU model (``model``, the optional CAN states, the
+    """``[estimator]``: the estimator (``name``), the SU model (``model``, the optional states: CAN yaw-rate bias,
+    speed scale and yaw-rate gain, the receiver's azimuth offset, the antenna's forward lever arm; the
     discretisation), what the SU estimators share (error allowances of ``r_cap_sigmas`` sigmas; bounds widened by
     ``widen_factor`` while a problem is infeasible, 001 algorithm 3.3) and one table per estimator family."""
 
@@ -91,6 +99,9 @@ class EstimatorSettings:
     model: str = "su5"
     yaw_rate_bias: bool = True
     speed_scale: bool = True
+    yaw_rate_gain: bool = True
+    azimuth_offset: bool = True
+    antenna_offset: bool = True
     discretisation: str = "trapezoid"
     r_cap_sigmas: float = 4.0
     widen_factor: float = 2.0

@@ -17,12 +17,14 @@ from sumhe.settings.checks import at_least, positive
 class NoiseSettings:
     """Noise levels of a recursive filter, SI units; ``*_rw`` are random-walk densities (unit per sqrt(s)).
 
-    Process: the position, azimuth, speed, yaw rate, bias and scale states each take white noise of the given
+    Process: the position, azimuth, speed, yaw rate, bias, scale and gain states each take white noise of the given
     density (``Q = diag(density^2) dt``). Measurements: CAN speed and yaw rate sigmas (per CAN-rate update), the
     standstill pseudo-measurement ``omega = 0`` (0 turns it off), the GNSS position sigma as a multiple of the
     fix's own (:mod:`sumhe.frontend`), ``course_rad`` the filter's model error added to the course's sigma. Gate:
     the chi-square probability of the innovation gate (1 turns the gate off) and how long rejected fixes must
-    agree before the filter re-acquires them. Prior: sigmas of speed and yaw rate at the first fix.
+    agree before the filter re-acquires them. Prior: sigmas of speed, yaw rate and, where ``gain0`` > 0 and
+    ``estimator.yaw_rate_gain``, of the CAN yaw rate's gain, which is then a state (off by default: see
+    :meth:`sumhe.baseline.kinematics.Layout.from_settings`).
     """
 
     pos_rw: float = 0.05
@@ -31,6 +33,7 @@ class NoiseSettings:
     yaw_rate_rw: float = 0.3
     bias_rw: float = 5e-5
     scale_rw: float = 1e-5
+    gain_rw: float = 1e-4
     can_speed_mps: float = 0.05
     can_yaw_rate_rps: float = 0.003
     standstill_rps: float = 0.001
@@ -40,6 +43,7 @@ class NoiseSettings:
     reacquire_s: float = 1.0
     speed0_mps: float = 1.0
     yaw_rate0_rps: float = 0.1
+    gain0: float = 0.0
 
     def __post_init__(self) -> None:
         for f in fields(self):

@@ -21,8 +21,12 @@ FALLBACK_YAW_RATE_RESOLUTION_RPS = 0.0005
 class VehicleSettings:
     """What the vehicle can do (the state bounds and the state-noise caps come from these) and its antennas.
 
-    Two antennas (``su7``): distance ``antenna_distance_m`` and tolerance ``antenna_tolerance_m2`` of 000 (23);
-    ``antenna_lever``: antenna 2 swings about antenna 1 in turns.
+    The estimate is the position of the reference point the CAN speed and yaw rate describe (on most cars the
+    middle of the rear axle); the GNSS antenna sits ``antenna_forward_m`` ahead of it and ``antenna_left_m`` to its
+    left (m, measured on the car). With ``estimator.antenna_offset`` the estimators refine the forward offset on
+    line within ``antenna_forward_range_m`` of the value given (a roof antenna's position is rarely known to a
+    decimetre). Two antennas (``su7``): distance ``antenna_distance_m`` and tolerance ``antenna_tolerance_m2`` of
+    000 (23); ``antenna_lever``: antenna 2 swings about antenna 1 in turns.
     """
 
     max_speed_mps: float = 70.0
@@ -30,13 +34,21 @@ class VehicleSettings:
     max_accel_mps2: float = 10.0
     max_yaw_rate_rps: float = 1.5
     max_yaw_accel_rps2: float = 3.0
+    antenna_forward_m: float = 0.0
+    antenna_left_m: float = 0.0
+    antenna_forward_range_m: float = 2.0
     antenna_distance_m: float = 1.0
     antenna_tolerance_m2: float = 0.05
     antenna_lever: bool = True
 
     def __post_init__(self) -> None:
+        for name in ("antenna_forward_m", "antenna_left_m"):
+            value = getattr(self, name)
+            if not -10.0 <= value <= 10.0:
+                raise ValueError(f"{name}: must be within [-10, 10] m, got {value!r}")
         positive(
             self,
+            "antenna_forward_range_m",
             "max_speed_mps",
             "max_accel_mps2",
             "max_yaw_rate_rps",
@@ -56,7 +68,13 @@ class GnssModel:
     (:func:`sumhe.frontend.measurements.fix_sigmas`). Course over ground (above ``course_min_speed_mps``):
     ``hypot(course_sigma_rad, speed_sigma_mps / speed)``; heading (HDT/THS, with ``use_heading``):
     ``heading_sigma_rad``. Speed over ground (Doppler, with ``use_speed``): ``speed_sigma_mps``. ``period_s``:
-    the receiver's nominal period until the stream has shown its own.
+    the receiver's nominal period until the stream has shown its own. ``azimuth_offset_max_rad`` bounds the
+    receiver's azimuth offset (sideslip, mounting) where the estimator has it as a state.
+
+    Time: a fix's position is true ``time_offset_s`` after the time it was stamped with (``[gps] time``), on the
+    CAN clock (a receiver's solution latency, a host clock off UTC, a logger stamping GNSS frames on arrival: -0.4
+    to +0.2 s measured). With ``learn_time_offset`` the front-end learns it on line from the receiver's speed over
+    ground against the CAN speed (:mod:`sumhe.frontend.alignment`), starting from ``time_offset_s``.
     """
 
     sigma_rtk_m: float = 0.02
@@ -71,8 +89,13 @@ class GnssModel:
     use_speed: bool = True
     use_heading: bool = True
     period_s: float = 0.1
+    azimuth_offset_max_rad: float = 0.03
+    time_offset_s: float = 0.0
+    learn_time_offset: bool = True
 
     def __post_init__(self) -> None:
+        if not -2.0 <= self.time_offset_s <= 2.0:
+            raise ValueError(f"time_offset_s: must be within [-2, 2] s, got {self.time_offset_s!r}")
         positive(
             self,
             "sigma_rtk_m",
@@ -83,6 +106,7 @@ class GnssModel:
             "speed_sigma_mps",
             "heading_sigma_rad",
             "period_s",
+            "azimuth_offset_max_rad",
         )
         non_negative(self, "course_sigma_rad", "course_min_speed_mps")
 
@@ -95,8 +119,9 @@ class CanModel:
     (in SI, times the mapping's ``scale``) when the estimator is built from a config with a DBC mapping, else
     :data:`FALLBACK_SPEED_RESOLUTION_MPS` / :data:`FALLBACK_YAW_RATE_RESOLUTION_RPS`. ``*_sigma_*``: white noise
     per sample. ``max_gap_s``: a sample older than this is no longer used. ``delay_s``: a sample measures the
-    vehicle this long before its timestamp (a calibration). ``speed_scale_max`` and ``yaw_rate_bias_max_rps``
-    bound the CAN speed's scale error and the yaw rate's bias (CAN speed = k v, CAN yaw rate = omega + b).
+    vehicle this long before its timestamp (a calibration). ``speed_scale_max``, ``yaw_rate_bias_max_rps`` and
+    ``yaw_rate_gain_max`` bound the CAN speed's scale error and the yaw rate's bias and gain error (CAN speed =
+    k v, CAN yaw rate = g omega + b).
     """
 
     speed_resolution_mps: float | None = None
@@ -107,15 +132,25 @@ class CanModel:
     delay_s: float = 0.0
     speed_scale_max: float = 0.05
     yaw_rate_bias_max_rps: float = 0.02
+    yaw_rate_gain_max: float = 0.15
 
     def __post_init__(self) -> None:
         for name in ("speed_resolution_mps", "yaw_rate_resolution_rps"):
             if getattr(self, name) is not None:
                 positive(self, name)
-        positive(self, "speed_sigma_mps", "yaw_rate_sigma_rps", "max_gap_s", "speed_scale_max", "yaw_rate_bias_max_rps")
+        positive(
+            self,
+            "speed_sigma_mps",
+            "yaw_rate_sigma_rps",
+            "max_gap_s",
+            "speed_scale_max",
+            "yaw_rate_bias_max_rps",
+            "yaw_rate_gain_max",
+        )
         non_negative(self, "delay_s")
-        if self.speed_scale_max >= 1:
-            raise ValueError("speed_scale_max: must be below 1 (a relative error)")
+        for name in ("speed_scale_max", "yaw_rate_gain_max"):
+            if getattr(self, name) >= 1:
+                raise ValueError(f"{name}: must be below 1 (a relative error)")
 
     @property
     def speed_quantum_mps(self) -> float:

@@ -16,6 +16,7 @@ of their ranges per square-root minute.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -23,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sumhe.estimator.mhe.window import Window
-from sumhe.model.su import SuModel
+from sumhe.model.su import MIN_COURSE_SPEED_MPS, SuModel
 
 EPS = 1e-9
 """Regularisation of the arrival cost's eliminations (directions without information)."""
@@ -48,12 +49,13 @@ def prior_arrival(x: FloatArray, half_widths: FloatArray, n_dynamic: int) -> Arr
     return Arrival(np.full(n_dynamic, np.inf), x.copy(), x.copy(), np.diag(1.0 / np.square(half_widths)))
 
 
-def measured_bounds(model: SuModel, win: Window, k: int, theta_range: FloatArray) -> FloatArray:
+def measured_bounds(model: SuModel, win: Window, k: int, theta_range: FloatArray, out_factor: FloatArray) -> FloatArray:
     """What the outputs of step ``k`` bound directly: half-widths per dynamic state (inf if nothing); speed and
-    yaw rate through the CAN states' whole range (a box must not rely on their estimates)."""
+    yaw rate through the CAN states' whole range, the azimuth and the position through the installation states'
+    (a box must not rely on their estimates)."""
     md = model.n_dynamic
     out = np.full(md, np.inf)
-    avail, allow, x = win.avail[k], win.allow[k], win.x[k]
+    avail, allow, x = win.avail[k], win.allow[k] * out_factor, win.x[k]
     (j_e, j_n), (i_e, i_n) = model.j_position, model.position
     for j, i in ((j_e, i_e), (j_n, i_n), (model.j_azimuth, model.i_phi)):
         if avail[j]:
@@ -68,6 +70,20 @@ def measured_bounds(model: SuModel, win: Window, k: int, theta_range: FloatArray
         out[i_v] = min(out[i_v], allow[j_sog])
     if avail[model.j_can_yaw_rate]:
         out[model.i_omega] = allow[model.j_can_yaw_rate] + (2.0 * theta_range[i_b - md] if i_b is not None else 0.0)
+        if model.i_gain is not None:
+            g_range = theta_range[model.i_gain - md]
+            out[model.i_omega] = (out[model.i_omega] + abs(x[model.i_omega]) * g_range) / max(
+                x[model.i_gain] - g_range, 1e-3
+            )
+    if model.i_azimuth_offset is not None and avail[model.j_azimuth]:
+        out[model.i_phi] += 2.0 * theta_range[model.i_azimuth_offset - md]
+    if model.i_lever is not None:
+        # the antenna anywhere in its range: the position it measures, and the course of its motion in a turn
+        lever = abs(x[model.i_lever]) + 2.0 * theta_range[model.i_lever - md]
+        out[i_e] += lever
+        out[i_n] += lever
+        if avail[model.j_azimuth]:
+            out[model.i_phi] += math.atan2(lever * abs(x[model.i_omega]), max(abs(x[i_v]), MIN_COURSE_SPEED_MPS))
     return out
 
 
@@ -81,9 +97,11 @@ def arrival_update(
     step_jac: StepJacobians,
     theta_range: FloatArray,
     theta_drift: float,
+    out_factor: FloatArray,
 ) -> Arrival:
     """The arrival after the ``drop`` oldest steps of ``win`` leave it (module docstring), linearised at the
-    window's trajectory; ``Q`` the state bounds of the last solve (``q_caps`` for steps beyond them)."""
+    window's trajectory; ``Q`` the state bounds of the last solve (``q_caps`` for steps beyond them), the output
+    bounds the steps' allowances times ``out_factor`` (:mod:`.envelope`)."""
     md, nt = model.n_dynamic, model.n_states - model.n_dynamic
     nx = (drop + 1) * md
     # the quadratic d' H d + 2 g' d over (x_0 .. x_drop dynamic states, CAN states) of the dropped terms
@@ -100,12 +118,13 @@ def arrival_update(
         J[:, k * md : (k + 2) * md] = np.hstack([dwp[:, :md], dwn[:, :md]]) / q[:, None]
         J[:, nx:] = dwp[:, md:] / q[:, None]
         ok = win.avail[k]
+        r = (win.allow[k] * out_factor)[ok]
         Je = np.zeros((int(ok.sum()), nx + nt))
-        Je[:, k * md : (k + 1) * md] = dep[ok, :md] / win.allow[k][ok, None]
-        Je[:, nx:] = dep[ok, md:] / win.allow[k][ok, None]
+        Je[:, k * md : (k + 1) * md] = dep[ok, :md] / r[:, None]
+        Je[:, nx:] = dep[ok, md:] / r[:, None]
         H += J.T @ J + Je.T @ Je
-        g += J.T @ (w / q) + Je.T @ (e[ok] / win.allow[k][ok])
-        alpha = np.minimum(alpha, measured_bounds(model, win, k, theta_range))
+        g += J.T @ (w / q) + Je.T @ (e[ok] / r)
+        alpha = np.minimum(alpha, measured_bounds(model, win, k, theta_range, out_factor))
         # x_{k+1} = T(x_k, x_{k+1}) + w: dx_{k+1}/dx_k = (dw/dx_{k+1})^-1 (-dw/dx_k)
         F = np.abs(np.linalg.solve(dwn[:, :md], -dwp[:, :md]))
         unknown = ~np.isfinite(alpha)

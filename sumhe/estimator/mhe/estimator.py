@@ -34,16 +34,19 @@ from numpy.typing import NDArray
 from sumhe.config import Config
 from sumhe.errors import ConfigError
 from sumhe.estimator.base import StateEstimate, StreamEstimator
-from sumhe.estimator.batch import model_for
+from sumhe.estimator.batch import model_for, nominal_parameters
 from sumhe.estimator.mhe.arrival import Arrival, arrival_update, prior_arrival
+from sumhe.estimator.mhe.envelope import OutputEnvelope
 from sumhe.estimator.mhe.gate import GATE_RESET_S, REACQUIRE_FIXES, FixGate
 from sumhe.estimator.mhe.outputs import can_outputs, step_outputs
+from sumhe.estimator.mhe.preintegration import step_motion
 from sumhe.estimator.mhe.problem import SolveResult, step_jacobians
 from sumhe.estimator.mhe.propagate import Propagation, advance
 from sumhe.estimator.mhe.solve import WindowSolve
 from sumhe.estimator.mhe.window import Window, plan_window
 from sumhe.frontend.stream import CanTick, Epoch, FixMeasurement
 from sumhe.messages import GpsStatus
+from sumhe.model.su import output_residuals
 from sumhe.settings import EstimationSettings
 
 PRIOR_POSITION_M = 1000.0
@@ -72,6 +75,9 @@ class MovingHorizonEstimator(StreamEstimator):
         self._step_jac = step_jacobians(model)
         md = model.n_dynamic
         self._theta_range = (self.solve.hi[md:] - self.solve.lo[md:]) / 2.0
+        self.envelope = OutputEnvelope(
+            model.n_outputs, self.policy.bound_history, self.policy.bound_margin, self.policy.bound_max_factor
+        )
         self.reset_state()
 
     @classmethod
@@ -138,7 +144,8 @@ class MovingHorizonEstimator(StreamEstimator):
 
     def _begin(self, fix: FixMeasurement) -> StateEstimate:
         """Start at a usable fix: position from it, azimuth from its course/heading (else 0), speed and yaw rate
-        from CAN, the CAN states from before a restart or none (bias 0, scale 1), under a weak prior."""
+        from CAN, the sensor and installation states from before a restart or their nominal values, under a weak
+        prior."""
         model, s, t = self.model, self.settings, fix.t
         md, can = model.n_dynamic, self.frontend.can
         x = np.zeros(model.n_states)
@@ -148,10 +155,7 @@ class MovingHorizonEstimator(StreamEstimator):
         x[model.i_phi] = fix.azimuth_rad if fix.azimuth_rad is not None else 0.0
         x[model.i_v] = speed if speed is not None else 0.0
         x[model.i_omega] = yaw if yaw is not None else 0.0
-        if model.i_scale is not None:
-            x[model.i_scale] = 1.0
-        if self._theta0 is not None:
-            x[md:] = self._theta0
+        x[md:] = self._theta0 if self._theta0 is not None else nominal_parameters(model, s)
         # a weak prior (no information yet): the position within a kilometre, the azimuth anywhere on the circle,
         # speed and yaw rate within their limits, the CAN states within their ranges; it keeps directions no
         # data fixes yet (the azimuth at standstill) where they are
@@ -162,7 +166,7 @@ class MovingHorizonEstimator(StreamEstimator):
         half[model.i_omega] = 0.5 * (hi[model.i_omega] - lo[model.i_omega])
         half[md:] = self._theta_range
         self._arrival = prior_arrival(x, half, md)
-        y, avail, allow = step_outputs(model, can, t, s.gnss.period_s, self.period_s, fix, s)
+        y, avail, allow = step_outputs(model, can, t, s.gnss.period_s, self.period_s, fix, s, x)
         self.gate.start(heading_known=bool(avail[model.j_azimuth]))
         self.window.append(t, y, avail, allow, x)
         self._status = "ok"
@@ -188,29 +192,35 @@ class MovingHorizonEstimator(StreamEstimator):
                 self.tally.count("reacquired", "GNSS re-acquired after an outage: %d agreeing fixes", REACQUIRE_FIXES)
                 self._restart()
                 return self._begin(fix)
-        y, avail, allow = step_outputs(model, can, t, h_prev, self.period_s, fix if status == "ok" else None, s)
+        used = fix if status == "ok" else None
+        y, avail, allow = step_outputs(model, can, t, h_prev, self.period_s, used, s, x_pred)
         # the previous step's CAN outputs again, now that the samples of its second half-interval are in
         i = len(win) - 1
         t_before = float(win.t[i - 1]) if i else float(win.t[i]) - self.period_s
         previous = (win.y[i], win.avail[i], win.allow[i])
         can_outputs(model, can, float(win.t[i]), 0.5 * (t_before + win.t[i]), win.t[i] + 0.5 * h_prev, s, previous)
         win.append(t, y, avail, allow, x_pred)
+        for j in range(max(len(win) - 2, 1), len(win)):
+            self._step_motion(j)
         self.tally.counts[STATUS_COUNTERS[status]] += 1
         self._status = status
         plan = plan_window(win.gps, win.t, self.period_s, self.policy)
         if plan.drop:
             assert self._arrival is not None  # set at the start
+            drop = min(plan.drop, len(win) - 1)
             self._arrival = arrival_update(
                 model,
                 win,
-                min(plan.drop, len(win) - 1),
+                drop,
                 self._arrival,
                 self.solve.Q,
                 self.solve.q_caps,
                 self._step_jac,
                 self._theta_range,
                 self.policy.theta_drift,
+                self.envelope.factor,
             )
+            self._learn_bounds(win.x[:drop], slice(0, drop))
         self._merge_offsets(win.apply(plan))
         x_new, mode = self._solve(None if plan.merge else plan.drop)
         if mode == "predict" and status == "ok":
@@ -225,14 +235,36 @@ class MovingHorizonEstimator(StreamEstimator):
             self.tally.count(
                 "fallbacks", "MHE solve failed %d times: the model prediction", self.policy.max_retries + 1
             )
+        elif mode == "mhe-widened":
+            # the data broke a bound: learn it now, from the residuals of the solution that fits them
+            self._learn_bounds(x_new, slice(0, len(win)))
         self.gate.done(t, status, status == "ok" and bool(win.avail[-1, model.j_azimuth]))
         win.x[:] = x_new
         self.propagation.restart(list(x_new[-1]), t, can)
         return self._estimate(list(x_new[-1]), t, status, mode)
 
+    def _learn_bounds(self, x: NDArray[np.float64], steps: slice) -> None:
+        """Show the envelope (:mod:`.envelope`) the residual-to-allowance ratios of the window's ``steps`` at the
+        trajectory ``x`` (theirs)."""
+        if self.policy.learn_bounds:
+            win = self.window
+            ratio = np.abs(output_residuals(self.model, x, win.y[steps])) / win.allow[steps]
+            self.envelope.observe(np.where(win.avail[steps], ratio, np.nan))
+
     def _solve(self, shift: int | None) -> tuple[NDArray[np.float64], str]:
         assert self._arrival is not None  # set at the start
-        return self.solve.solve(self.window, self._arrival, self.period_s, shift)
+        return self.solve.solve(self.window, self._arrival, self.period_s, shift, self.envelope.factor)
+
+    def _step_motion(self, j: int) -> None:
+        """The offset and CAN noise bound of the transition into step ``j`` from the CAN data between it and the
+        step before (:mod:`.preintegration`; none across a gap in the CAN data)."""
+        win = self.window
+        motion = step_motion(
+            self.model, self.frontend.can, float(win.t[j - 1]), float(win.t[j]), win.x[j - 1], win.x[j], self.settings
+        )
+        offset, bound = motion if motion is not None else (0.0, np.nan)
+        win.offset[j] = offset
+        win.q_step[j, : self.model.n_dynamic] = bound
 
     def _merge_offsets(self, merged: list[int]) -> None:
         """The offsets of the steps whose transitions now span merged steps: what the current trajectory moved

@@ -2,9 +2,9 @@
 
 Between GNSS epochs the estimate is the newest solution moved on to the newest CAN speed sample
 (:class:`Propagation`); at an epoch, the window's newest state moved to the epoch is the new step's prediction
-(:func:`advance`). The CAN speed is divided by the speed scale and the yaw rate's bias removed (the model's CAN
-outputs inverted, :func:`~sumhe.model.su.can_motion`) and both are held for the step: trapezoidal steps from sample
-to sample.
+(:func:`advance`). The CAN speed is divided by the speed scale, the yaw rate's bias removed and the rest divided
+by its gain (the model's CAN outputs inverted, :func:`~sumhe.model.su.can_motion`), and both are held for the step:
+trapezoidal steps from sample to sample.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ def advance(model: SuModel, x: list[float], t0: float, t1: float, can: CanBuffer
         mean = yaw.mean(ta, tb)
         w = mean[0] if mean is not None else yaw.at(tb, max_gap_s)
         xn = list(x)
-        v_true, w_true = can_motion(v or 0.0, w or 0.0, x, model.i_bias, model.i_scale)
+        v_true, w_true = can_motion(v or 0.0, w or 0.0, x, model.i_bias, model.i_scale, model.i_gain)
         if v is not None:
             xn[i_v] = v_true
         if w is not None:

@@ -1,9 +1,10 @@
 """The MHE's window solve: solvers built once per window-size bucket, the noise bounds of a window, retries.
 
 Noise bounds are not estimated per epoch. The output bounds R are the steps' error allowances (as in
-:mod:`sumhe.estimator.grid`), the state bounds Q the q caps (the vehicle's limits, :func:`mhe_q_caps`) scaled with
-each step's length: the estimate is the centre of the set of the prior box (11), as the batch estimator's
-``objective = "caps"`` (``docs/mhe.md``). A failed or infeasible solve is retried with Q, R and the arrival box
+:mod:`sumhe.estimator.grid`) times the factors learned from the residuals (:mod:`.envelope`), the state bounds Q the
+bounds the CAN data's errors leave over each step (:mod:`.preintegration`), else the q caps (the vehicle's limits,
+:func:`mhe_q_caps`) scaled with each step's length: the estimate is the centre of the set of these bounds
+(``docs/mhe.md``). A failed or infeasible solve is retried with Q, R and the arrival box
 widened by ``estimator.widen_factor`` (001 algorithm 3.3), at most ``estimator.mhe.max_retries`` times.
 """
 
@@ -104,11 +105,17 @@ class WindowSolve:
         self._capacity = None
         self.Q = np.zeros((0, self.model.n_dynamic))
 
-    def noise_bounds(self, win: Window, period_s: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """State bounds Q (L-1 x m_dynamic): the q caps at the nominal period scaled with each step's length;
-        output bounds R (L x n): the steps' error allowances."""
+    def noise_bounds(
+        self, win: Window, period_s: float, out_factor: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """State bounds Q (L-1 x m_dynamic): the q caps at the nominal period scaled with each step's length, or,
+        where the step's motion comes from the CAN data (:mod:`.preintegration`), the smaller bound its errors
+        leave; output bounds R (L x n): the steps' error allowances times ``out_factor`` (n; :mod:`.envelope`)."""
+        md = self.model.n_dynamic
         scale = (np.diff(win.t)[:, None] / period_s) ** np.array(self.model.q_power)[None, :]
-        return self.q_caps[None, :] * scale, win.allow.copy()
+        caps = self.q_caps[None, :] * scale
+        can = win.q_step[1:, :md]
+        return np.where(np.isfinite(can), np.minimum(can, caps), caps), win.allow * out_factor[None, :]
 
     def problem(
         self, win: Window, arrival: Arrival, capacity: int, Q: NDArray, R: NDArray, widen: float, period_s: float
@@ -143,9 +150,12 @@ class WindowSolve:
             offset=offset,
         )
 
-    def solve(self, win: Window, arrival: Arrival, period_s: float, shift: int | None) -> tuple[NDArray, str]:
+    def solve(
+        self, win: Window, arrival: Arrival, period_s: float, shift: int | None, out_factor: NDArray[np.float64]
+    ) -> tuple[NDArray, str]:
         """Solve the window with retries; the trajectory (L x m) and the mode (``"mhe"``, ``"mhe-widened"``, or
-        ``"predict"``: every attempt failed, the window's own trajectory)."""
+        ``"predict"``: every attempt failed, the window's own trajectory). ``out_factor``: see
+        :meth:`noise_bounds`."""
         s, m = self.settings, self.settings.estimator.mhe
         L = len(win)
         capacity = self.capacity(L)
@@ -154,7 +164,7 @@ class WindowSolve:
             shift = None
         self._capacity = capacity
         self.q_caps = mhe_q_caps(self.model, period_s, s)
-        Q, R = self.noise_bounds(win, period_s)
+        Q, R = self.noise_bounds(win, period_s, out_factor)
         self.Q = Q
         iterations = m.sqp_iterations if m.steps <= L else max(m.sqp_iterations, STARTUP_ITERATIONS)
         for attempt in range(m.max_retries + 1):

@@ -117,8 +117,9 @@ class Window:
     Per step: time ``t`` (s), outputs ``y`` (n; the model's output units), ``avail`` (which outputs are present),
     ``allow`` (each output's error allowance, its unit), the trajectory ``x`` (m states: the current estimate,
     or the prediction for a step not solved yet) and ``offset`` (m): the known part of the transition into the
-    step beyond the model's (zero but after a merge, see :meth:`apply`). ``gps_column`` is the output that says a
-    step has GNSS.
+    step beyond the model's (the CAN data's motion beyond one model step, :mod:`.preintegration`, or after a merge,
+    see :meth:`apply`) and ``q_step`` (m; NaN where unknown): the bound on the state noise of the transition into the
+    step that the CAN data's errors leave. ``gps_column`` is the output that says a step has GNSS.
     """
 
     def __init__(self, capacity: int, n_states: int, n_outputs: int, gps_column: int = 0) -> None:
@@ -130,6 +131,7 @@ class Window:
         self._allow = np.ones((capacity, n_outputs))
         self._x = np.zeros((capacity, n_states))
         self._offset = np.zeros((capacity, n_states))
+        self._q_step = np.full((capacity, n_states), np.nan)
         self.n = 0
 
     def __len__(self) -> int:
@@ -160,6 +162,10 @@ class Window:
         return self._offset[: self.n]
 
     @property
+    def q_step(self) -> NDArray[np.float64]:
+        return self._q_step[: self.n]
+
+    @property
     def gps(self) -> NDArray[np.bool_]:
         """Steps with a GNSS position."""
         return self._avail[: self.n, self.gps_column]
@@ -176,19 +182,23 @@ class Window:
         i = self.n
         self._t[i], self._y[i], self._avail[i], self._allow[i], self._x[i] = t, y, avail, allow, x
         self._offset[i] = 0.0
+        self._q_step[i] = np.nan
         self.n += 1
 
     def apply(self, plan: Plan) -> list[int]:
         """Drop the oldest ``plan.drop`` steps, then remove the steps ``plan.merge``; the indices (after) of the
         steps whose previous step changed by a merge: their transitions now span the merged steps, and the owner of
-        the model sets their offsets."""
-        arrays = (self._t, self._y, self._avail, self._allow, self._x, self._offset)
+        the model sets their offsets. A merged transition's CAN noise bound is the sum of its parts'."""
+        arrays = (self._t, self._y, self._avail, self._allow, self._x, self._offset, self._q_step)
         if plan.drop:
             k = min(plan.drop, self.n)
             for a in arrays:
                 a[: self.n - k] = a[k : self.n]
             self.n -= k
         if plan.merge:
+            for i in plan.merge:
+                if i + 1 < self.n:
+                    self._q_step[i + 1] += self._q_step[i]
             keep = np.ones(self.n, dtype=bool)
             keep[list(plan.merge)] = False
             n = int(keep.sum())

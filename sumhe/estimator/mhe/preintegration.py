@@ -1,0 +1,102 @@
+"""The motion between two window steps by the CAN data itself, integrated finely: the transition's offset and its
+CAN error bound (an IMU preintegration, for the planar SU model).
+
+The SU model's transition (:func:`~sumhe.model.su.trapezoid`) moves a step with the speed and yaw rate of its two
+ends only. At 10 Hz GNSS that is close to what the car did; at 1 Hz (a logger's receiver) a step spans a second of
+turning in, braking or a lane change, and its azimuth and position are off by degrees and decimetres, which the
+state-noise bounds of the vehicle's limits then have to cover (a loose bound is a small weight: the azimuth followed
+every course measurement and the yaw-rate bias wandered, measured on a real drive). So each step's transition gets
+an offset ``d``: where the CAN samples between the two steps, integrated sample by sample
+(:func:`~sumhe.model.su.integrate_odometry`), take the car beyond one model step between the CAN values at its
+ends, at the current CAN states (speed scale, yaw-rate bias and gain). The model then only has to explain the
+difference between the states and their CAN values at the ends, and the state noise of the positions and the
+azimuth is what the CAN data's own errors leave over the step (:func:`can_step_bound`): half a quantum and
+``r_cap_sigmas`` sigmas of the samples' mean, integrated over the step.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sumhe.frontend.can import CanBuffer
+from sumhe.frontend.measurements import can_allowance
+from sumhe.model.su import SuModel, can_motion, integrate_odometry
+from sumhe.settings import EstimationSettings
+
+FloatArray = NDArray[np.float64]
+
+
+def _samples(can: CanBuffer, quantity: str, t0: float, t1: float, max_gap: float) -> tuple[FloatArray, FloatArray]:
+    """The samples of ``quantity`` from the last one at or before ``t0`` to the first one at or after ``t1`` (within
+    ``max_gap`` s of the interval)."""
+    store = can[quantity]
+    ts = store.t
+    i = max(bisect.bisect_right(ts, t0) - 1, 0)
+    j = min(bisect.bisect_left(ts, t1) + 1, len(ts))
+    t, v = np.asarray(ts[i:j]), np.asarray(store.v[i:j])
+    keep = (t >= t0 - max_gap) & (t <= t1 + max_gap)
+    return t[keep], v[keep]
+
+
+def can_step_bound(
+    model: SuModel, h: float, n_speed: int, n_yaw: int, speed_mps: float, settings: EstimationSettings
+) -> FloatArray:
+    """The bound on a step's state noise (dynamic states; NaN for those it does not bound) that the CAN data's
+    errors leave when the step of ``h`` s is integrated from ``n_speed`` speed and ``n_yaw`` yaw-rate samples:
+    for the azimuth, ``h`` times the yaw rate's allowance; for the positions, ``h`` times the speed's, plus the
+    sideways drift of half that azimuth error at ``speed_mps``."""
+    s, k_sig = settings.can, settings.estimator.r_cap_sigmas
+    q_phi = h * can_allowance(s.yaw_rate_quantum_rps, s.yaw_rate_sigma_rps, k_sig, max(n_yaw, 1))
+    q_pos = h * can_allowance(s.speed_quantum_mps, s.speed_sigma_mps, k_sig, max(n_speed, 1))
+    q_pos += 0.5 * abs(speed_mps) * h * q_phi
+    q = np.full(model.n_dynamic, np.nan)
+    i_e, i_n = model.position
+    q[i_e] = q[i_n] = q_pos
+    q[model.i_phi] = q_phi
+    return q
+
+
+def step_motion(
+    model: SuModel,
+    can: CanBuffer,
+    t0: float,
+    t1: float,
+    x0: FloatArray,
+    x1: FloatArray,
+    settings: EstimationSettings,
+) -> tuple[FloatArray, FloatArray] | None:
+    """The offset (m states) and the CAN noise bound (dynamic states) of the transition from the step at ``t0``
+    (state ``x0``) to the step at ``t1`` (state ``x1``, s): module docstring. The ends' speed and yaw rate are the
+    CAN samples interpolated there. None where the CAN data has a gap longer than ``sensors.can.max_gap_s`` within
+    the step (the step then keeps the model's transition and the vehicle's bounds)."""
+    gap = settings.can.max_gap_s
+    tv, v = _samples(can, "speed", t0, t1, gap)
+    tw, w = _samples(can, "yaw_rate", t0, t1, gap)
+    if len(tv) == 0 or len(tw) == 0 or np.max(np.diff(np.concatenate([[t0], tv, [t1]]))) > 2.0 * gap:
+        return None
+    if np.max(np.diff(np.concatenate([[t0], tw, [t1]]))) > 2.0 * gap:
+        return None
+    inner = tw[(tw > t0) & (tw < t1)]
+    grid = np.concatenate([[t0], inner, [t1]])
+    theta = (model.i_bias, model.i_scale, model.i_gain)
+    speed, yaw_rate = can_motion(np.interp(grid, tv, v), np.interp(grid, tw, w), x0, *theta)
+    east, north, phi = integrate_odometry(
+        grid, speed, yaw_rate, float(x0[model.position[0]]), float(x0[model.position[1]]), float(x0[model.i_phi])
+    )
+    start, end = x0.copy(), x1.copy()
+    start[model.i_v], start[model.i_omega] = speed[0], yaw_rate[0]
+    end[model.i_v], end[model.i_omega] = speed[-1], yaw_rate[-1]
+    pred = model.transition(start, end, t1 - t0)
+    offset = np.zeros(model.n_states)
+    i_e, i_n = model.position
+    offset[i_e], offset[i_n] = east[-1] - pred[i_e], north[-1] - pred[i_n]
+    offset[model.i_phi] = phi[-1] - pred[model.i_phi]
+    n_speed = int(np.count_nonzero((tv > t0) & (tv <= t1)))
+    bound = can_step_bound(model, t1 - t0, n_speed, len(inner) + 1, float(np.mean(np.abs(speed))), settings)
+    if not math.isfinite(float(offset[model.i_phi])):
+        return None
+    return offset, bound
