@@ -92,7 +92,7 @@ def test_an_estimators_learned_time_offset_moves_the_fixes_it_is_compared_with(d
     rec = load_recording([str(drive_dir)], None, reference_config())
     windows = place_outages(rec, 10.0, RecordedBenchSettings())
     plain, shifted = run_estimator("ekf", rec, windows), run_estimator("offset-ekf", rec, windows)
-    assert plain.offset_s == 0.0 and shifted.offset_s == 0.5
+    assert abs(plain.offset_s) < 0.05 and shifted.offset_s == 0.5  # the simulated fixes are on time
     assert plain.fix_errors.scored > 0 and plain.fix_errors.mean_m < 3.0
     assert shifted.fix_errors.mean_m > plain.fix_errors.mean_m + 5.0  # half a second at highway speed
     np.testing.assert_array_equal(plain.truth_errors, shifted.truth_errors)  # the same estimates
