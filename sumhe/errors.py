@@ -23,3 +23,7 @@ class SolverError(SumheError, RuntimeError):
 
 class EstimatorInputError(SumheError, ValueError):
     """Data handed to an estimator that it cannot use (empty, NaN, time going backwards)."""
+
+
+class CalibrationError(SumheError, ValueError):
+    """A recorded drive that cannot be calibrated (no valid fix, no CAN speed); the message says what is missing."""

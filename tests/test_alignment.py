@@ -91,3 +91,32 @@ def test_learner_ignores_fixes_without_speed_and_bad_values():
         learner.add_fix(float(t) + 0.5, math.nan)
     assert learner.offset_s == 0.1
     assert learner.fits == 0
+
+
+def test_course_lag_fits_the_antennas_lever_arm():
+    lag, lever, bias = 0.2, 1.8, math.radians(0.3)
+    t_yaw = np.arange(0.0, 600.0, 0.01)
+    yaw = true_yaw_rate(t_yaw) + bias + RNG.normal(0, math.radians(0.05), len(t_yaw))
+    t_fix = np.arange(2.0, 598.0, 0.2)
+    t_true = t_fix - lag
+    speed = 4.0 + 3.0 * (1.0 + np.sin(2 * math.pi * t_true / 97.0))  # 4 to 10 m/s: the lever's lead changes
+    course = true_azimuth(t_true) - np.arctan(lever * true_yaw_rate(t_true) / speed)
+    course = np.mod(course + RNG.normal(0, 0.05 / speed), 2 * math.pi)
+    plain = course_lag(t_fix, course, speed, t_yaw, yaw)
+    fit = course_lag(t_fix, course, speed, t_yaw, yaw, lever_prior_m=(1.0, 1.5), speed_weighted=True)
+    assert plain is not None and fit is not None
+    assert plain.lag_s < lag - 0.1  # the antenna's course leads the heading by about l / v
+    assert fit.lag_s == pytest.approx(lag, abs=0.03)
+    assert fit.lever_m == pytest.approx(lever, abs=0.2)
+    assert fit.scale == pytest.approx(1.0, abs=0.01)
+    assert fit.offset == pytest.approx(bias, abs=math.radians(0.03))
+
+
+def test_course_lag_with_the_scale_held_gives_the_bias():
+    t_yaw = np.arange(0.0, 300.0, 0.01)
+    yaw = np.full(len(t_yaw), math.radians(0.4)) + RNG.normal(0, math.radians(0.1), len(t_yaw))  # straight on
+    t_fix = np.arange(2.0, 298.0, 1.0)
+    course = np.mod(1.0 + RNG.normal(0, math.radians(0.2), len(t_fix)), 2 * math.pi)
+    fit = course_lag(t_fix, course, np.full(len(t_fix), 15.0), t_yaw, yaw, fixed_scale=1.0)
+    assert fit is not None and fit.scale == 1.0
+    assert fit.offset == pytest.approx(math.radians(0.4), abs=math.radians(0.03))

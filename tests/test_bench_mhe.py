@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 
 import pytest
@@ -9,17 +10,21 @@ import pytest
 from sumhe.bench.mhe import MheBenchSettings
 from sumhe.bench.mhe_report import run_benchmark
 
+TINY = MheBenchSettings(
+    scenarios=("urban",),
+    realistic_scenarios=("urban",),
+    seeds=(21,),
+    gps_errors=("walk",),
+    outage_lengths_s=(5.0,),
+    duration_s=80.0,
+    baselines=("ekf",),
+    parts=("accuracy",),
+)
+"""The accuracy part on one short drive of a profile."""
+
 
 def test_the_accuracy_part_compares_with_the_ekf_raw_and_net_of_the_gnss_offset() -> None:
-    bs = MheBenchSettings(
-        scenarios=("urban",),
-        seeds=(21,),
-        gps_errors=("walk",),
-        outage_lengths_s=(5.0,),
-        duration_s=80.0,
-        baselines=("ekf",),
-        parts=("accuracy",),
-    )
+    bs = dataclasses.replace(TINY, profiles=("kind",))
     progress: list[str] = []
     text = "\n".join(run_benchmark(bs, progress.append))
     assert "latency" not in text and "replay" not in text
@@ -31,8 +36,20 @@ def test_the_accuracy_part_compares_with_the_ekf_raw_and_net_of_the_gnss_offset(
     assert any("outages 5 s" in p for p in progress)
 
 
+def test_the_accuracy_part_runs_the_realistic_profile_apart() -> None:
+    bs = dataclasses.replace(TINY, seeds=(22,), profiles=("realistic",))
+    progress: list[str] = []
+    text = "\n".join(run_benchmark(bs, progress.append))
+    assert "kind profile" not in text and "realistic profile: 1 scenarios x 1 seeds" in text
+    means = [float(m) for m in re.findall(r"ekf\s+mean\s+([\d.]+)", text)]
+    assert len(means) == 2 and all(m > 0.0 for m in means)  # raw, and net of the offset (its GNSS errors walk)
+    assert any("realistic urban seed 22" in p for p in progress)
+
+
 def test_unknown_parts_are_refused() -> None:
     with pytest.raises(ValueError, match="parts"):
         MheBenchSettings(parts=("latency", "speed"))
     with pytest.raises(ValueError, match="parts"):
         MheBenchSettings(parts=())
+    with pytest.raises(ValueError, match="profiles"):
+        MheBenchSettings(profiles=("cruel",))

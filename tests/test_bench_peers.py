@@ -1,4 +1,4 @@
-"""``sumhe bench`` (peers): outage placement, isolation of runs, failures recorded, recorded drives, the CLI."""
+"""``sumhe bench`` (peers): outage placement, isolation of runs, failures recorded, the profiles, the CLI."""
 
 import dataclasses
 import itertools
@@ -19,10 +19,11 @@ from sumhe.commands.candump import reference_config
 from sumhe.estimator.registry import ESTIMATORS, estimator_names
 from sumhe.frontend.fixes import LocalFix
 from sumhe.messages import CanSample, GnssFix
-from sumhe.sim import SimSettings, simulate, write_drive
+from sumhe.sim import SimSettings, profile_settings, simulate
 
 SHORT = PeersSettings(
     scenarios=("urban",),
+    profiles=("kind",),
     gps_errors=("gaussian",),
     seeds=(3,),
     duration_s=60.0,
@@ -163,9 +164,11 @@ def test_a_failing_estimator_is_recorded_and_the_others_still_run(monkeypatch):
     summary = summarise(bench, "test")
     json.dumps(summary, allow_nan=False)
     assert summary["failures"] == [{"estimator": "broken", "drive": "urban-gaussian-3", "error": broken.error}]
-    assert summary["estimators"]["broken"]["kind"] == "failed"
-    assert summary["estimators"]["broken"]["outage"]["all"]["mean_m"] is None
-    e = summary["estimators"]["ekf"]
+    assert list(summary["profiles"]) == ["kind"]
+    estimators = summary["profiles"]["kind"]
+    assert estimators["broken"]["kind"] == "failed"
+    assert estimators["broken"]["outage"]["all"]["mean_m"] is None
+    e = estimators["ekf"]
     assert e["kind"] == "live" and e["failed_runs"] == 0
     assert 0.0 < e["outage"]["all"]["mean_m"] < 20.0
     assert 0.0 < e["with_gps"]["mean_m"] < 5.0
@@ -175,36 +178,37 @@ def test_a_failing_estimator_is_recorded_and_the_others_still_run(monkeypatch):
     assert "| `broken` | failed | – |" in text
 
 
-# ---- recorded drives and the command line ---------------------------------------------------------------------------
+# ---- profiles and the command line ---------------------------------------------------------------------------------
 
 
-def test_a_recorded_drive_is_replayed_from_its_files(tmp_path, capsys):
-    drive_dir = tmp_path / "rec"
-    write_drive(simulate(SimSettings(scenario="highway", seed=4, duration_s=70.0)), drive_dir)
-    out = tmp_path / "out"
-    argv = ["bench", "--no-sim", "--drive", str(drive_dir), "--estimators", "ekf,dead-reckoning", "--out", str(out)]
-    assert main(argv) == 0
-    assert "| `ekf` | live |" in capsys.readouterr().out
-    summary = json.loads((out / "peers.json").read_text())
-    (drive,) = summary["drives"]
-    assert drive["kind"] == "recorded" and drive["name"] == "rec"
-    assert [o["length_s"] for o in sorted(drive["outages"], key=lambda o: o["length_s"])] == [5.0, 10.0]
-    ekf = summary["estimators"]["ekf"]
-    assert 0.0 < ekf["with_gps"]["mean_m"] < 5.0  # the truth's frame and the estimates' frame agree
-    assert finite_numbers(ekf)
+def test_a_realistic_drive_gets_its_own_quanta_and_delay():
+    ps = dataclasses.replace(SHORT, profiles=("realistic",), seeds=(2,))
+    (drive,) = drives.drives(ps, reference_config())
+    sim = profile_settings("realistic", 2, scenario="urban", duration_s=60.0)
+    assert sim.speed_source == "obd" and drive.profile == "realistic" and drive.name == "realistic-urban-2"
+    can = drive.config.sensors.can
+    assert can.speed_resolution_mps == pytest.approx(1 / 3.6)  # OBD-II: whole km/h
+    assert can.yaw_rate_resolution_rps == pytest.approx(math.radians(sim.yaw_rate_quantum_dps))
+    assert can.delay_s == sim.can_sensor_delay_s
+    assert drive.config.datum.mode == "fixed" and drive.outages
+    assert PeersSettings().drive_count() == 27 + 9 and dataclasses.replace(SHORT, profiles=()).drive_count() == 0
 
 
 def test_bad_bench_input_is_an_error_not_a_crash(tmp_path, capsys):
+    assert main(["bench", "--drive", str(tmp_path)]) == 1
+    assert "no drive.log" in capsys.readouterr().err
     (tmp_path / "drive.log").write_text("")
-    assert main(["bench", "--no-sim", "--drive", str(tmp_path)]) == 1
-    assert "missing drive.nmea, truth.csv" in capsys.readouterr().err
+    assert main(["bench", "--drive", str(tmp_path)]) == 1
+    assert "no valid GNSS fix" in capsys.readouterr().err
     assert main(["bench", "--estimators", "ekf,nosuch"]) == 1
     assert "unknown nosuch" in capsys.readouterr().err
-    assert main(["bench", "--no-sim"]) == 1
-    assert "no drives" in capsys.readouterr().err
+    assert main(["bench", "--profile", "cruel"]) == 1
+    assert "profiles: unknown 'cruel'" in capsys.readouterr().err
     assert main(["bench", "--seeds", "x"]) == 1
     assert main(["bench", "--scenarios", "moon"]) == 1
     assert "scenarios" in capsys.readouterr().err
+    assert main(["bench", "--drive", str(tmp_path), "--lengths", "200"]) == 1
+    assert "lengths_s" in capsys.readouterr().err
 
 
 @pytest.mark.slow
@@ -214,31 +218,38 @@ def test_quick_bench_writes_the_table_as_json_and_markdown(tmp_path, capsys):
     printed = capsys.readouterr().out
     summary = json.loads((out / "peers.json").read_text())
     markdown = (out / "peers.md").read_text()
-    assert list(summary["estimators"]) == list(estimator_names())
-    assert summary["failures"] == []
+    assert list(summary["profiles"]) == ["kind", "realistic"]
+    assert all(f["drive"].startswith("realistic-") for f in summary["failures"])  # recorded, not fatal
     assert {"python", "numpy", "casadi", "cpu", "blas_threads"} <= set(summary["environment"])
     assert "getrusage" in summary["memory"]
     lengths = {o["length_s"] for d in summary["drives"] for o in d["outages"]}
     assert lengths == {5.0, 10.0, 30.0}
-    for name, e in summary["estimators"].items():
-        assert e["kind"] in ("live", "offline"), name
-        assert e["failed_runs"] == 0 and e["nonfinite_estimates"] == 0
-        assert set(e["outage"]) == {"all", "5", "10", "30"}
-        for stats in [*e["outage"].values(), e["with_gps"], e["heading_deg"]]:
-            assert stats["n"] > 0 and finite_numbers(stats), name
-            assert (
-                0.0
-                <= stats[next(k for k in stats if k.startswith("mean"))]
-                <= stats[next(k for k in stats if k.startswith("max"))]
-            )
-        assert finite_numbers([e["throughput_x"], e["peak_memory_mb"], e["finish_s"]]), name
-        if e["kind"] == "live":
-            assert finite_numbers(e["latency_ms"]), name
-            assert e["latency_ms"]["sample"]["p50"] <= e["latency_ms"]["sample"]["p99"]
-        assert f"| `{name}` | {e['kind']} |" in markdown
-    assert summary["estimators"]["mhe"]["kind"] == "live" and summary["estimators"]["su-batch"]["kind"] == "offline"
-    dr = summary["estimators"]["dead-reckoning"]["outage"]["30"]["mean_m"]
-    assert summary["estimators"]["mhe"]["outage"]["30"]["mean_m"] < dr, "GPS before and CAN during beat CAN alone"
+    for profile, estimators in summary["profiles"].items():
+        assert list(estimators) == list(estimator_names())
+        for name, e in estimators.items():
+            if profile == "realistic" and e["kind"] == "failed":
+                assert f"| `{name}` | failed |" in markdown
+                continue
+            assert e["kind"] in ("live", "offline"), name
+            assert e["failed_runs"] == 0 and e["nonfinite_estimates"] == 0
+            assert set(e["outage"]) == {"all", "5", "10", "30"}
+            for stats in [*e["outage"].values(), e["with_gps"], e["heading_deg"]]:
+                assert stats["n"] > 0 and finite_numbers(stats), (profile, name)
+                assert (
+                    0.0
+                    <= stats[next(k for k in stats if k.startswith("mean"))]
+                    <= stats[next(k for k in stats if k.startswith("max"))]
+                )
+            assert finite_numbers([e["throughput_x"], e["peak_memory_mb"], e["finish_s"]]), name
+            if e["kind"] == "live":
+                assert finite_numbers(e["latency_ms"]), name
+                assert e["latency_ms"]["sample"]["p50"] <= e["latency_ms"]["sample"]["p99"]
+            assert f"| `{name}` | {e['kind']} |" in markdown
+    kind = summary["profiles"]["kind"]
+    assert kind["mhe"]["kind"] == "live" and kind["su-batch"]["kind"] == "offline"
+    dr = kind["dead-reckoning"]["outage"]["30"]["mean_m"]
+    assert kind["mhe"]["outage"]["30"]["mean_m"] < dr, "GPS before and CAN during beat CAN alone"
+    assert "### kind profile" in printed and "### realistic profile" in printed
     header = next(line for line in printed.splitlines() if line.startswith("| estimator"))
     assert "outages: mean / p95 / max (m)" in header and "x real time" in header and "peak memory" in header
     assert header in markdown and "by the truth's motion" in markdown

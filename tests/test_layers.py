@@ -20,6 +20,7 @@ LAYERS: tuple[frozenset[str], ...] = tuple(
         {"sumhe.config"},  # the only module reading configuration files or the environment
         {"sumhe.model", "sumhe.io"},  # vehicle models; parsers, sources and sinks
         {"sumhe.frontend", "sumhe.sim"},  # samples to measurements; the simulator (writes what io reads)
+        {"sumhe.calibration"},  # a car's installation parameters from a recorded drive (sumhe calibrate)
         {"sumhe.estimator"},  # the SU estimators, the Estimator interface and registry
         {"sumhe.baseline"},  # the peers, on the same interface
         {"sumhe.service"},  # the daemon: sources -> pipeline -> estimator -> sinks

@@ -1,14 +1,17 @@
-"""The drives of ``sumhe bench`` (``peers``): simulated and recorded drives with outages placed on them.
+"""The drives of ``sumhe bench`` (``peers``): simulated drives of each profile with outages placed on them.
 
-On each drive the bench places one outage of every length (5, 10, 30, 55 s) in an order and at gaps drawn from the
-drive's seed, after a warm-up, with GNSS for at least ``recover_s`` between them; the fixes whose measurement time
-falls inside an outage are removed (a silent receiver). Each placement is labelled by the truth's motion during it
-(:func:`sumhe.bench.protocol.label_motion`: stop, sharp turn, bend, straight). Recorded drives are directories with
-``drive.log``, ``drive.nmea`` and a ``truth.csv`` in the simulator's format, replayed through
-:func:`sumhe.io.replay.log_samples`. Fixes are stamped once with their measurement time
-(:func:`~sumhe.io.fixtime.stamp_fix`) and merged with the CAN samples by time, as a replay merges them. The config
-has a fixed datum at the truth's frame; on simulated drives the CAN sensor delay is calibrated
-(``sensors.can.delay_s`` = the simulator's delay) for every estimator alike.
+Profiles (:mod:`sumhe.sim.profiles`): ``kind`` drives for every scenario x GNSS error model x seed, ``realistic``
+drives (every real-car error drawn from the seed: GNSS clock offset, 1 Hz fixes, OBD-II speed, production DBC
+quanta, lever arm, heavy-tailed GNSS errors, ...) for every scenario x seed. On each drive the bench places one
+outage of every length (5, 10, 30, 55 s) in an order and at gaps drawn from the drive's seed, after a warm-up, with
+GNSS for at least ``recover_s`` between them; the fixes whose measurement time falls inside an outage are removed
+(a silent receiver). Each placement is labelled by the truth's motion during it
+(:func:`sumhe.bench.protocol.label_motion`: stop, sharp turn, bend, straight). Fixes are stamped once with their
+measurement time (:func:`~sumhe.io.fixtime.stamp_fix`) and merged with the CAN samples by time, as a replay merges
+them. The config has a fixed datum at the truth's frame and the CAN sensor delay calibrated (``sensors.can.delay_s``
+= the simulator's chassis-sensor delay) for every estimator alike; on a realistic drive also the quanta of the
+signals its own ``config.toml`` maps in its own DBC (:func:`drive_quanta`: the estimators get the samples decoded).
+Recorded drives without a truth are :mod:`sumhe.bench.recorded`'s.
 """
 
 from __future__ import annotations
@@ -18,35 +21,38 @@ import logging
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
 from sumhe.bench import metrics
 from sumhe.bench.protocol import label_motion
 from sumhe.config import Config, DatumSettings
-from sumhe.errors import ConfigError
 from sumhe.estimator.registry import estimator_names
 from sumhe.geo import LocalFrame
+from sumhe.io.can import si_factor
 from sumhe.io.fixtime import stamp_fix
-from sumhe.io.replay import log_samples, merge_by_time
+from sumhe.io.replay import merge_by_time
 from sumhe.messages import GnssFix, Sample
-from sumhe.settings import with_changes
-from sumhe.sim import SimSettings, Truth, load_settings, load_truth, simulate
+from sumhe.settings import EstimationSettings, SensorSettings, with_changes
+from sumhe.sim import PROFILES, SimSettings, Truth, profile_settings, simulate
+from sumhe.sim.production import signal_specs, vehicle_db
 from sumhe.sim.settings import GPS_ERROR_MODELS, SCENARIO_NAMES
 
 log = logging.getLogger(__name__)
 
-RECORDED_FILES = ("drive.log", "drive.nmea", "truth.csv")
+WithCan = TypeVar("WithCan", SensorSettings, EstimationSettings)
+
 MAX_DURATION_S = 3600.0
 
 
 @dataclass(frozen=True, slots=True)
 class PeersSettings:
-    """What ``sumhe bench`` runs. Times in s. ``estimators`` empty: every registered estimator.
-    ``recordings``: directories of recorded drives (see the module docstring)."""
+    """What ``sumhe bench`` runs. Times in s. ``estimators`` empty: every registered estimator. ``gps_errors``
+    applies to the ``kind`` profile (a realistic drive draws its own)."""
 
     scenarios: tuple[str, ...] = SCENARIO_NAMES
+    profiles: tuple[str, ...] = ("kind", "realistic")
     gps_errors: tuple[str, ...] = ("uniform", "gaussian", "walk")
     seeds: tuple[int, ...] = (1, 2, 3)
     duration_s: float = 240.0
@@ -54,13 +60,15 @@ class PeersSettings:
     recover_s: float = 15.0
     warm_up_s: float = 20.0
     estimators: tuple[str, ...] = ()
-    recordings: tuple[str, ...] = ()
-    timeout_s: float = 1800.0
+    timeout_s: float = 600.0
     heading_min_speed_mps: float = 2.0
 
     def __post_init__(self) -> None:
-        for name, value in (("scenarios", self.scenarios), ("gps_errors", self.gps_errors)):
-            known = SCENARIO_NAMES if name == "scenarios" else GPS_ERROR_MODELS
+        for name, value, known in (
+            ("scenarios", self.scenarios, SCENARIO_NAMES),
+            ("gps_errors", self.gps_errors, GPS_ERROR_MODELS),
+            ("profiles", self.profiles, tuple(PROFILES)),
+        ):
             for v in value:
                 if v not in known:
                     raise ValueError(f"{name}: unknown {v!r} (known: {', '.join(known)})")
@@ -76,12 +84,14 @@ class PeersSettings:
                 f"duration_s: at most {MAX_DURATION_S:g} s (the simulator's limit), got {self.duration_s!r}"
             )
         needed = self.warm_up_s + sum(self.outage_lengths_s) + self.recover_s * len(self.outage_lengths_s)
-        if (self.scenarios and self.gps_errors and self.seeds) and self.duration_s < needed:
+        if self.drive_count() and self.duration_s < needed:
             raise ValueError(f"duration_s: {self.duration_s:g} s cannot hold the outages, need {needed:g} s")
 
     @classmethod
     def quick(cls) -> PeersSettings:
-        """About a minute on two cores: one 120 s urban drive (walk GPS errors), outages of 5, 10 and 30 s."""
+        """A minute or two on two cores: a 120 s urban drive of each profile (walk GPS errors on the kind one),
+        outages of 5, 10 and 30 s, each run limited to a minute (a run that takes longer is a failed run: today the
+        MHE and su-batch on the realistic drive)."""
         return cls(
             scenarios=("urban",),
             gps_errors=("walk",),
@@ -89,7 +99,7 @@ class PeersSettings:
             duration_s=120.0,
             outage_lengths_s=(5.0, 10.0, 30.0),
             recover_s=10.0,
-            timeout_s=300.0,
+            timeout_s=60.0,
         )
 
     def names(self) -> tuple[str, ...]:
@@ -97,7 +107,8 @@ class PeersSettings:
         return self.estimators or estimator_names()
 
     def drive_count(self) -> int:
-        return len(self.scenarios) * len(self.gps_errors) * len(self.seeds) + len(self.recordings)
+        kind = len(self.gps_errors) if "kind" in self.profiles else 0
+        return len(self.scenarios) * len(self.seeds) * (kind + ("realistic" in self.profiles))
 
 
 @dataclass(frozen=True, slots=True)
@@ -128,7 +139,7 @@ class BenchDrive:
     estimates are scored (the end of the warm-up)."""
 
     name: str
-    kind: str
+    profile: str
     samples: list[Sample]
     truth: Truth
     config: Config
@@ -201,64 +212,59 @@ def drive_config(base: Config, frame: LocalFrame, can_delay_s: float | None = No
     return dataclasses.replace(base, datum=datum, sensors=sensors)
 
 
-def simulated_drive(scenario: str, gps_error: str, seed: int, ps: PeersSettings, base: Config) -> BenchDrive:
-    """A simulated drive (no outages simulated: the bench places them) and its outages."""
-    sim = SimSettings(scenario=scenario, seed=seed, duration_s=ps.duration_s, gps_error=gps_error)
+def drive_quanta(settings: SimSettings) -> dict[str, float]:
+    """The SI quanta of the drive's mapped CAN speed and yaw rate, from its own DBC (what ``with_signal_quanta``
+    reads from its ``config.toml``'s DBC, without the files)."""
+    db, specs = vehicle_db(settings), signal_specs(settings)
+    out = {}
+    for quantity in ("speed", "yaw_rate"):
+        spec = specs[quantity]
+        signal = db.get_message_by_name(spec.message).get_signal_by_name(spec.signal)
+        out[quantity] = abs(float(signal.scale) * (si_factor(signal.unit, quantity) or 1.0) * spec.scale)
+    return out
+
+
+def with_drive_can(settings: SimSettings, target: WithCan) -> WithCan:
+    """``target`` (sensor or estimation settings: anything with a ``can`` table) with the drive's CAN quanta
+    (:func:`drive_quanta`) and its chassis sensors' delay."""
+    quanta = drive_quanta(settings)
+    return with_changes(
+        target,
+        {
+            "can.delay_s": settings.can_sensor_delay_s,
+            "can.speed_resolution_mps": quanta["speed"],
+            "can.yaw_rate_resolution_rps": quanta["yaw_rate"],
+        },
+    )
+
+
+def simulated_drive(
+    scenario: str, gps_error: str, seed: int, ps: PeersSettings, base: Config, profile: str = "kind"
+) -> BenchDrive:
+    """A simulated drive (no outages simulated: the bench places them) and its outages; a realistic one with its
+    own mapping and quanta (``gps_error`` is its own then)."""
+    if profile == "kind":
+        sim = SimSettings(scenario=scenario, seed=seed, duration_s=ps.duration_s, gps_error=gps_error)
+    else:
+        sim = profile_settings(profile, seed, scenario=scenario, duration_s=ps.duration_s)
     drive = simulate(sim)
     config = drive_config(base, drive.frame, sim.can_sensor_delay_s)
-    rng = np.random.default_rng([seed, SCENARIO_NAMES.index(scenario), GPS_ERROR_MODELS.index(gps_error)])
+    if profile != "kind":  # the samples come decoded: of its config the estimators need the quanta
+        config = dataclasses.replace(config, sensors=with_drive_can(sim, config.sensors))
+    rng = np.random.default_rng([seed, SCENARIO_NAMES.index(scenario), GPS_ERROR_MODELS.index(sim.gps_error)])
     plan = outage_plan(ps.duration_s, ps.outage_lengths_s, ps.recover_s, ps.warm_up_s, rng)
     outages = place_outages(drive.truth, plan, sim.start_unix_s)
     fixes = [stamp_fix(f, config.gps) for f in drive.fixes()]
     samples = without_fixes_in(merge_by_time(drive.can_samples(), fixes), outages)
-    name = f"{scenario}-{gps_error}-{seed}"
+    name = f"{scenario}-{gps_error}-{seed}" if profile == "kind" else f"{profile}-{scenario}-{seed}"
     scored_from = sim.start_unix_s + ps.warm_up_s
-    return BenchDrive(name, "simulated", samples, drive.truth, config, with_gps_back(outages, samples), scored_from)
-
-
-def recorded_drive(directory: str | Path, ps: PeersSettings, base: Config) -> BenchDrive:
-    """A recorded drive (``drive.log``, ``drive.nmea``, ``truth.csv``; ``scenario.toml`` for the datum if there)
-    replayed as ``sumhe replay`` reads it; ConfigError naming what is missing or unreadable."""
-    d = Path(directory)
-    missing = [name for name in RECORDED_FILES if not (d / name).is_file()]
-    if missing:
-        raise ConfigError(f"--drive {d}: missing {', '.join(missing)}")
-    try:
-        truth = load_truth(d / "truth.csv")
-        frame = _recorded_frame(d, truth)
-    except ValueError as e:
-        raise ConfigError(f"--drive {d}: {e}") from e
-    enu = frame.to_enu(truth.lat, truth.lon, frame.alt0_m)
-    truth = dataclasses.replace(truth, east=enu[:, 0], north=enu[:, 1])
-    config = drive_config(base, frame)
-    samples = list(log_samples(config, d / "drive.log", d / "drive.nmea"))
-    if not samples:
-        raise ConfigError(f"--drive {d}: no samples decoded from drive.log and drive.nmea")
-    t0 = float(truth.t[0])
-    duration = float(min(truth.t[-1], samples[-1].t) - t0)
-    rng = np.random.default_rng(len(truth))
-    outages = place_outages(truth, outage_plan(duration, ps.outage_lengths_s, ps.recover_s, ps.warm_up_s, rng), t0)
-    if len(outages) < len(ps.outage_lengths_s):
-        log.warning("%s: %.0f s of truth hold only %d of the outages", d, duration, len(outages))
-    kept = without_fixes_in(samples, outages)
-    outages = with_gps_back(outages, kept)
-    return BenchDrive(d.name or str(d), "recorded", kept, truth, config, outages, t0 + ps.warm_up_s)
-
-
-def _recorded_frame(directory: Path, truth: Truth) -> LocalFrame:
-    scenario = directory / "scenario.toml"
-    if scenario.is_file():
-        sim = load_settings(scenario)
-        return LocalFrame(sim.datum_lat_deg, sim.datum_lon_deg, sim.datum_alt_m)
-    return LocalFrame(float(truth.lat[0]), float(truth.lon[0]), 0.0)
+    return BenchDrive(name, profile, samples, drive.truth, config, with_gps_back(outages, samples), scored_from)
 
 
 def drives(ps: PeersSettings, base: Config) -> Iterable[BenchDrive]:
-    """Every drive of the bench, built when needed: the recorded ones first (a bad recording stops the bench
-    before it has run for long), then the simulated ones."""
-    for directory in ps.recordings:
-        yield recorded_drive(directory, ps, base)
-    for scenario in ps.scenarios:
-        for gps_error in ps.gps_errors:
-            for seed in ps.seeds:
-                yield simulated_drive(scenario, gps_error, seed, ps, base)
+    """Every simulated drive of the bench, built when needed: the kind profile's, then the realistic one's."""
+    for profile in ps.profiles:
+        for scenario in ps.scenarios:
+            for gps_error in ps.gps_errors if profile == "kind" else ("",):
+                for seed in ps.seeds:
+                    yield simulated_drive(scenario, gps_error, seed, ps, base, profile)

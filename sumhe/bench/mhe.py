@@ -5,7 +5,9 @@ here, the report is :mod:`sumhe.bench.mhe_report`'s.
   a GNSS epoch: append, solve, report) on a simulated drive once the window is full, p50/p99/max, with the
   solver's iterations per epoch; and the same during a 30 s outage at the longest window (N_max steps).
 * Accuracy: simulated drives (scenarios x seeds) with the simulator's CAN imperfections (speed scale, yaw-rate
-  bias and its drift, noise, quantisation, timestamp jitter) and outages of each length placed all along them.
+  bias and its drift, noise, quantisation, timestamp jitter) and outages of each length placed all along them:
+  the ``kind`` profile per GNSS error model, and the ``realistic`` one (every real-car error drawn per seed; each
+  drive's CAN quanta and chassis delay configured, :func:`~sumhe.bench.drives.with_drive_can`).
   Every estimator gets the same stream; the error of every estimate made inside an outage (epochs and CAN rate:
   the newest state) against the truth, mean/p95/max, against the EKF and dead reckoning of
   :mod:`sumhe.baseline` (built through the registry). After each outage (up to ``batch_max_outage_s``), once
@@ -31,6 +33,7 @@ import numpy as np
 import osqp
 from numpy.typing import NDArray
 
+from sumhe.bench.drives import with_drive_can
 from sumhe.bench.metrics import horizontal_errors, interval_index, net_errors, offsets_before
 from sumhe.config import Config, DatumSettings, GpsSettings
 from sumhe.errors import SumheError
@@ -42,7 +45,7 @@ from sumhe.frontend.fixes import FixConverter, LocalFix
 from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample, Sample
 from sumhe.settings import CanModel, EstimationSettings, with_changes
-from sumhe.sim import SimSettings, simulate
+from sumhe.sim import PROFILES, SimSettings, profile_settings, simulate
 from sumhe.sim.drive import Drive
 
 log = logging.getLogger(__name__)
@@ -80,16 +83,22 @@ class MheBenchSettings:
         default_factory=lambda: EstimationSettings(can=CanModel(delay_s=SimSettings().can_sensor_delay_s))
     )
     parts: tuple[str, ...] = PARTS
+    profiles: tuple[str, ...] = ("kind", "realistic")
+    realistic_scenarios: tuple[str, ...] = ("urban", "highway", "offroad")
+    """The accuracy part's scenarios on the realistic profile (its own GNSS errors: no error-model axis)."""
 
     def __post_init__(self) -> None:
         unknown = set(self.parts) - set(PARTS)
         if unknown or not self.parts:
             raise ValueError(f"parts: choose from {', '.join(PARTS)}, got {', '.join(self.parts) or 'none'}")
+        bad = [p for p in self.profiles if p not in PROFILES]
+        if bad or not self.profiles:
+            raise ValueError(f"profiles: choose from {', '.join(PROFILES)}, got {', '.join(self.profiles) or 'none'}")
 
     @classmethod
     def quick(cls) -> MheBenchSettings:
-        """A few minutes: one seed, N = 50 for the NLP solvers, a 10 min replay."""
-        return cls(seeds=(21,), latency_s=40.0, nlp_latency_epochs=60, replay_s=600.0)
+        """A few minutes: one seed, N = 50 for the NLP solvers, a 10 min replay, one realistic scenario."""
+        return cls(seeds=(21,), latency_s=40.0, nlp_latency_epochs=60, replay_s=600.0, realistic_scenarios=("urban",))
 
 
 @dataclass(frozen=True, slots=True)
@@ -242,23 +251,35 @@ class _Smoothed:
 
 
 def accuracy_drive(
-    scenario: str, seed: int, gps_error: str, length_s: float, bs: MheBenchSettings, progress: Progress | None = None
+    scenario: str,
+    seed: int,
+    gps_error: str,
+    length_s: float,
+    bs: MheBenchSettings,
+    progress: Progress | None = None,
+    profile: str = "kind",
 ) -> dict[str, object]:
     """One drive with outages of ``length_s``: per estimator the errors inside outages; per outage the MHE's
-    smoothed window against the batch estimate (for short outages)."""
+    smoothed window against the batch estimate (for short outages). A realistic drive draws its own GNSS errors
+    (``gps_error`` is not used) and runs with its own CAN quanta and delay."""
     plan = outage_plan(bs.duration_s, length_s, bs.recover_s)
-    sim = SimSettings(scenario=scenario, seed=seed, duration_s=bs.duration_s, outages=plan, gps_error=gps_error)
+    if profile == "kind":
+        sim = SimSettings(scenario=scenario, seed=seed, duration_s=bs.duration_s, outages=plan, gps_error=gps_error)
+        settings = bs.estimator
+    else:
+        sim = profile_settings(profile, seed, scenario=scenario, duration_s=bs.duration_s, outages=plan)
+        settings = with_drive_can(sim, bs.estimator)
     drive = simulate(sim)
     stream = drive_stream(drive)
     start = drive.settings.start_unix_s
     outages = [(start + s, start + s + n) for s, n in plan]
     result: dict[str, object] = {"errors": {}, "smoothed": [], "batch": []}
     errors: dict[str, NDArray] = {}
-    mhe = MovingHorizonEstimator(bs.estimator)
+    mhe = MovingHorizonEstimator(settings)
     mhe.warm_up()
     capture = _Smoothed(outages, bs.after, mhe)
     runs = {"mhe": run_stream(mhe, stream, capture)}
-    config = Config.of(bs.estimator)
+    config = Config.of(settings)
     for name in bs.baselines:
         try:
             runs[name] = run_stream(make_estimator(name, config), stream)
@@ -282,18 +303,22 @@ def accuracy_drive(
         net[name] = net_errors(t, east, north, drive.truth, outages, offsets)
     result["errors"], result["net"] = errors, net
     if length_s <= bs.batch_max_outage_s:
-        smoothed, batch = _after_outage(drive, outages, capture, bs)
+        smoothed, batch = _after_outage(drive, outages, capture, bs, settings)
         result["smoothed"], result["batch"] = smoothed, batch
     if progress is not None:
         progress(
-            f"  {scenario} seed {seed} {gps_error} outages {length_s:.0f} s: "
+            f"  {profile} {scenario} seed {seed} {sim.gps_error} outages {length_s:.0f} s: "
             + ", ".join(f"{k} {np.mean(v):.2f} m" for k, v in errors.items() if len(v))
         )
     return result
 
 
 def _after_outage(
-    drive: Drive, outages: list[tuple[float, float]], capture: _Smoothed, bs: MheBenchSettings
+    drive: Drive,
+    outages: list[tuple[float, float]],
+    capture: _Smoothed,
+    bs: MheBenchSettings,
+    settings: EstimationSettings,
 ) -> tuple[list[float], list[float]]:
     """Mean error (m) over each outage of the MHE's smoothed window and of the batch estimate of the same span."""
     gps = GpsSettings()
@@ -320,7 +345,7 @@ def _after_outage(
         samples += cans[i0:i1]
         samples.sort(key=lambda s: s.t)
         try:
-            res = estimate_batch(samples, bs.estimator, frame=drive.frame)
+            res = estimate_batch(samples, settings, frame=drive.frame)
         except SumheError as e:
             log.warning("batch estimate of outage %d failed: %s", i, e)
             batch_err.append(math.nan)

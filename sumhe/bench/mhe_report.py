@@ -139,16 +139,28 @@ def _replay_line(bs: MheBenchSettings, say: Progress) -> str:
 def _accuracy_report(bs: MheBenchSettings, say: Progress) -> str:
     lines = [
         "accuracy: error of the newest state inside outages (m), all estimates (GNSS epochs and CAN rate); "
-        f"{len(bs.scenarios)} scenarios x {len(bs.seeds)} seeds, {bs.duration_s:.0f} s drives, CAN delay "
-        f"calibrated ({bs.estimator.can.delay_s} s) for every estimator"
+        f"{bs.duration_s:.0f} s drives, CAN delay calibrated for every estimator"
     ]
-    for gps_error in bs.gps_errors:
-        lines.append(f" GNSS errors {gps_error!r}:")
-        lines += _accuracy_lines(bs, gps_error, say)
+    if "kind" in bs.profiles:
+        lines.append(
+            f"kind profile: {len(bs.scenarios)} scenarios x {len(bs.seeds)} seeds, CAN delay "
+            f"{bs.estimator.can.delay_s} s"
+        )
+        for gps_error in bs.gps_errors:
+            lines.append(f" GNSS errors {gps_error!r}:")
+            lines += _accuracy_lines(bs, gps_error, say, "kind", bs.scenarios)
+    if "realistic" in bs.profiles:
+        lines.append(
+            f"realistic profile: {len(bs.realistic_scenarios)} scenarios x {len(bs.seeds)} seeds, every real-car "
+            "error drawn per seed (docs/simulator.md), each drive's CAN quanta and chassis delay configured"
+        )
+        lines += _accuracy_lines(bs, "walk", say, "realistic", bs.realistic_scenarios)
     return "\n".join(lines)
 
 
-def _accuracy_lines(bs: MheBenchSettings, gps_error: str, say: Progress) -> list[str]:
+def _accuracy_lines(
+    bs: MheBenchSettings, gps_error: str, say: Progress, profile: str, scenarios: Sequence[str]
+) -> list[str]:
     lines: list[str] = []
     names = ["mhe", *bs.baselines]
     for length in bs.outage_lengths_s:
@@ -157,10 +169,10 @@ def _accuracy_lines(bs: MheBenchSettings, gps_error: str, say: Progress) -> list
         smoothed: list[float] = []
         batch: list[float] = []
         count = 0
-        for scenario in bs.scenarios:
+        for scenario in scenarios:
             for seed in bs.seeds:
-                say(f"accuracy {scenario} seed {seed} {gps_error} outages {length:.0f} s")
-                r = accuracy_drive(scenario, seed, gps_error, length, bs, say)
+                say(f"accuracy {profile} {scenario} seed {seed} {gps_error} outages {length:.0f} s")
+                r = accuracy_drive(scenario, seed, gps_error, length, bs, say, profile)
                 errs, net = r["errors"], r["net"]
                 assert isinstance(errs, dict) and isinstance(net, dict)
                 for n in names:

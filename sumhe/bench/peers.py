@@ -1,10 +1,10 @@
 """``sumhe bench`` (``peers``): every estimator on the same drives by the same code path, side by side.
 
-Drives (:mod:`sumhe.bench.drives`): simulated ones (scenarios x GPS error models x seeds; the seeds are test seeds,
-never the training seeds 100-105 the baselines were tuned on) and recorded ones given by the user, with outages
-placed on them. Every estimator gets exactly the same samples, pushed one by one through
-:class:`~sumhe.service.pipeline.Pipeline` (the code path of the service and of ``sumhe replay``), then
-``pipeline.finish()``; the report is :mod:`sumhe.bench.report`'s.
+Drives (:mod:`sumhe.bench.drives`): simulated ones of the ``kind`` profile (scenarios x GPS error models x seeds;
+the seeds are test seeds, never the training seeds 100-105 the baselines were tuned on) and of the ``realistic``
+one (scenarios x seeds), with outages placed on them; the report keeps the profiles apart. Every estimator gets
+exactly the same samples, pushed one by one through :class:`~sumhe.service.pipeline.Pipeline` (the code path of
+the service and of ``sumhe replay``), then ``pipeline.finish()``; the report is :mod:`sumhe.bench.report`'s.
 
 Figures, per estimator over all drives: position error of every estimate (GNSS epochs and CAN rate) inside the
 outages (all, per length, per motion; an outage lasts until the first fix after it) and outside them after the
@@ -206,11 +206,11 @@ class Progress(Protocol):
 
 @dataclass(frozen=True, slots=True)
 class DriveInfo:
-    """What the report keeps of a drive: name, kind (simulated/recorded), start (s, its clock), span of its
-    samples (s) and the outages placed."""
+    """What the report keeps of a drive: name, simulator profile, start (s, its clock), span of its samples (s) and
+    the outages placed."""
 
     name: str
-    kind: str
+    profile: str
     t0: float
     span_s: float
     outages: tuple[Outage, ...]
@@ -239,7 +239,7 @@ def run_bench(ps: PeersSettings, base: Config, progress: Progress | None = None)
     results: list[RunResult] = []
     seen: list[DriveInfo] = []
     for drive in drives(ps, base):
-        seen.append(DriveInfo(drive.name, drive.kind, float(drive.truth.t[0]), drive.span_s, drive.outages))
+        seen.append(DriveInfo(drive.name, drive.profile, float(drive.truth.t[0]), drive.span_s, drive.outages))
         for name in names:
             if progress is not None:
                 progress.starting(f"{drive.name} {name}")

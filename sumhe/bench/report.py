@@ -77,7 +77,8 @@ def summarise_estimator(name: str, results: Sequence[RunResult], drives_: Sequen
 
 def summarise(report: BenchReport, command: str = "sumhe bench") -> dict[str, Any]:
     """The whole report as plain data, ready for JSON (NaN written as null): how it ran, the drives and outages,
-    per estimator its figures, per placement each estimator's mean and max error, and the failed runs."""
+    per profile per estimator its figures, per placement each estimator's mean and max error, and the failed
+    runs."""
     names = list(dict.fromkeys(r.estimator for r in report.results))
     placements = []
     for d in report.drives:
@@ -87,6 +88,7 @@ def summarise(report: BenchReport, command: str = "sumhe bench") -> dict[str, An
             placements.append(
                 {
                     "drive": d.name,
+                    "profile": d.profile,
                     "start_s": round(o.start_s - d.t0, 2),
                     "length_s": o.length_s,
                     "motion": o.motion,
@@ -94,6 +96,14 @@ def summarise(report: BenchReport, command: str = "sumhe bench") -> dict[str, An
                     "max_m": {n: s[2] for n, s in stats.items()},
                 }
             )
+    profiles = {}
+    for profile in dict.fromkeys(d.profile for d in report.drives):
+        drives_ = [d for d in report.drives if d.profile == profile]
+        on = {d.name for d in drives_}
+        profiles[profile] = {
+            n: summarise_estimator(n, [r for r in report.results if r.estimator == n and r.drive in on], drives_)
+            for n in names
+        }
     data = {
         "benchmark": "peers",
         "command": command,
@@ -104,7 +114,7 @@ def summarise(report: BenchReport, command: str = "sumhe bench") -> dict[str, An
         "drives": [
             {
                 "name": d.name,
-                "kind": d.kind,
+                "profile": d.profile,
                 "span_s": d.span_s,
                 "outages": [
                     {
@@ -118,9 +128,7 @@ def summarise(report: BenchReport, command: str = "sumhe bench") -> dict[str, An
             }
             for d in report.drives
         ],
-        "estimators": {
-            n: summarise_estimator(n, [r for r in report.results if r.estimator == n], report.drives) for n in names
-        },
+        "profiles": profiles,
         "placements": placements,
         "failures": [
             {"estimator": r.estimator, "drive": r.drive, "error": r.error} for r in report.results if not r.ok
@@ -177,16 +185,30 @@ def how_it_ran(summary: Mapping[str, Any]) -> list[str]:
     return [
         f"`{summary['command']}`: {len(drives_)} drives ({span:.0f} s of data: "
         + ", ".join(d["name"] for d in drives_)
-        + f"), {sum(counts.values())} outages ({per_length}); estimators: {', '.join(summary['estimators'])}.",
+        + f"), {sum(counts.values())} outages ({per_length}); estimators: "
+        + ", ".join(next(iter(summary["profiles"].values()), {}))
+        + ".",
         f"Ran on {env['cpu']}; {env['python']}, numpy {env['numpy']}, casadi {env['casadi']}, sumhe "
         f"{env['sumhe']}; {env['blas_threads']}; one run at a time, each in its own forked process; "
         f"{summary['wall_s']:.0f} s wall.",
     ]
 
 
-def main_table(summary: Mapping[str, Any]) -> list[str]:
-    """THE table: one row per estimator (Markdown)."""
-    estimators = summary["estimators"]
+PROFILE_TITLES = {
+    "kind": "kind profile (the simulator's clean sensors)",
+    "realistic": "realistic profile (real-car sensor errors drawn per seed: docs/simulator.md)",
+}
+
+
+def profile_title(profile: str, summary: Mapping[str, Any]) -> str:
+    """A heading for one profile's tables, with its drive count."""
+    n = sum(d["profile"] == profile for d in summary["drives"])
+    return f"### {PROFILE_TITLES.get(profile, profile)}: {n} drives"
+
+
+def main_table(summary: Mapping[str, Any], profile: str) -> list[str]:
+    """THE table of one profile: one row per estimator (Markdown)."""
+    estimators = summary["profiles"][profile]
     lengths = [k for k in next(iter(estimators.values()))["outage"] if k != "all"] if estimators else []
     mpm = ("mean_m", "p95_m", "max_m")
     head = (
@@ -225,14 +247,14 @@ def main_table(summary: Mapping[str, Any]) -> list[str]:
     return lines
 
 
-def motion_table(summary: Mapping[str, Any]) -> list[str]:
-    """Mean / max error during outages by what the vehicle did (Markdown)."""
-    placements = summary["placements"]
+def motion_table(summary: Mapping[str, Any], profile: str) -> list[str]:
+    """Mean / max error during outages of one profile's drives by what the vehicle did (Markdown)."""
+    placements = [p for p in summary["placements"] if p["profile"] == profile]
     motions = [m for m in MOTION_ORDER if any(p["motion"] == m for p in placements)]
     n = {m: sum(p["motion"] == m for p in placements) for m in motions}
     head = ["estimator", *(f"{m} ({n[m]} outages): mean / p95 / max (m)" for m in motions)]
     lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
-    for name, e in summary["estimators"].items():
+    for name, e in summary["profiles"][profile].items():
         cells = [_cell(e["outage_by_motion"].get(m, {}), ("mean_m", "p95_m", "max_m")) for m in motions]
         lines.append("| " + " | ".join([f"`{name}`", *cells]) + " |")
     return lines
@@ -240,8 +262,12 @@ def motion_table(summary: Mapping[str, Any]) -> list[str]:
 
 def markdown(summary: Mapping[str, Any]) -> str:
     """The Markdown report: how it ran, the table, errors by motion, how each figure is measured, failures."""
-    out = ["# sumhe bench: estimators side by side", "", *how_it_ran(summary), "", *main_table(summary), ""]
-    out += ["## Position error during outages by the truth's motion", "", *motion_table(summary), ""]
+    out = ["# sumhe bench: estimators side by side", "", *how_it_ran(summary), ""]
+    for profile in summary["profiles"]:
+        out += [profile_title(profile, summary), "", *main_table(summary, profile), ""]
+    out += ["## Position error during outages by the truth's motion", ""]
+    for profile in summary["profiles"]:
+        out += [profile_title(profile, summary), "", *motion_table(summary, profile), ""]
     out += [
         "## How the figures are measured",
         "",

@@ -14,8 +14,8 @@ import argparse
 import dataclasses
 import importlib
 import sys
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Sequence
+from typing import Any, TypeVar
 
 BENCHMARKS: dict[str, tuple[str, str, str]] = {
     "peers": (
@@ -27,6 +27,11 @@ BENCHMARKS: dict[str, tuple[str, str, str]] = {
         "latency, accuracy and replay speed of the moving-horizon estimator",
         "sumhe.commands.bench:add_mhe_arguments",
         "sumhe.commands.bench:run_mhe",
+    ),
+    "calibrate": (
+        "sumhe calibrate on realistic simulated drives against their true installation parameters",
+        "sumhe.commands.bench:add_calibrate_arguments",
+        "sumhe.commands.bench:run_calibrate",
     ),
     "live": (
         "the daemon in real time against a player process: output rate, end-to-end latency, CPU use",
@@ -75,36 +80,87 @@ def add_mhe_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quick", action="store_true", help="one seed, short latency runs, a 10 min replay")
     parser.add_argument("--solvers", help="comma-separated solvers to time (default sqp,ipopt,fatrop)")
     parser.add_argument("--parts", metavar="A,B", help="parts to run (default latency,accuracy,multipath,replay)")
+    parser.add_argument(
+        "--profile", metavar="A,B", help="simulator profiles of the accuracy part (default kind,realistic)"
+    )
 
 
 def run_mhe(args: argparse.Namespace) -> int:
     from sumhe.bench.mhe import MheBenchSettings
     from sumhe.bench.mhe_report import run_benchmark
 
-    bs = MheBenchSettings.quick() if args.quick else MheBenchSettings()
-    if args.solvers:
-        bs = dataclasses.replace(bs, solvers=tuple(s.strip() for s in args.solvers.split(",") if s.strip()))
-    if args.parts:
-        try:
-            bs = dataclasses.replace(bs, parts=tuple(s.strip() for s in args.parts.split(",") if s.strip()))
-        except ValueError as e:
-            raise SystemExit(f"error: --{e}") from e
+    options = (("solvers", "solvers", _names), ("parts", "parts", _names), ("profile", "profiles", _names))
+    bs = _with_options(MheBenchSettings.quick() if args.quick else MheBenchSettings(), "bench mhe", args, options)
+    for line in run_benchmark(bs, lambda msg: print(msg, file=sys.stderr, flush=True)):
+        print(line, flush=True)
+    return 0
+
+
+def add_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--quick", action="store_true", help="an urban and a highway drive of 300 s")
+    parser.add_argument("--scenarios", metavar="A,B", help="simulated scenarios (default urban,highway,offroad)")
+    parser.add_argument("--seeds", metavar="1,2,3", help="simulation seeds (default 1,2,3,4)")
+    parser.add_argument("--duration", type=float, metavar="S", help="length of each drive (default 600 s)")
+
+
+T = TypeVar("T")
+Options = Sequence[tuple[str, str, Callable[[Any], Any]]]
+"""Command-line options that change settings: (option, settings field, conversion of the option's value)."""
+
+
+def _with_options(defaults: T, label: str, args: argparse.Namespace, options: Options) -> T:
+    """``defaults`` (a settings dataclass) with the fields of ``options`` the command line gives; ConfigError
+    naming ``label`` for a bad value (the settings validate themselves)."""
+    from sumhe.errors import ConfigError
+
+    try:
+        changes = {key: convert(getattr(args, opt)) for opt, key, convert in options if getattr(args, opt) is not None}
+        return dataclasses.replace(defaults, **changes)  # type: ignore[type-var]
+    except ValueError as e:
+        raise ConfigError(f"{label}: {e}") from e
+
+
+def _seeds(text: str) -> tuple[int, ...]:
+    return tuple(int(s) for s in _names(text))
+
+
+def _floats(text: str) -> tuple[float, ...]:
+    return tuple(float(v) for v in _names(text))
+
+
+def run_calibrate(args: argparse.Namespace) -> int:
+    from sumhe.bench.calibrate import CalibrateBenchSettings, run_benchmark
+
+    options = (("scenarios", "scenarios", _names), ("seeds", "seeds", _seeds), ("duration", "duration_s", float))
+    bs = _with_options(
+        CalibrateBenchSettings.quick() if args.quick else CalibrateBenchSettings(), "bench calibrate", args, options
+    )
     for line in run_benchmark(bs, lambda msg: print(msg, file=sys.stderr, flush=True)):
         print(line, flush=True)
     return 0
 
 
 def add_peers_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--quick", action="store_true", help="a one-minute subset: one 120 s drive, 5/10/30 s outages")
+    parser.add_argument(
+        "--quick", action="store_true", help="a short subset: a 120 s drive of each profile, 5/10/30 s outages"
+    )
     parser.add_argument("--estimators", metavar="A,B", help="comma-separated estimators (default: every registered)")
+    parser.add_argument("--profile", metavar="A,B", help="simulator profiles (default kind,realistic)")
     parser.add_argument("--scenarios", metavar="A,B", help="simulated scenarios (default urban,highway,offroad)")
     parser.add_argument("--gps-errors", metavar="A,B", help="GPS error models (default uniform,gaussian,walk)")
     parser.add_argument("--seeds", metavar="1,2,3", help="simulation seeds (default 1,2,3)")
     parser.add_argument("--duration", type=float, metavar="S", help="length of each simulated drive (default 240 s)")
     parser.add_argument(
-        "--drive", action="append", default=[], metavar="DIR", help="a recorded drive: drive.log, drive.nmea, truth.csv"
+        "--drive",
+        nargs="+",
+        action="append",
+        default=[],
+        metavar="DIR_OR_LOGS",
+        help="instead of simulated drives, a recorded one without a reference: a folder (drive.log, drive.nmea, "
+        "config.toml, truth.csv if any) or its log files (MF4, candump, ... and *.nmea); 10/30/60 s outages placed "
+        "on it, every live estimator and two dead-reckoning floors against the fixes removed (repeat for more)",
     )
-    parser.add_argument("--no-sim", action="store_true", help="only the --drive recordings, no simulated drives")
+    parser.add_argument("--lengths", metavar="10,30,60", help="with --drive: outage lengths (s)")
     parser.add_argument("--config", metavar="FILE", help="TOML config: the vehicle's CAN mapping, estimator settings")
     parser.add_argument("--timeout", type=float, metavar="S", help="time limit of one run (s); beyond it: failed")
     parser.add_argument("--out", metavar="DIR", help="write peers.json and peers.md into DIR")
@@ -117,44 +173,41 @@ def _names(text: str) -> tuple[str, ...]:
 def _peers_settings(args: argparse.Namespace) -> Any:
     from sumhe.bench.drives import PeersSettings
     from sumhe.errors import ConfigError
+
+    options = (
+        ("estimators", "estimators", _estimators),
+        ("scenarios", "scenarios", _names),
+        ("gps_errors", "gps_errors", _names),
+        ("profile", "profiles", _names),
+        ("seeds", "seeds", _seeds),
+        ("duration", "duration_s", float),
+        ("timeout", "timeout_s", float),
+    )
+    ps = _with_options(PeersSettings.quick() if args.quick else PeersSettings(), "bench", args, options)
+    if ps.drive_count() == 0:
+        raise ConfigError("bench: no drives to run")
+    return ps
+
+
+def _estimators(text: str) -> tuple[str, ...]:
+    from sumhe.errors import ConfigError
     from sumhe.estimator.registry import estimator_names
 
-    changes: dict[str, Any] = {"recordings": tuple(args.drive)}
-    if args.estimators:
-        changes["estimators"] = _names(args.estimators)
-        unknown = [n for n in changes["estimators"] if n not in estimator_names()]
-        if unknown:
-            raise ConfigError(f"--estimators: unknown {', '.join(unknown)} (known: {', '.join(estimator_names())})")
-    for option, key in (("scenarios", "scenarios"), ("gps_errors", "gps_errors")):
-        if getattr(args, option):
-            changes[key] = _names(getattr(args, option))
-    try:
-        if args.seeds:
-            changes["seeds"] = tuple(int(s) for s in _names(args.seeds))
-        if args.no_sim:
-            changes["seeds"] = ()
-        if args.duration is not None:
-            changes["duration_s"] = args.duration
-        if args.timeout is not None:
-            changes["timeout_s"] = args.timeout
-        ps = dataclasses.replace(PeersSettings.quick() if args.quick else PeersSettings(), **changes)
-    except ValueError as e:
-        raise ConfigError(f"bench: {e}") from e
-    if ps.drive_count() == 0:
-        raise ConfigError("bench: no drives to run (--no-sim needs --drive DIR)")
-    return ps
+    names = _names(text)
+    unknown = [n for n in names if n not in estimator_names()]
+    if unknown:
+        raise ConfigError(f"--estimators: unknown {', '.join(unknown)} (known: {', '.join(estimator_names())})")
+    return names
 
 
 def _command_line(args: argparse.Namespace) -> str:
     parts = ["sumhe bench"]
-    for option in ("quick", "no_sim"):
-        if getattr(args, option):
-            parts.append("--" + option.replace("_", "-"))
-    for option in ("estimators", "scenarios", "gps_errors", "seeds", "duration", "config", "timeout", "out"):
+    if args.quick:
+        parts.append("--quick")
+    for option in ("estimators", "profile", "scenarios", "gps_errors", "seeds", "duration", "config", "timeout", "out"):
         value = getattr(args, option)
         if value is not None:
             parts.append(f"--{option.replace('_', '-')} {value}")
-    parts += [f"--drive {d}" for d in args.drive]
     return " ".join(parts)
 
 
@@ -184,10 +237,12 @@ def run_peers(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from sumhe.bench.peers import run_bench
-    from sumhe.bench.report import how_it_ran, main_table, markdown, summarise
+    from sumhe.bench.report import how_it_ran, main_table, markdown, profile_title, summarise
     from sumhe.commands.candump import reference_config
     from sumhe.config import load_config
 
+    if args.drive:
+        return run_recorded(args)
     ps = _peers_settings(args)
     base = load_config(args.config) if args.config else reference_config()
     bar = _ProgressBar(ps.drive_count() * len(ps.names()))
@@ -196,7 +251,10 @@ def run_peers(args: argparse.Namespace) -> int:
     finally:
         bar.close()
     summary = summarise(report, _command_line(args))
-    for line in [*how_it_ran(summary), "", *main_table(summary)]:
+    lines = how_it_ran(summary)
+    for profile in summary["profiles"]:
+        lines += ["", profile_title(profile, summary), "", *main_table(summary, profile)]
+    for line in lines:
         print(line, flush=True)
     if summary["failures"]:
         print(f"{len(summary['failures'])} runs failed (see the failures in the report)", file=sys.stderr)
@@ -206,6 +264,36 @@ def run_peers(args: argparse.Namespace) -> int:
         (out / "peers.json").write_text(json.dumps(summary, indent=1, allow_nan=False) + "\n", encoding="utf-8")
         (out / "peers.md").write_text(markdown(summary), encoding="utf-8")
         print(f"wrote {out / 'peers.json'} and {out / 'peers.md'}", file=sys.stderr)
+    return 0
+
+
+def run_recorded(args: argparse.Namespace) -> int:
+    """``sumhe bench --drive ...``: the recorded-drive bench (:mod:`sumhe.bench.recorded`)."""
+    import json
+    from pathlib import Path
+
+    from sumhe.bench.recorded import RecordedBenchSettings, load_recording, markdown, run_recording, summary
+    from sumhe.commands.candump import reference_config
+
+    options = (
+        ("estimators", "estimators", _estimators),
+        ("lengths", "lengths_s", _floats),
+        ("timeout", "timeout_s", float),
+    )
+    bs = _with_options(RecordedBenchSettings(), "bench --drive", args, options)
+    out = []
+    for spec in args.drive:
+        recording = load_recording(spec, args.config, reference_config())
+        data = summary(recording, run_recording(recording, bs, lambda m: print(m, file=sys.stderr, flush=True)))
+        out.append(data)
+        for line in markdown(data):
+            print(line, flush=True)
+    if args.out:
+        path = Path(args.out)
+        path.mkdir(parents=True, exist_ok=True)
+        (path / "recorded.json").write_text(json.dumps(out, indent=1) + "\n", encoding="utf-8")
+        (path / "recorded.md").write_text("\n".join(line for d in out for line in markdown(d)) + "\n", encoding="utf-8")
+        print(f"wrote {path / 'recorded.json'} and {path / 'recorded.md'}", file=sys.stderr)
     return 0
 
 

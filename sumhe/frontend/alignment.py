@@ -46,6 +46,8 @@ class LagFit:
     offset: float
     rms: float
     n: int
+    lever_m: float = 0.0
+    """The antenna's forward lever arm (m) fitted with the lag (:func:`course_lag` with ``lever_prior_m``)."""
 
 
 def _refine(lags: NDArray[np.float64], rss: NDArray[np.float64], n: int, params: int) -> tuple[float, float]:
@@ -111,11 +113,24 @@ def course_lag(
     yaw_rps: ArrayLike,
     lags: ArrayLike = LAGS_S,
     max_gap_s: float = 1.5,
+    lever_prior_m: tuple[float, float] | None = None,
+    speed_weighted: bool = False,
+    fixed_scale: float | None = None,
 ) -> LagFit | None:
     """The lag of the receiver's course behind the CAN yaw rate: the course's rate between consecutive fixes
     (clockwise) against ``-(yaw - bias) * scale`` averaged over the same interval ``lag`` earlier. ``scale`` is the
     yaw-rate scale (true = scale x (CAN - bias)), ``offset`` the bias (rad/s). Fixes below ``MIN_SPEED_MPS`` or
-    more than ``max_gap_s`` apart are left out; None with fewer than ``MIN_PAIRS`` pairs."""
+    more than ``max_gap_s`` apart are left out; None with fewer than ``MIN_PAIRS`` pairs.
+
+    A course over ground is the antenna's: an antenna ``l`` ahead of the point the yaw rate turns about moves
+    sideways at ``l omega`` in turns, so its course is the heading minus ``atan(l omega / v)`` and leads the
+    heading by about ``l / v`` (a lag that changes with speed). With ``lever_prior_m = (l0, sigma)`` (m) the fit
+    takes ``l`` as a third coefficient (the change of ``omega / v`` over the interval, from the yaw rate averaged
+    over :data:`LEVER_SMOOTH_S` at its ends), with a Gaussian prior ``N(l0, sigma^2)`` that holds it where speed
+    hardly varies; ``lever_m`` is the result. Leave it None for a heading (HDT: the body's own azimuth).
+    ``speed_weighted``: weigh each pair by its speed squared, as the course's error is the velocity's error over the
+    speed (not for a heading, whose error does not shrink with speed). ``fixed_scale``: the scale is not fitted
+    but this (a drive without turns tells the bias at scale 1, not the scale)."""
     tf, crs, spd = np.asarray(t_fix, float), np.asarray(course_rad, float), np.asarray(speed_mps, float)
     tw, w = np.asarray(t_yaw, float), np.asarray(yaw_rps, float)
     lags = np.asarray(lags, float)
@@ -124,33 +139,71 @@ def course_lag(
     ok = np.isfinite(crs) & np.isfinite(spd) & (np.abs(spd) > MIN_SPEED_MPS)
     dt = np.diff(tf)
     pair = ok[1:] & ok[:-1] & (dt > 0) & (dt <= max_gap_s)
+    margin = LEVER_SMOOTH_S if lever_prior_m is not None else 0.0
     t1, t2 = tf[:-1][pair], tf[1:][pair]
-    inside = (t1 - lags.max() > tw[0]) & (t2 - lags.min() < tw[-1])
-    t1, t2 = t1[inside], t2[inside]
+    v1, v2 = np.abs(spd[:-1][pair]), np.abs(spd[1:][pair])
+    inside = (t1 - lags.max() - margin > tw[0]) & (t2 - lags.min() + margin < tw[-1])
+    t1, t2, v1, v2 = t1[inside], t2[inside], v1[inside], v2[inside]
     dcrs = np.angle(np.exp(1j * np.diff(crs)))[pair][inside]
     if len(t1) < MIN_PAIRS:
         return None
     rate = -dcrs / (t2 - t1)
     cum = _cumulative(tw, w)
-    mean = (np.interp(t2[None, :] - lags[:, None], tw, cum) - np.interp(t1[None, :] - lags[:, None], tw, cum)) / (
-        t2 - t1
-    )
-    rss = np.empty(len(lags))
-    coef = np.empty((len(lags), 2))
-    for k in range(len(lags)):
-        a = np.column_stack([mean[k], np.ones(len(rate))])
-        coef[k], *_ = np.linalg.lstsq(a, rate, rcond=None)
-        rss[k] = float(np.sum(np.square(rate - a @ coef[k])))
-    lag, std = _refine(lags, rss, len(rate), 3)
+    root_w = 0.5 * (v1 + v2) / np.sqrt(np.mean(np.square(0.5 * (v1 + v2)))) if speed_weighted else np.ones(len(rate))
+
+    def mean(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+        return (np.interp(b, tw, cum) - np.interp(a, tw, cum)) / (b - a)  # type: ignore[no-any-return]
+
+    y = root_w * rate
+    systems: list[tuple[list[NDArray[np.float64]], NDArray[np.float64]]] = []
+    for lag in lags:
+        m = root_w * mean(t1 - lag, t2 - lag)
+        systems.append(([m, root_w], y) if fixed_scale is None else ([root_w], y - fixed_scale * m))
+    rss, coef = _fit_lags(systems)
+    if lever_prior_m is not None:
+        l0, sigma_l = lever_prior_m
+        weight = math.sqrt(float(rss.min()) / max(len(rate) - coef.shape[1] - 1, 1)) / sigma_l
+        h = LEVER_SMOOTH_S / 2.0
+        for lag, (cols, _) in zip(lags, systems, strict=True):
+            w1, w2 = mean(t1 - lag - h, t1 - lag + h), mean(t2 - lag - h, t2 - lag + h)
+            cols.append(root_w * (w2 / v2 - w1 / v1) / (t2 - t1))
+        rss, coef = _fit_lags(systems, (coef.shape[1], l0, weight))
+    lag, std = _refine(lags, rss, len(rate), coef.shape[1] + 1)
     i = int(np.argmin(rss))
-    scale, intercept = coef[i]
+    row = list(coef[i]) if fixed_scale is None else [fixed_scale, *coef[i]]
+    scale, intercept = row[0], row[1]
     bias = -intercept / scale if scale else math.nan
+    lever = float(row[2] / scale) if lever_prior_m is not None and scale else 0.0
     rms = math.sqrt(float(rss[i]) / len(rate))
-    ahead, behind = (
-        (np.interp(t2 - lag + d, tw, cum) - np.interp(t1 - lag + d, tw, cum)) / (t2 - t1) for d in (-SLOPE_S, SLOPE_S)
-    )
-    std = max(std, _linear_std(rms, scale * (ahead - behind) / (2.0 * SLOPE_S)))
-    return LagFit(lag, std, float(scale), float(bias), rms, len(rate))
+    slope = root_w * (mean(t1 - lag - SLOPE_S, t2 - lag - SLOPE_S) - mean(t1 - lag + SLOPE_S, t2 - lag + SLOPE_S))
+    std = max(std, _linear_std(rms, scale * slope / (2.0 * SLOPE_S)))
+    return LagFit(lag, std, float(scale), float(bias), rms, len(rate), lever)
+
+
+LEVER_SMOOTH_S = 0.5
+"""The yaw rate at the ends of an interval, for the lever arm's term, is its mean over this span (s): the CAN yaw
+rate's noise and quantum differenced over a GNSS period would swamp the change it measures."""
+
+
+def _fit_lags(
+    systems: list[tuple[list[NDArray[np.float64]], NDArray[np.float64]]],
+    prior: tuple[int, float, float] | None = None,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Least squares of each lag's ``(columns, y)``: the residual sums (one per lag, the prior's term included) and
+    the coefficients (lags x columns). ``prior = (j, mean, weight)`` adds the row ``weight * (c_j - mean)``."""
+    k = len(systems[0][0])
+    rss = np.empty(len(systems))
+    coef = np.empty((len(systems), k))
+    for i, (cols, y) in enumerate(systems):
+        a, b = np.column_stack(cols), y
+        if prior is not None:
+            j, mean, weight = prior
+            row = np.zeros(k)
+            row[j] = weight
+            a, b = np.vstack([a, row]), np.append(y, weight * mean)
+        coef[i], *_ = np.linalg.lstsq(a, b, rcond=None)
+        rss[i] = float(np.sum(np.square(b - a @ coef[i])))
+    return rss, coef
 
 
 class ClockLearner:

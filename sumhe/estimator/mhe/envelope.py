@@ -9,8 +9,8 @@ residual fits): so each output's bound is its allowance times a factor, the larg
 allowance seen over the last ``mhe.bound_history`` steps times ``mhe.bound_margin`` (never below 1: the sensors'
 claims are the floor; at most ``mhe.bound_max_factor``). The residuals are those of the steps leaving the window,
 where the smoothed trajectory has seen every measurement around them. A measurement that still exceeds its bound
-makes the solve fail and be retried on widened bounds (the fault path, counted); its residual then raises the
-factor, so the same excess does not make the next window infeasible.
+makes the solve fail and be retried on widened bounds (the fault path, counted); the residuals of the widened
+solution then raise the factors at once, so the same excess does not make the next window infeasible.
 """
 
 from __future__ import annotations

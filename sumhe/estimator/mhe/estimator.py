@@ -220,9 +220,7 @@ class MovingHorizonEstimator(StreamEstimator):
                 self.policy.theta_drift,
                 self.envelope.factor,
             )
-            if self.policy.learn_bounds:
-                e = np.abs(output_residuals(model, win.x[:drop], win.y[:drop])) / win.allow[:drop]
-                self.envelope.observe(np.where(win.avail[:drop], e, np.nan))
+            self._learn_bounds(win.x[:drop], slice(0, drop))
         self._merge_offsets(win.apply(plan))
         x_new, mode = self._solve(None if plan.merge else plan.drop)
         if mode == "predict" and status == "ok":
@@ -237,10 +235,21 @@ class MovingHorizonEstimator(StreamEstimator):
             self.tally.count(
                 "fallbacks", "MHE solve failed %d times: the model prediction", self.policy.max_retries + 1
             )
+        elif mode == "mhe-widened":
+            # the data broke a bound: learn it now, from the residuals of the solution that fits them
+            self._learn_bounds(x_new, slice(0, len(win)))
         self.gate.done(t, status, status == "ok" and bool(win.avail[-1, model.j_azimuth]))
         win.x[:] = x_new
         self.propagation.restart(list(x_new[-1]), t, can)
         return self._estimate(list(x_new[-1]), t, status, mode)
+
+    def _learn_bounds(self, x: NDArray[np.float64], steps: slice) -> None:
+        """Show the envelope (:mod:`.envelope`) the residual-to-allowance ratios of the window's ``steps`` at the
+        trajectory ``x`` (theirs)."""
+        if self.policy.learn_bounds:
+            win = self.window
+            ratio = np.abs(output_residuals(self.model, x, win.y[steps])) / win.allow[steps]
+            self.envelope.observe(np.where(win.avail[steps], ratio, np.nan))
 
     def _solve(self, shift: int | None) -> tuple[NDArray[np.float64], str]:
         assert self._arrival is not None  # set at the start

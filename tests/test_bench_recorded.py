@@ -1,0 +1,117 @@
+"""``sumhe bench --drive``: outages placed on a recorded drive, the estimators against the fixes removed, the two
+dead-reckoning floors, an estimator's learned GNSS time offset, the report."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from sumhe.baseline.ekf import Ekf
+from sumhe.bench.floors import CanTrack, Fixes, calibrated_floor, fit_before, plain_floor
+from sumhe.bench.recorded import (
+    FLOORS,
+    RecordedBenchSettings,
+    load_recording,
+    place_outages,
+    run_estimator,
+)
+from sumhe.cli import main
+from sumhe.commands.candump import reference_config
+from sumhe.estimator.registry import ESTIMATORS
+from sumhe.sim import SimSettings, simulate, write_drive
+
+
+class OffsetEkf(Ekf):
+    """The EKF, saying it learned a GNSS time offset of 0.5 s."""
+
+    def stats(self):
+        return {**super().stats(), "gps_time_offset_s": 0.5}
+
+
+@pytest.fixture(scope="module")
+def drive_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("recorded")
+    write_drive(simulate(SimSettings(scenario="highway", seed=4, duration_s=330.0)), d)
+    return d
+
+
+def weave(duration_s: float = 120.0, scale: float = 1.03, bias_rps: float = math.radians(0.5)):
+    """A car weaving at 15 m/s (truth at 100 Hz), its CAN reading ``scale`` x the speed and the yaw rate plus
+    ``bias_rps``, and exact fixes at 1 Hz with their courses."""
+    t = np.arange(0.0, duration_s, 0.01)
+    speed = 15.0 + 2.0 * np.sin(2 * math.pi * t / 40.0)
+    yaw = 0.1 * np.sin(2 * math.pi * t / 25.0)
+    truth = CanTrack(t, speed, yaw)
+    east, north, azimuth = truth.reckon(0.0, 0.0, 0.0, 0.3, t)
+    track = CanTrack(t, scale * speed, yaw + bias_rps)
+    k = np.arange(0, len(t), 100)
+    fixes = Fixes(t[k], east[k], north[k], azimuth[k], np.full(len(k), math.nan))
+    return track, fixes
+
+
+def test_the_calibrated_floor_fits_scale_bias_and_heading_and_beats_the_plain_one():
+    track, fixes = weave()
+    fit = fit_before(track, fixes, 90.0)
+    assert fit is not None and fit.fixes == 30
+    assert fit.speed_scale == pytest.approx(1 / 1.03, rel=1e-3)
+    assert fit.bias_rps == pytest.approx(math.radians(0.5), abs=math.radians(0.02))
+    assert fit.rms_m < 0.05
+    inside = (fixes.t >= 90.0) & (fixes.t < 120.0)
+    ref = np.column_stack([fixes.east[inside], fixes.north[inside]])
+    plain = np.hypot(*(plain_floor(track, fixes, 90.0, fixes.t[inside]) - ref).T)
+    calibrated = np.hypot(*(calibrated_floor(track, fixes, 90.0, fixes.t[inside]) - ref).T)
+    assert calibrated.max() < 0.5 < 5.0 < plain.max()  # 3 % of speed and 0.5 deg/s over 30 s
+    assert fit_before(track, fixes, 3.0) is None  # no 5 fixes before: no fit, NaN positions
+    assert np.isnan(calibrated_floor(track, fixes, 3.0, fixes.t[5:8])).all()
+
+
+def test_without_a_course_the_floor_takes_the_direction_between_fixes():
+    _, fixes = weave(scale=1.0, bias_rps=0.0)
+    bare = Fixes(fixes.t, fixes.east, fixes.north, np.full(len(fixes.t), math.nan), fixes.heading)
+    assert bare.azimuth_at(50) == pytest.approx(fixes.course[50], abs=0.06)  # the chord of the last second
+    assert math.isnan(bare.azimuth_at(0))
+
+
+def test_outages_are_placed_while_moving_and_reproducibly(drive_dir):
+    rec = load_recording([str(drive_dir)], None, reference_config())
+    bs = RecordedBenchSettings()
+    windows = place_outages(rec, 10.0, bs)
+    assert windows == place_outages(rec, 10.0, bs)
+    assert [round(a - rec.t0) for a, _ in windows][:1] == [150] and len(windows) == 2
+    for a, b in windows:
+        assert b - a == 10.0
+        inside = (rec.track.t >= a) & (rec.track.t < b)
+        assert rec.track.speed[inside].mean() >= bs.min_speed_mps
+
+
+def test_an_estimators_learned_time_offset_moves_the_fixes_it_is_compared_with(drive_dir, monkeypatch):
+    monkeypatch.setitem(ESTIMATORS, "offset-ekf", (__name__, "OffsetEkf"))
+    rec = load_recording([str(drive_dir)], None, reference_config())
+    windows = place_outages(rec, 10.0, RecordedBenchSettings())
+    plain, shifted = run_estimator("ekf", rec, windows), run_estimator("offset-ekf", rec, windows)
+    assert abs(plain.offset_s) < 0.05 and shifted.offset_s == 0.5  # the simulated fixes are on time
+    assert plain.fix_errors.scored > 0 and plain.fix_errors.mean_m < 3.0
+    assert shifted.fix_errors.mean_m > plain.fix_errors.mean_m + 5.0  # half a second at highway speed
+    np.testing.assert_array_equal(plain.truth_errors, shifted.truth_errors)  # the same estimates
+
+
+def test_the_command_reports_every_estimator_and_both_floors(drive_dir, tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = ["bench", "--drive", str(drive_dir), "--estimators", "ekf,dead-reckoning", "--lengths", "10,30"]
+    assert main([*argv, "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    (data,) = json.loads((out / "recorded.json").read_text())
+    assert data["drive"] == drive_dir.name and [r["length_s"] for r in data["lengths"]] == [10.0, 30.0]
+    for length in data["lengths"]:
+        assert list(length["rows"]) == ["ekf", "dead-reckoning", *FLOORS]
+        for name, row in length["rows"].items():
+            f = row["fixes"]
+            assert f["n"] > 0 and 0.0 <= f["mean_m"] <= f["p95_m"] <= f["max_m"], name
+        ekf = length["rows"]["ekf"]
+        assert ekf["truth"]["n"] > 0 and ekf["truth"]["mean_m"] < 10.0
+        assert ekf["widened_share"] == 0.0 and ekf["x_real_time"] > 1.0
+    assert "| floor: calibrated dead reckoning |" in printed and "vs truth" in printed
+    assert (out / "recorded.md").read_text().startswith(f"## {drive_dir.name}")
