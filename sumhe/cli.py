@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("sumhe.commands.run", "the daemon: CAN bus + serial GNSS in, positions over UDP out"),
     "play": ("sumhe.commands.play", "play a recorded drive onto a CAN bus and a pseudo-terminal (real time)"),
     "replay": ("sumhe.commands.replay", "run an estimator on a recorded CAN log + NMEA log (JSON lines out)"),
+    "fleet": ("sumhe.commands.fleet", "reprocess many recorded drives on Ray: per-drive results and a fleet table"),
     "calibrate": ("sumhe.commands.calibrate", "GNSS time offset, CAN scales and bias of a car from a recorded drive"),
     "protocol": ("sumhe.commands.protocol", "paper 000's outage protocol on simulated drives: errors per method"),
     "bench": ("sumhe.commands.bench", "benchmarks: estimators side by side (default), MHE (mhe), paper 000 (protocol)"),

@@ -13,7 +13,7 @@ import os
 import sys
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Union
@@ -389,24 +389,40 @@ def _apply(data: dict[str, Any], dotted: Mapping[str, Any], origin: str) -> None
         node[leaf] = value
 
 
+def _read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
+    source = str(path)
+    try:
+        return tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError as e:
+        raise ConfigError(f"{source}: file not found") from e
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{source}: cannot read: {e}") from e
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{source}: not valid TOML: {e}") from e
+
+
+def _merge(base: dict[str, Any], over: Mapping[str, Any]) -> None:
+    """Merge the TOML tables of ``over`` into ``base``, key by key (a value replaces, a table merges)."""
+    for key, value in over.items():
+        if isinstance(value, Mapping) and isinstance(base.get(key), dict):
+            _merge(base[key], value)
+        else:
+            base[key] = value
+
+
 def load_config(
     path: str | os.PathLike[str] | None = None,
     env: Mapping[str, str] | None = None,
     overrides: Mapping[str, Any] | None = None,
+    layers: Sequence[str | os.PathLike[str]] = (),
 ) -> Config:
-    """Load, merge and validate the configuration; raise ConfigError naming the file and key."""
-    source = str(path) if path is not None else "<defaults>"
-    data: dict[str, Any] = {}
-    if path is not None:
-        p = Path(path)
-        try:
-            data = tomllib.loads(p.read_text(encoding="utf-8"))
-        except FileNotFoundError as e:
-            raise ConfigError(f"{source}: file not found") from e
-        except (OSError, UnicodeDecodeError) as e:
-            raise ConfigError(f"{source}: cannot read: {e}") from e
-        except tomllib.TOMLDecodeError as e:
-            raise ConfigError(f"{source}: not valid TOML: {e}") from e
+    """Load, merge and validate the configuration; raise ConfigError naming the file and key. ``layers`` are
+    TOML files merged over ``path`` in order, key by key (e.g. one recorded drive's ``config.toml`` over a
+    fleet's config); the environment and ``overrides`` still come last."""
+    source = " + ".join(str(p) for p in (*([path] if path is not None else []), *layers)) or "<defaults>"
+    data: dict[str, Any] = _read_toml(path) if path is not None else {}
+    for layer in layers:
+        _merge(data, _read_toml(layer))
     _apply(data, _env_overrides(os.environ if env is None else env), "environment")
     _apply(data, overrides or {}, "command line")
     kwargs: dict[str, Any] = {}
@@ -419,7 +435,8 @@ def load_config(
             kwargs[section] = build_section(_SECTIONS[section], table, section)
         except ValueError as e:
             raise ConfigError(f"{source}: {e}") from e
-    base = Path(path).resolve().parent if path is not None else Path.cwd()
+    first = path if path is not None else next(iter(layers), None)
+    base = Path(first).resolve().parent if first is not None else Path.cwd()
     return Config(**kwargs, source=source, base_dir=base)
 
 

@@ -7,7 +7,9 @@ Round trips are exact to well below a millimetre anywhere within hundreds of kil
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -32,32 +34,51 @@ def geodetic_to_ecef(lat_deg: ArrayLike, lon_deg: ArrayLike, alt_m: ArrayLike) -
     return np.stack(np.broadcast_arrays(x, y, z), axis=-1)
 
 
+class _Maths(NamedTuple):
+    """The functions the geodetic conversion needs, from numpy (arrays) or math (floats: ~10x faster one by one)."""
+
+    atan2: Callable[..., Any]
+    hypot: Callable[..., Any]
+    sin: Callable[..., Any]
+    cos: Callable[..., Any]
+    sqrt: Callable[..., Any]
+    degrees: Callable[..., Any]
+
+
+_NUMPY = _Maths(np.arctan2, np.hypot, np.sin, np.cos, np.sqrt, np.degrees)
+_MATH = _Maths(math.atan2, math.hypot, math.sin, math.cos, math.sqrt, math.degrees)
+
+
 def ecef_to_geodetic(xyz: ArrayLike) -> NDArray[np.float64]:
     """ECEF (m, stacked last) -> latitude, longitude (deg), height (m), stacked last.
 
     Bowring's closed-form start refined by two Newton-like iterations: sub-micrometre at road heights.
     """
     p_xyz = np.asarray(xyz, dtype=float)
-    x, y, z = p_xyz[..., 0], p_xyz[..., 1], p_xyz[..., 2]
-    lon = np.arctan2(y, x)
-    p = np.hypot(x, y)
-    theta = np.arctan2(z * WGS84_A, p * WGS84_B)
-    lat = np.arctan2(z + WGS84_EP2 * WGS84_B * np.sin(theta) ** 3, p - WGS84_E2 * WGS84_A * np.cos(theta) ** 3)
+    return np.stack(_geodetic(p_xyz[..., 0], p_xyz[..., 1], p_xyz[..., 2], _NUMPY), axis=-1)
+
+
+def _geodetic(x: Any, y: Any, z: Any, m: _Maths) -> tuple[Any, Any, Any]:
+    """:func:`ecef_to_geodetic` on arrays (``m`` = numpy) or floats (``m`` = math)."""
+    lon = m.atan2(y, x)
+    p = m.hypot(x, y)
+    theta = m.atan2(z * WGS84_A, p * WGS84_B)
+    lat = m.atan2(z + WGS84_EP2 * WGS84_B * m.sin(theta) ** 3, p - WGS84_E2 * WGS84_A * m.cos(theta) ** 3)
     for _ in range(2):
-        h = _height(p, z, lat)
-        n = WGS84_A / np.sqrt(1.0 - WGS84_E2 * np.sin(lat) ** 2)
-        lat = np.arctan2(z, p * (1.0 - WGS84_E2 * n / (n + h)))
-    return np.stack([np.degrees(lat), np.degrees(lon), _height(p, z, lat)], axis=-1)
+        h = _height(p, z, lat, m)
+        n = WGS84_A / m.sqrt(1.0 - WGS84_E2 * m.sin(lat) ** 2)
+        lat = m.atan2(z, p * (1.0 - WGS84_E2 * n / (n + h)))
+    return m.degrees(lat), m.degrees(lon), _height(p, z, lat, m)
 
 
-def _height(p: NDArray[np.float64], z: NDArray[np.float64], lat: NDArray[np.float64]) -> NDArray[np.float64]:
+def _height(p: Any, z: Any, lat: Any, m: _Maths) -> Any:
     """Height above the ellipsoid (m) at distance ``p`` from the axis, ``z`` along it, latitude ``lat`` (rad).
 
     ``p cos(lat) + z sin(lat) - a sqrt(1 - e2 sin^2 lat)`` is exact and stable everywhere; the textbook
     ``p / cos(lat) - N`` loses all accuracy near the poles (km of error within a metre of the axis).
     """
-    sl, cl = np.sin(lat), np.cos(lat)
-    return p * cl + z * sl - WGS84_A * np.sqrt(1.0 - WGS84_E2 * sl * sl)
+    sl, cl = m.sin(lat), m.cos(lat)
+    return p * cl + z * sl - WGS84_A * m.sqrt(1.0 - WGS84_E2 * sl * sl)
 
 
 @dataclass(frozen=True)
@@ -69,6 +90,8 @@ class LocalFrame:
     alt0_m: float = 0.0
     _origin: NDArray[np.float64] = field(init=False, repr=False, compare=False)
     _rot: NDArray[np.float64] = field(init=False, repr=False, compare=False)
+    _rows: tuple[tuple[float, ...], ...] = field(init=False, repr=False, compare=False)
+    """Rows of the rotation and the origin as floats (the one-estimate path of :meth:`to_geodetic`)."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.lat0_deg) and -90.0 <= self.lat0_deg <= 90.0):
@@ -80,6 +103,7 @@ class LocalFrame:
         rot = np.array([[-so, co, 0.0], [-sl * co, -sl * so, cl], [cl * co, cl * so, sl]])
         object.__setattr__(self, "_origin", geodetic_to_ecef(self.lat0_deg, self.lon0_deg, self.alt0_m))
         object.__setattr__(self, "_rot", rot)
+        object.__setattr__(self, "_rows", (*map(tuple, rot.tolist()), tuple(self._origin.tolist())))
 
     def to_enu(self, lat_deg: ArrayLike, lon_deg: ArrayLike, alt_m: ArrayLike = 0.0) -> NDArray[np.float64]:
         """Geodetic (deg, deg, m) -> east, north, up (m), stacked last."""
@@ -88,5 +112,13 @@ class LocalFrame:
 
     def to_geodetic(self, east_m: ArrayLike, north_m: ArrayLike, up_m: ArrayLike = 0.0) -> NDArray[np.float64]:
         """East, north, up (m) -> latitude, longitude (deg), height (m), stacked last."""
+        if type(east_m) is float and type(north_m) is float and isinstance(up_m, float | int):  # one estimate
+            (ex, ey, ez), (nx, ny, nz), (ux, uy, uz), (ox, oy, oz) = self._rows
+            e, n, u = east_m, north_m, float(up_m)
+            return np.array(
+                _geodetic(
+                    e * ex + n * nx + u * ux + ox, e * ey + n * ny + u * uy + oy, e * ez + n * nz + u * uz + oz, _MATH
+                )
+            )
         enu = np.stack(np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (east_m, north_m, up_m))), -1)
         return ecef_to_geodetic(enu @ self._rot + self._origin)

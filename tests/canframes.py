@@ -48,3 +48,20 @@ def yaw_frame(t: float, yaw_deg_s: float, counter: int, lat: float = 0.0, lon: f
 
 def speed_frame(t: float, speed_kmh: float, counter: int) -> can.Message:
     return encode(ref_db(), "ESP_VEHICLE_SPEED", t, VEHICLE_SPEED=speed_kmh, ESP_SPEED_COUNTER=counter % 16)
+
+
+MESSAGE_FIELDS = (
+    "timestamp",
+    "arbitration_id",
+    "data",
+    "channel",
+    "is_rx",
+    "is_extended_id",
+    "is_fd",
+    "bitrate_switch",
+    "error_state_indicator",
+    "is_error_frame",
+    "is_remote_frame",
+    "dlc",
+)
+"""Every field of a ``can.Message`` a log reader fills: two readers agree when these do."""

@@ -21,7 +21,7 @@ from sumhe.io.can import (
     si_factor,
 )
 
-from canframes import REF_DBC, TOYOTA_DBC, encode, ref_db, speed_frame, toyota_db, yaw_frame
+from canframes import MESSAGE_FIELDS, REF_DBC, TOYOTA_DBC, encode, ref_db, speed_frame, toyota_db, yaw_frame
 
 DEG = math.pi / 180
 
@@ -440,3 +440,28 @@ def test_corrupt_binary_or_csv_log_ends_early_without_crashing(tmp_path):
     with gzip.open(gz, "wt") as f:
         f.write("(1.0) vcan0 130#00\n")
     assert len(list(read_log(gz))) == 1
+
+
+def test_candump_frames_equal_python_cans_reader(tmp_path):
+    """sumhe parses classic candump lines itself (python-can's reader takes the rest): the same frames, field by
+    field, for classic, extended, empty, CAN FD, remote and error frames, channel names and numbers, R/T flags."""
+    from sumhe.sim import bundled_drive_dir
+
+    lines = [
+        "(1700000000.000100) can0 123#DEADBEEF",
+        "(1700000000.000200) vcan1 18FEF100#0102030405060708 T",
+        "(1700000000.000300) 1 7E8#",
+        "(1700000000.000400) can0 456##1112233445566778899AABBCCDDEEFF00",
+        "(1700000000.000500) can0 123#R",
+        "(1700000000.000600) can0 123#R4 R",
+        "(1700000000.000700) can0 20000080#0000000000000000",
+        "(1700000000.000800) can0 7ff#00aaBB r",
+    ]
+    log = tmp_path / "mixed.log"
+    log.write_text("\n".join(lines) + "\n")
+    bundled = bundled_drive_dir() / "drive.log"
+    for path in (log, bundled):
+        ours = [tuple(getattr(m, f) for f in MESSAGE_FIELDS) for m in read_log(path)]
+        with can.CanutilsLogReader(path) as reader:
+            theirs = [tuple(getattr(m, f) for f in MESSAGE_FIELDS) for m in reader]
+        assert ours == theirs and len(ours) >= len(lines)

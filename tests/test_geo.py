@@ -157,3 +157,13 @@ def test_far_from_the_datum_the_frame_is_still_exact():
 def test_bad_datum_is_rejected_naming_the_field(lat0, lon0):
     with pytest.raises(ValueError, match="lat0_deg" if not -90 <= lat0 <= 90 else "lon0_deg"):
         LocalFrame(lat0, lon0)
+
+
+def test_one_point_to_geodetic_equals_the_array_path():
+    """The float path (math, one estimate at a time) and the numpy path are one algorithm: they agree."""
+    frame = LocalFrame(50.0755, 14.4378, 250.0)
+    enu = np.random.default_rng(5).uniform(-5e4, 5e4, (50, 3))
+    one = np.array([frame.to_geodetic(float(e), float(n), float(u)) for e, n, u in enu])
+    many = frame.to_geodetic(enu[:, 0], enu[:, 1], enu[:, 2])
+    np.testing.assert_allclose(one[:, :2], many[:, :2], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(one[:, 2], many[:, 2], rtol=0, atol=1e-6)

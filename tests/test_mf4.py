@@ -17,6 +17,7 @@ from sumhe.io.can import LogStats, first_timestamp, read_log, read_logs
 from sumhe.io.replay import RecordedDrive
 from sumhe.messages import CanSample, GnssFix
 
+from canframes import MESSAGE_FIELDS
 from loggerframes import T0, drive_frames, frame, write_log
 
 REPO = Path(__file__).resolve().parents[1]
@@ -127,3 +128,29 @@ def test_real_canedge_drive_first_file():
     assert valid and all(f.t - fixes[0].t > 100.0 for f in valid)  # no valid fix for the first ~110 s
     assert all(55.0 < f.lat_deg < 57.0 and 9.0 < f.lon_deg < 11.0 for f in valid)  # near Aarhus
     assert drive.decoder.stats.decode_errors == 0 and not drive.decoder.silent()
+
+
+@pytest.mark.parametrize("source", ["written", "real"])
+def test_bulk_mf4_reader_gives_python_cans_frames(tmp_path, source):
+    """sumhe reads MF4 a chunk at a time (sumhe.io.mf4): the same frames as python-can's reader, field by field."""
+    from sumhe.io.mf4 import CHUNK_RECORDS, BulkMF4Reader
+
+    if source == "real":
+        if not REAL_LOGS:
+            pytest.skip(f"the shared real drive is not at {REAL_DRIVE}")
+        path = REAL_LOGS[-1]
+    else:  # more than one chunk, extended and standard ids, two channels, payloads of 0-8 bytes
+        sent = [
+            frame(T0 + i * 1e-3, 0x18FEF100 + i % 3 if i % 5 == 0 else 0x100 + i % 7, bytes(range(i % 9)), 1 + i % 2)
+            for i in range(CHUNK_RECORDS + 1234)
+        ]
+        for k, msg in enumerate(sent):
+            msg.is_extended_id = k % 5 == 0
+        path = write_log(tmp_path / "drive.mf4", sent)
+
+    def fields(reader):
+        with reader:
+            return [tuple(getattr(m, f) for f in MESSAGE_FIELDS) for m in reader]
+
+    ours, theirs = fields(BulkMF4Reader(path)), fields(can.LogReader(path))
+    assert len(ours) > 1000 and ours == theirs

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -138,8 +138,8 @@ class ModeShares:
         return self.failed / self.epochs if self.epochs else math.nan
 
 
-def mode_shares(modes: Iterable[str]) -> ModeShares:
-    """Count ``modes`` (one per estimate) into :class:`ModeShares`."""
+def mode_shares(modes: Iterable[str] | Mapping[str, int]) -> ModeShares:
+    """Count ``modes`` (one per estimate, or already counted: mode -> count) into :class:`ModeShares`."""
     counts = Counter(modes)
     epochs = sum(n for m, n in counts.items() if m != BETWEEN_EPOCHS_MODE)
     widened = sum(n for m, n in counts.items() if "widened" in m)

@@ -38,6 +38,11 @@ BENCHMARKS: dict[str, tuple[str, str, str]] = {
         "sumhe.commands.bench:add_live_arguments",
         "sumhe.commands.bench:run_live",
     ),
+    "soak": (
+        "a day of simulated data replayed: resident memory after every hour, throughput",
+        "sumhe.commands.soak:add_arguments",
+        "sumhe.commands.soak:run",
+    ),
     "protocol": (
         "paper 000's outage protocol: batch SU methods side by side (as sumhe protocol)",
         "sumhe.commands.protocol:add_arguments",

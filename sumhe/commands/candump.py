@@ -19,8 +19,8 @@ from typing import TextIO
 import can
 
 from sumhe.commands.nmea import fix_to_json
-from sumhe.config import Config, load_config
-from sumhe.io.can import EXTENDED_FLAG, REFERENCE_E2E, REFERENCE_SIGNALS, CanDecoder, DecodeStats, LogStats, read_logs
+from sumhe.config import load_config
+from sumhe.io.can import EXTENDED_FLAG, CanDecoder, DecodeStats, LogStats, read_logs, reference_config
 from sumhe.io.replay import beside_logs, paths_of
 from sumhe.messages import CanSample, Sample
 
@@ -35,11 +35,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--all", action="store_true", help="print every signal of every DBC message in DBC units instead"
     )
-
-
-def reference_config() -> Config:
-    """Defaults plus the reference vehicle's signal mapping and end-to-end protected messages."""
-    return load_config(None, overrides={"can.signals": REFERENCE_SIGNALS, "can.e2e": list(REFERENCE_E2E)})
 
 
 def run(args: argparse.Namespace) -> int:

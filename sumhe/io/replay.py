@@ -16,12 +16,12 @@ import dataclasses
 import heapq
 import itertools
 import math
-from collections.abc import AsyncIterator, Iterable, Iterator, Sequence
+from collections.abc import AsyncIterator, Collection, Iterable, Iterator, Sequence
 from os import PathLike
 from pathlib import Path
 
 from sumhe.config import Config
-from sumhe.errors import SourceError
+from sumhe.errors import ConfigError, SourceError
 from sumhe.io.can import CanDecoder, LogStats, read_logs
 from sumhe.io.fixtime import stamp_fix
 from sumhe.io.nmea import iter_fixes
@@ -88,16 +88,34 @@ def beside_logs(config: Config, logs: Iterable[Path]) -> Config:
     return dataclasses.replace(config, log_dirs=tuple(dict.fromkeys((*config.log_dirs, *dirs))))
 
 
+def check_gps_source(config: Config, nmea_logs: Sequence[object] | None) -> None:
+    """ConfigError when the NMEA logs given do not fit ``gps.source``."""
+    if config.gps.source == "nmea" and not nmea_logs:
+        raise ConfigError(
+            f"{config.source}: gps.source = 'nmea': give the NMEA logs with --nmea (or set [gps] source = 'can')"
+        )
+    if config.gps.source == "can" and nmea_logs:
+        raise ConfigError(f"{config.source}: gps.source = 'can': the fixes come from the CAN logs; drop --nmea")
+
+
 class RecordedDrive:
     """One recorded drive, decoded: :meth:`samples` is its time-ordered stream of samples.
 
     Reading starts here: SourceError at once for a missing or unreadable log (or an MF4 log without asammdf),
-    ConfigError for a mapping the DBCs do not hold. ``config`` is the given one with the logs' folders added to
+    ConfigError for a mapping the DBCs do not hold. ``quantities`` limits the CAN quantities decoded (None: all
+    mapped). ``config`` is the given one with the logs' folders added to
     :attr:`~sumhe.config.Config.log_dirs`; ``decoder`` (None without CAN logs) and ``log_stats`` hold the counters
     of the CAN side, ``first_t`` the timestamp of the drive's first CAN frame (s; NaN without CAN logs).
     """
 
-    def __init__(self, config: Config, can_logs: Paths = None, nmea_logs: Paths = None, offset_s: float = 0.0) -> None:
+    def __init__(
+        self,
+        config: Config,
+        can_logs: Paths = None,
+        nmea_logs: Paths = None,
+        offset_s: float = 0.0,
+        quantities: Collection[str] | None = None,
+    ) -> None:
         self.can_logs = paths_of(can_logs)
         self.nmea_logs = paths_of(nmea_logs)
         self.config = beside_logs(config, (*self.can_logs, *self.nmea_logs))
@@ -107,7 +125,7 @@ class RecordedDrive:
                 raise SourceError(f"{p}: NMEA log not found")
         self.log_stats = LogStats()
         self._frames = read_logs(self.can_logs, self.log_stats) if self.can_logs else iter(())
-        self.decoder = CanDecoder.from_config(self.config) if self.can_logs else None
+        self.decoder = CanDecoder.from_config(self.config, quantities=quantities) if self.can_logs else None
 
     @property
     def first_t(self) -> float:
