@@ -93,8 +93,8 @@ class PeersSettings:
         )
 
     def names(self) -> tuple[str, ...]:
-        """The estimators to run."""
-        return self.estimators or estimator_names()
+        """The estimators to run: by default every one whose optional packages are installed."""
+        return self.estimators or estimator_names(available_only=True)
 
     def drive_count(self) -> int:
         return len(self.scenarios) * len(self.gps_errors) * len(self.seeds) + len(self.recordings)
