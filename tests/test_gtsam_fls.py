@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from sumhe.bench.tune import build, start_values, with_value
 from sumhe.config import DatumSettings, GpsSettings, load_config
 from sumhe.errors import ConfigError
 from sumhe.estimator import registry
@@ -18,7 +19,7 @@ from sumhe.estimator.registry import estimator_names, make_estimator
 from sumhe.frontend.fixes import FixConverter
 from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample
-from sumhe.settings import NoiseSettings
+from sumhe.settings import EstimationSettings, NoiseSettings
 from sumhe.sim import SimSettings, simulate
 
 gtsam = pytest.importorskip("gtsam", reason=registry.missing_requirement("gtsam-fls") or "")
@@ -273,3 +274,12 @@ def test_a_missing_optional_package_names_the_extra(monkeypatch: pytest.MonkeyPa
     assert "gtsam-fls" in estimator_names() and "gtsam-fls" not in estimator_names(available_only=True)
     monkeypatch.undo()
     assert "gtsam-fls" in estimator_names(available_only=True)
+
+
+def test_the_tuning_search_builds_it_with_the_noise_searched() -> None:
+    settings = EstimationSettings()
+    start = start_values("gtsam-fls", settings)
+    assert start["noise"] == settings.estimator.gtsam_fls.noise
+    est = build("gtsam-fls", settings, with_value(start, "pos_rw", 0.01))
+    assert isinstance(est, GtsamFls) and est.noise.pos_rw == 0.01
+    assert est.noise.bias_rw == start["noise"].bias_rw and est.table.lag_s == settings.estimator.gtsam_fls.lag_s

@@ -9,12 +9,13 @@ The factor graph, one node per GNSS epoch ``k`` (at the epoch's time on the CAN 
   between integrated with su5's midpoint step (the model of the other peers: ``v = CAN speed / k``,
   ``omega = CAN yaw rate - b``, 0 at standstill) into a relative pose, with its first-order correction for ``b``
   and ``k`` (the preintegration of IMU factor graphs) and its covariance from the CAN sigmas and the model error
-  densities (``pos_rw``, ``heading_rw``);
+  densities (``pos_rw``, ``heading_rw``); a CAN value missing is held, its error a random walk (``speed_rw``,
+  ``yaw_rate_rw``: the EKF's model of its speed and yaw-rate states);
 * GNSS factors on ``X_k``: position (the front-end's sigmas x ``gps_scale``), azimuth (course or heading, sigma
   with ``course_rad``); on ``C_k``: speed over ground against the CAN speed (``k sog = CAN speed``).
 
 Without ``C_k`` (the odometry taken as it is) the smoother drifted to 25.7 m in the bundled drive's outages; with
-it, it matched the MHE (issue 17).
+it, it matched the MHE (issue 17). The figures: ``docs/baselines.md``.
 
 Why the incremental smoother (iSAM2, ``IncrementalFixedLagSmoother``) rather than the batch one
 (``BatchFixedLagSmoother``): each epoch adds one node and a few factors; iSAM2 re-eliminates only the cliques they
@@ -308,7 +309,7 @@ class GtsamFls(RecursiveEstimator):
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(self.table.relinearize_threshold)
         params.relinearizeSkip = self.table.relinearize_skip
-        params.setFactorization("QR")  # the calibration's random walk over 0.1 s is stiff: Cholesky fails on it
+        params.setFactorization("QR")  # the calibration's random walk over 0.1 s is stiff: QR, the safer one
         return gtsam.IncrementalFixedLagSmoother(self.table.lag_s, params)
 
     def _start(self, x0: FloatArray, P0: FloatArray) -> None:
