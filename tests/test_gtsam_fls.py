@@ -16,7 +16,7 @@ from sumhe.config import DatumSettings, GpsSettings, load_config
 from sumhe.errors import ConfigError
 from sumhe.estimator import registry
 from sumhe.estimator.registry import estimator_names, make_estimator
-from sumhe.frontend.fixes import FixConverter
+from sumhe.frontend.fixes import FixConverter, LocalFix
 from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample
 from sumhe.settings import EstimationSettings, NoiseSettings
@@ -176,6 +176,37 @@ def test_learns_a_yaw_rate_bias_and_a_speed_scale() -> None:
     b, k = est._node.calib
     assert b == pytest.approx(bias, abs=0.002) and k == pytest.approx(scale, abs=0.01)
     assert np.percentile(errors(drive, late), 95) < 0.5
+
+
+@pytest.mark.parametrize("standstill_rps", [0.001, 0.0])
+def test_a_standstill_measures_the_bias_before_the_graph_starts(standstill_rps: float) -> None:
+    """At a standstill the CAN yaw rate is the bias (the EKF's pseudo-measurement ``omega = 0``, off when its
+    sigma is 0): 5 s parked, no course yet, then the drive; with it the first nodes have the bias already."""
+    drive = synthetic_drive(10.0)
+    bias, t0 = 0.006, drive.t[0]
+    rng = np.random.default_rng(3)
+    parked: list[CanSample | LocalFix] = [CanSample(t0 - 5.0 + 0.02 * i, "speed", 0.0) for i in range(250)]
+    parked += [CanSample(t0 - 4.995 + 0.01 * i, "yaw_rate", bias + rng.normal(0.0, 0.002)) for i in range(500)]
+    parked += [
+        LocalFix(
+            t=t0 - 4.95 + 0.1 * i, valid=True, east_m=0.0, north_m=0.0, gst_sigma_east_m=0.3, gst_sigma_north_m=0.3
+        )
+        for i in range(50)
+    ]
+    moving = [
+        dataclasses.replace(s, value=s.value + bias) if isinstance(s, CanSample) and s.quantity == "yaw_rate" else s
+        for s in drive.samples
+    ]
+    config = load_config(overrides={"estimator.gtsam_fls.noise.standstill_rps": standstill_rps})
+    est = make_estimator("gtsam-fls", config)
+    assert isinstance(est, GtsamFls)
+    stream = iter(sorted(parked, key=lambda s: s.t) + moving)
+    while est._node is None:  # up to the graph's first node
+        est.push(next(stream))
+    if standstill_rps:
+        assert est._node.calib[0] == pytest.approx(bias, abs=0.0005)
+    else:
+        assert abs(est._node.calib[0] - bias) > 0.004
 
 
 @pytest.mark.parametrize(("gap", "bound_m"), [((6.0, 3.0), 0.5), ((0.0, 99.0), 1.5)])

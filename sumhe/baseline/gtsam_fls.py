@@ -238,6 +238,18 @@ def speed_error(sog: float, can_speed: float) -> ErrorFunction:
     return error
 
 
+def bias_error(yaw_rate: float) -> ErrorFunction:
+    """Key ``C``: its bias minus the CAN yaw rate at a standstill (the EKF's pseudo-measurement ``omega = 0``)."""
+
+    def error(this: Any, values: Any, H: Any) -> FloatArray:
+        c = values.atVector(this.keys()[0])
+        if H is not None:
+            H[0] = np.array([[1.0, 0.0]])
+        return np.array([float(c[0]) - yaw_rate])
+
+    return error
+
+
 def gaussian(cov: FloatArray) -> Any:
     return gtsam.noiseModel.Gaussian.Covariance(cov + MIN_VARIANCE * np.eye(len(cov)))
 
@@ -304,6 +316,7 @@ class GtsamFls(RecursiveEstimator):
         self._calib_sigma0 = np.array([FIXED_SIGMA, FIXED_SIGMA])
         self._speed, self._yaw_rate, self._standstill = 0.0, 0.0, False
         self._speed_t = self._yaw_rate_t = -math.inf
+        self._still: list[float] = []
 
     def _new_smoother(self) -> Any:
         params = gtsam.ISAM2Params()
@@ -364,6 +377,11 @@ class GtsamFls(RecursiveEstimator):
             rw = np.array([self.noise.bias_rw, self.noise.scale_rw]) ** 2 * max(odo.T, 1e-3)
             rw = np.where(self._calib_sigma0 <= FIXED_SIGMA, FIXED_SIGMA**2, rw) + np.diag(opened.widen)[3:]
             graph.add(gtsam.BetweenFactorVector(Cp, C, np.zeros(2), gtsam.noiseModel.Diagonal.Variances(rw)))
+        if self._still and self.layout.b is not None and self.noise.standstill_rps > 0.0:
+            var = (self.noise.can_yaw_rate_rps**2 + self.noise.standstill_rps**2) / len(self._still)
+            still = bias_error(float(np.mean(self._still)))
+            graph.add(gtsam.CustomFactor(gaussian(np.array([[var]])), [C if node is None else Cp], still))
+        self._still = []
         for error, cov, key in opened.factors:
             graph.add(gtsam.CustomFactor(gaussian(cov), [C if key == "c" else X], error))
         values.insert(X, gtsam.Pose2(*pose))
@@ -447,6 +465,8 @@ class GtsamFls(RecursiveEstimator):
 
     def _can_update(self, inputs: Inputs) -> None:
         self._hold(inputs, self._t_state)
+        if inputs.standstill and inputs.yaw_rate is not None:  # at a standstill the CAN yaw rate is the bias
+            self._still.append(inputs.yaw_rate)
 
     def _hold(self, inputs: Inputs, t: float) -> None:
         """Keep the CAN values of ``inputs`` measured (at ``t``): a missing one stays as it was."""
@@ -470,25 +490,29 @@ class GtsamFls(RecursiveEstimator):
         calib = self._node.calib if self._node is not None else self._calib0
         if kind == POSITION:
             nu, S, H = z - pose[:2], P[:2, :2] + R, None
-            factor: tuple[ErrorFunction, FloatArray, str] = (position_error(z.copy()), R, "x")
+            factor: tuple[ErrorFunction, FloatArray, str] | None = (position_error(z.copy()), R, "x")
         elif kind == AZIMUTH:
             nu = np.array([wrap_angle(z[0] - (0.5 * math.pi - pose[2]))])
             S, factor = P[2:3, 2:3] + R, (azimuth_error(float(z[0])), R, "x")
         else:
-            can = self.frontend.can["speed"].at(opened.t, self.settings.can.max_gap_s)
-            can = float(z[0]) * float(calib[1]) if can is None else can
+            measured = self.frontend.can["speed"].at(opened.t, self.settings.can.max_gap_s)
+            can = float(z[0]) * float(calib[1]) if measured is None else measured  # no CAN: no factor below
             H = np.array([[0.0, 0.0, 0.0, 0.0, -can / calib[1] ** 2]])
             nu = np.array([z[0] - can / calib[1]])
-            r = R + (self.noise.can_speed_mps / calib[1]) ** 2
-            S = H @ P @ H.T + r
-            factor = (speed_error(float(z[0]), can), np.asarray(R * calib[1] ** 2 + self.noise.can_speed_mps**2), "c")
+            # one CAN sample: its noise and its resolution (uniform rounding error)
+            var_can = self.noise.can_speed_mps**2 + self.settings.can.speed_quantum_mps**2 / 12.0
+            S = H @ P @ H.T + R + var_can / calib[1] ** 2
+            factor = (speed_error(float(z[0]), can), np.asarray(R * calib[1] ** 2 + var_can), "c")
+            if measured is None:
+                factor = None
 
         def commit() -> None:
             if self._smoother is None:
                 if kind == POSITION:
                     self._fix_pos, self._fix_sigma = z.copy(), np.sqrt(np.diag(R))
                 return
-            opened.factors.append(factor)
+            if factor is not None:
+                opened.factors.append(factor)
 
         return Pending(nu, np.atleast_2d(S), commit)
 

@@ -130,12 +130,12 @@ class GtsamSettings:
     bias and scale random walks, ``gps_scale``, ``course_rad``, gate, priors (``[estimator.gtsam_fls.noise]``);
     ``lag_s``: the smoother's lag (s; nodes older than this behind the newest are marginalised);
     ``relinearize_threshold`` and ``relinearize_skip``: iSAM2's (a variable is relinearised when its update exceeds
-    the threshold, checked every ``relinearize_skip`` updates)."""
+    the threshold, checked every ``relinearize_skip`` updates; GTSAM's defaults)."""
 
     noise: NoiseSettings = field(default_factory=lambda: GTSAM_TUNED)
     lag_s: float = 5.0
-    relinearize_threshold: float = 0.01
-    relinearize_skip: int = 1
+    relinearize_threshold: float = 0.1
+    relinearize_skip: int = 10
 
     def __post_init__(self) -> None:
         positive(self, "lag_s", "relinearize_threshold")
