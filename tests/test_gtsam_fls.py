@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from sumhe.bench.tune import build, start_values, with_value
-from sumhe.config import DatumSettings, GpsSettings, load_config
+from sumhe.cli import main as cli_main
+from sumhe.config import PACKAGE_DATA, DatumSettings, GpsSettings, load_config
 from sumhe.errors import ConfigError
 from sumhe.estimator import registry
 from sumhe.estimator.registry import estimator_names, make_estimator
@@ -298,10 +299,16 @@ def test_bad_settings_name_the_key(tmp_path: Path, text: str, key: str) -> None:
     assert key in str(err.value)
 
 
-def test_a_missing_optional_package_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_missing_optional_package_names_the_extra(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
     monkeypatch.setitem(registry.REQUIRES, "gtsam-fls", ("no_such_package_sumhe", "peers"))
     with pytest.raises(ConfigError, match=r"estimator\.name: .*no_such_package_sumhe: pip install 'sumhe\[peers\]'"):
         make_estimator("gtsam-fls", load_config())
+    drive = PACKAGE_DATA / "drive"
+    argv = ["replay", str(drive / "drive.log"), "--nmea", str(drive / "drive.nmea"), "--estimator", "gtsam-fls"]
+    assert cli_main(argv) == 1
+    assert "pip install 'sumhe[peers]'" in capsys.readouterr().err
     assert "gtsam-fls" in estimator_names() and "gtsam-fls" not in estimator_names(available_only=True)
     monkeypatch.undo()
     assert "gtsam-fls" in estimator_names(available_only=True)
