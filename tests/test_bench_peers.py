@@ -122,7 +122,7 @@ def test_settings_are_validated():
         PeersSettings(duration_s=4000.0)
     with pytest.raises(ValueError, match="seeds"):
         PeersSettings(seeds=(-1,))
-    assert PeersSettings().names() == estimator_names()
+    assert PeersSettings().names() == estimator_names(available_only=True)
 
 
 # ---- isolation ----------------------------------------------------------------------------------------------------
@@ -219,6 +219,7 @@ def test_quick_bench_writes_the_table_as_json_and_markdown(tmp_path, capsys):
     summary = json.loads((out / "peers.json").read_text())
     markdown = (out / "peers.md").read_text()
     assert list(summary["profiles"]) == ["kind", "realistic"]
+    assert list(summary["profiles"]["kind"]) == list(estimator_names(available_only=True))
     assert all(f["drive"].startswith("realistic-") for f in summary["failures"])  # recorded, not fatal
     assert {"python", "numpy", "casadi", "cpu", "blas_threads"} <= set(summary["environment"])
     assert "getrusage" in summary["memory"]

@@ -20,6 +20,8 @@ from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample, GnssFix
 from sumhe.sim import Drive, SimSettings, simulate
 
+from estimators import estimator_params
+
 NAMES = estimator_names(live_only=True)  # su-batch answers only at the end: tests/test_su_batch.py
 UNGATED = {"dead-reckoning"}
 """Estimators that take every fix as it is (no innovation gate)."""
@@ -27,7 +29,7 @@ UNGATED = {"dead-reckoning"}
 Sample = LocalFix | CanSample
 
 
-@pytest.fixture(params=NAMES)
+@pytest.fixture(params=estimator_params(NAMES))
 def estimator(request: pytest.FixtureRequest) -> Estimator:
     return make_estimator(request.param, load_config())
 

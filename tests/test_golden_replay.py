@@ -21,10 +21,12 @@ import pytest
 
 from sumhe.commands.candump import reference_config
 from sumhe.config import PACKAGE_DATA
-from sumhe.estimator.registry import estimator_names, make_estimator
+from sumhe.estimator.registry import make_estimator
 from sumhe.io.replay import log_samples
 from sumhe.messages import Estimate, GnssFix
 from sumhe.service.pipeline import Pipeline
+
+from estimators import estimator_params
 
 GOLDEN = Path(__file__).parent / "data" / "golden"
 DRIVE = PACKAGE_DATA / "drive"
@@ -71,7 +73,7 @@ def first_time() -> float:
     return next(iter(log_samples(reference_config(), DRIVE / "drive.log", DRIVE / "drive.nmea"))).t
 
 
-@pytest.mark.parametrize("name", estimator_names(live_only=True))
+@pytest.mark.parametrize("name", estimator_params(live_only=True))
 def test_replay_matches_the_golden_estimates(name: str) -> None:
     epochs, count = replay(name)
     new = rows(epochs, first_time())

@@ -103,8 +103,8 @@ class PeersSettings:
         )
 
     def names(self) -> tuple[str, ...]:
-        """The estimators to run."""
-        return self.estimators or estimator_names()
+        """The estimators to run: by default every one whose optional packages are installed."""
+        return self.estimators or estimator_names(available_only=True)
 
     def drive_count(self) -> int:
         kind = len(self.gps_errors) if "kind" in self.profiles else 0

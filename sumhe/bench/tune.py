@@ -172,6 +172,7 @@ SEARCH_PARAMETERS: dict[str, tuple[str, ...]] = {
     "ekf": ("pos_rw", "heading_rw", "speed_rw", "yaw_rate_rw", "bias_rw", "gps_scale", "course_rad"),
     "ukf": ("pos_rw", "heading_rw", "yaw_rate_rw", "gps_scale"),
     "pf": ("pos_rw", "heading_rw", "bias_rw", "scale_rw", "gps_scale", "course_rad"),
+    "gtsam-fls": ("pos_rw", "heading_rw", "bias_rw", "scale_rw", "gps_scale", "course_rad"),
     "imm": (
         "straight.yaw_rate_rw",
         "straight.heading_rw",
@@ -207,7 +208,13 @@ def start_values(name: str, settings: EstimationSettings | None = None) -> dict[
             "sojourn_straight_s": table.imm.sojourn_straight_s,
             "sojourn_turn_s": table.imm.sojourn_turn_s,
         }
-    noise = {"dead-reckoning": NoiseSettings(), "pf": table.pf.noise, "ukf": table.ukf, "rts": table.rts}
+    noise = {
+        "dead-reckoning": NoiseSettings(),
+        "pf": table.pf.noise,
+        "ukf": table.ukf,
+        "rts": table.rts,
+        "gtsam-fls": table.gtsam_fls.noise,
+    }
     return {"noise": noise.get(name, table.ekf)}
 
 
@@ -250,8 +257,16 @@ def build(name: str, settings: EstimationSettings, values: dict[str, Any] | None
         "rts": Rts,
         "ukf": Ukf,
         "pf": ParticleFilter,
+        "gtsam-fls": _gtsam_fls,
     }
     return classes[name](settings, noise=values["noise"])
+
+
+def _gtsam_fls(settings: EstimationSettings, noise: NoiseSettings) -> RecursiveEstimator:
+    """``gtsam-fls`` with ``noise`` (imported only when asked for: GTSAM is the optional extra ``sumhe[peers]``)."""
+    from sumhe.baseline.gtsam_fls import GtsamFls
+
+    return GtsamFls(settings, dataclasses.replace(settings.estimator.gtsam_fls, noise=noise))
 
 
 def score(name: str, values: dict[str, Any], cases: Sequence[Case]) -> float:

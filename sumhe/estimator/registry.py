@@ -10,6 +10,7 @@ group (``name = "package.module:Class"``); built-in names win.
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import logging
 from importlib.metadata import entry_points
 from typing import Any
@@ -33,8 +34,21 @@ ESTIMATORS: dict[str, tuple[str, str]] = {
     "ukf": ("sumhe.baseline.ukf", "Ukf"),
     "pf": ("sumhe.baseline.particle", "ParticleFilter"),
     "imm": ("sumhe.baseline.imm", "Imm"),
+    "gtsam-fls": ("sumhe.baseline.gtsam_fls", "GtsamFls"),
 }
 """Built-in estimators: name -> (module, class). Adding one is one line here."""
+
+
+REQUIRES: dict[str, tuple[str, str]] = {"gtsam-fls": ("gtsam", "peers")}
+"""Built-in estimators that need an optional package: name -> (its import name, the extra that installs it)."""
+
+
+def missing_requirement(name: str) -> str | None:
+    """Why the estimator ``name`` cannot be built here (its optional package is not installed); None if it can."""
+    need = REQUIRES.get(name)
+    if need is None or importlib.util.find_spec(need[0]) is not None:
+        return None
+    return f"estimator {name!r} needs the optional package {need[0]}: pip install 'sumhe[{need[1]}]'"
 
 
 def _plugins() -> dict[str, str]:
@@ -46,10 +60,15 @@ OFFLINE: frozenset[str] = frozenset({"su-batch", "rts-batch"})
 """Offline smoothers: they answer at the end of a recorded drive (``finish()``), never live."""
 
 
-def estimator_names(live_only: bool = False) -> tuple[str, ...]:
-    """Every estimator name known (built-in first, then entry points); ``live_only`` leaves out the offline ones."""
+def estimator_names(live_only: bool = False, available_only: bool = False) -> tuple[str, ...]:
+    """Every estimator name known (built-in first, then entry points); ``live_only`` leaves out the offline ones,
+    ``available_only`` those whose optional package is not installed (:func:`missing_requirement`)."""
     names = (*ESTIMATORS, *sorted(_plugins()))
-    return tuple(n for n in names if n not in OFFLINE) if live_only else names
+    return tuple(
+        n
+        for n in names
+        if not (live_only and n in OFFLINE) and not (available_only and missing_requirement(n) is not None)
+    )
 
 
 def check_live(name: str) -> None:
@@ -62,6 +81,9 @@ def check_live(name: str) -> None:
 def estimator_class(name: str) -> Any:
     """The class registered under ``name`` (imported now); ConfigError listing the known names if none is."""
     if name in ESTIMATORS:
+        reason = missing_requirement(name)
+        if reason is not None:
+            raise ConfigError(f"estimator.name: {reason}")
         module_name, class_name = ESTIMATORS[name]
     else:
         target = _plugins().get(name)

@@ -9,7 +9,7 @@ from sumhe.settings.estimators import (
     EstimatorSettings,
     MheSettings,
 )
-from sumhe.settings.peers import ImmSettings, NoiseSettings, ParticleSettings
+from sumhe.settings.peers import GtsamSettings, ImmSettings, NoiseSettings, ParticleSettings
 from sumhe.settings.sensors import CanModel, GnssModel, SensorSettings, VehicleSettings
 
 __all__ = [
@@ -18,6 +18,7 @@ __all__ = [
     "EstimationSettings",
     "EstimatorSettings",
     "GnssModel",
+    "GtsamSettings",
     "ImmSettings",
     "MheSettings",
     "NoiseSettings",

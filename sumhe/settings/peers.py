@@ -1,5 +1,5 @@
 """The peers' tables (``[estimator.ekf]``, ``[estimator.ukf]``, ``[estimator.rts]``, ``[estimator.pf]``,
-``[estimator.imm]``) with their tuned defaults.
+``[estimator.imm]``, ``[estimator.gtsam_fls]``) with their tuned defaults.
 
 The defaults come from ``sumhe bench tune`` (:mod:`sumhe.bench.tune`: a coordinate-wise grid search on training
 drives, seeds 100-105, never the test seeds; ``docs/baselines.md``). ``rts`` and ``ukf`` run the EKF's values.
@@ -87,6 +87,8 @@ IMM_TURN_TUNED = NoiseSettings(
     bias_rw=2.5e-05,
     gps_scale=2.0,
 )
+GTSAM_TUNED = EKF_TUNED
+"""The fixed-lag smoother's noise: the EKF's (its odometry model is the EKF's process model)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -118,3 +120,23 @@ class ImmSettings:
     @property
     def sojourn_s(self) -> tuple[float, float]:
         return self.sojourn_straight_s, self.sojourn_turn_s
+
+
+@dataclass(frozen=True, slots=True)
+class GtsamSettings:
+    """``[estimator.gtsam_fls]``: GTSAM's incremental fixed-lag smoother (iSAM2) over the CAN odometry and GNSS.
+
+    ``noise``: model error densities of the odometry (``pos_rw``, ``heading_rw``), the CAN sigmas per sample, the
+    bias and scale random walks, ``gps_scale``, ``course_rad``, gate, priors (``[estimator.gtsam_fls.noise]``);
+    ``lag_s``: the smoother's lag (s; nodes older than this behind the newest are marginalised);
+    ``relinearize_threshold`` and ``relinearize_skip``: iSAM2's (a variable is relinearised when its update exceeds
+    the threshold, checked every ``relinearize_skip`` updates; GTSAM's defaults)."""
+
+    noise: NoiseSettings = field(default_factory=lambda: GTSAM_TUNED)
+    lag_s: float = 5.0
+    relinearize_threshold: float = 0.1
+    relinearize_skip: int = 10
+
+    def __post_init__(self) -> None:
+        positive(self, "lag_s", "relinearize_threshold")
+        at_least(self, 1, "relinearize_skip")

@@ -1,0 +1,552 @@
+"""GTSAM's incremental fixed-lag smoother over the CAN odometry and the GNSS fixes (``gtsam-fls``).
+
+The factor graph, one node per GNSS epoch ``k`` (at the epoch's time on the CAN clock):
+
+* ``X_k``: a ``Pose2`` (x east, y north, theta anticlockwise from east: ``theta = pi/2 - phi``);
+* ``C_k``: the CAN calibration ``(b, k)``, yaw-rate bias (rad/s) and speed scale (CAN speed = k v), a random walk
+  between nodes (``BetweenFactorVector``, densities ``bias_rw``, ``scale_rw``);
+* the CAN odometry between ``X_k`` and ``X_k+1`` as a custom factor on ``(X_k, X_k+1, C_k)``: the CAN samples in
+  between integrated with su5's midpoint step (the model of the other peers: ``v = CAN speed / k``,
+  ``omega = CAN yaw rate - b``, 0 at standstill) into a relative pose, with its first-order correction for ``b``
+  and ``k`` (the preintegration of IMU factor graphs) and its covariance from the CAN sigmas and the model error
+  densities (``pos_rw``, ``heading_rw``); a CAN value missing is held, its error a random walk (``speed_rw``,
+  ``yaw_rate_rw``: the EKF's model of its speed and yaw-rate states);
+* GNSS factors on ``X_k``: position (the front-end's sigmas x ``gps_scale``), azimuth (course or heading, sigma
+  with ``course_rad``); on ``C_k``: speed over ground against the CAN speed (``k sog = CAN speed``).
+
+Without ``C_k`` (the odometry taken as it is) the smoother drifted to 25.7 m in the bundled drive's outages; with
+it, it matched the MHE (issue 17). The figures: ``docs/baselines.md``.
+
+Why the incremental smoother (iSAM2, ``IncrementalFixedLagSmoother``) rather than the batch one
+(``BatchFixedLagSmoother``): each epoch adds one node and a few factors; iSAM2 re-eliminates only the cliques they
+touch, the batch smoother re-solves the whole lag window by Levenberg-Marquardt at every update. Both marginalise the
+nodes older than ``lag_s`` into a prior on the rest, which keeps the graph (and the memory) bounded.
+
+Stream: the front-end's epochs (:mod:`sumhe.frontend`), the gate and re-acquisition of
+:class:`~sumhe.baseline.stream.RecursiveEstimator`. A fix older than the newest CAN data needs no model run back:
+its node sits at its own time, and the CAN steps after it go into the next node's odometry. Gating uses the newest
+node's marginal covariance carried to the fix by the odometry; re-acquisition widens the odometry factor into the
+fix's node. CAN-rate estimates are the newest node carried forward by the odometry since it. Until the first
+course or heading gives an azimuth there is no graph: the estimate is the newest fix.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import gtsam  # the optional extra sumhe[peers]: the registry says so when it is missing
+import numpy as np
+
+from sumhe.baseline import kinematics as kin
+from sumhe.baseline.kinematics import AZIMUTH, GPS_SPEED, OMEGA, PHI, POSITION, E, FloatArray, N, V
+from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
+from sumhe.config import Config
+from sumhe.estimator.base import StateEstimate
+from sumhe.frontend.stream import Epoch
+from sumhe.model.su import wrap_angle
+from sumhe.settings import EstimationSettings, GtsamSettings, NoiseSettings
+
+MIN_VARIANCE = 1e-8
+"""Added to the diagonal of every factor covariance (a node right after the previous one has a zero-length step)."""
+FIXED_SIGMA = 1e-6
+"""Prior sigma of a CAN state the model does not have (``estimator.yaw_rate_bias`` or ``speed_scale`` off)."""
+NO_GRAPH_SIGMA_M = 1e3
+"""Position sigma before the graph starts (no azimuth yet): every fix is taken."""
+UNKNOWN_SPEED_MPS = 30.0
+UNKNOWN_YAW_RATE_RPS = 1.0
+"""Sigmas of a CAN speed / yaw rate never measured since the start (held at 0): the odometry then says little and
+the nodes follow the fixes."""
+
+
+def _rot(theta: float) -> FloatArray:
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, -s], [s, c]])
+
+
+# ---- the CAN odometry between two nodes ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Step:
+    """One CAN step: from ``t0`` for ``dt`` s at CAN ``speed`` (m/s) and ``yaw_rate`` (rad/s). Where CAN is
+    missing the newest value is held: ``speed_age`` / ``yaw_rate_age`` is then the time (s) since it was measured
+    at the step's start (inf: never measured, the value is 0), None for a measured value."""
+
+    t0: float
+    dt: float
+    speed: float
+    yaw_rate: float
+    standstill: bool
+    speed_age: float | None = None
+    yaw_rate_age: float | None = None
+
+
+def held_variance(age: float, rw: float, unknown: float) -> float:
+    """Variance of a held CAN value's error ``age`` s after it was measured: a random walk of density ``rw``
+    (the EKF's process model for its speed and yaw-rate states); ``unknown`` squared if it never was."""
+    return unknown**2 if math.isinf(age) else rw**2 * age
+
+
+@dataclass(slots=True)
+class Odometry:
+    """CAN steps integrated from a node, in the node's frame (x forward, y left, theta anticlockwise), at the
+    calibration ``(b0, k0)``; ``J`` = d(dx, dy, dtheta)/d(b, k), ``T`` the time (s). ``cov``: the covariance of
+    (dx, dy, dtheta) and of the errors of the held speed and yaw rate (zero while CAN is measured)."""
+
+    b0: float
+    k0: float
+    dx: float = 0.0
+    dy: float = 0.0
+    dth: float = 0.0
+    T: float = 0.0
+    J: FloatArray = field(default_factory=lambda: np.zeros((3, 2)))
+    cov: FloatArray = field(default_factory=lambda: np.zeros((5, 5)))
+
+    def add(self, step: Step, dt: float, noise: NoiseSettings) -> None:
+        """``dt`` s of ``step`` (su5's midpoint step)."""
+        v = step.speed / self.k0
+        dv_dk = -v / self.k0
+        w, dw_db = (0.0, 0.0) if step.standstill else (step.yaw_rate - self.b0, -1.0)
+        mid = self.dth + 0.5 * w * dt
+        c, s = math.cos(mid), math.sin(mid)
+        J = self.J
+        dmid_db, dmid_dk = J[2, 0] + 0.5 * dw_db * dt, J[2, 1]
+        J[0, 0] -= dt * v * s * dmid_db  # d(v dt cos mid)/db
+        J[0, 1] += dt * (dv_dk * c - v * s * dmid_dk)
+        J[1, 0] += dt * v * c * dmid_db  # d(v dt sin mid)/db
+        J[1, 1] += dt * (dv_dk * s + v * c * dmid_dk)
+        J[2, 0] += dw_db * dt
+        held = (
+            (3, step.speed_age, noise.speed_rw, UNKNOWN_SPEED_MPS),
+            (4, step.yaw_rate_age, noise.yaw_rate_rw, UNKNOWN_YAW_RATE_RPS),
+        )
+        cov = self.cov
+        for i, age, rw, unknown in held:
+            if age is not None and cov[i, i] == 0.0:  # a gap starts: the held value's error so far
+                cov[i, i] = held_variance(age, rw, unknown)
+        dv = dt * np.array([c, s, 0.0])  # d(dx, dy, dtheta)/dv
+        dw = dt * np.array([-0.5 * v * dt * s, 0.5 * v * dt * c, 1.0])  # d(dx, dy, dtheta)/domega
+        A = np.eye(5)
+        A[0, 2], A[1, 2] = -v * dt * s, v * dt * c
+        A[:3, 3], A[:3, 4] = dv / self.k0, dw
+        cov = self.cov = A @ cov @ A.T
+        cov[:3, :3] += np.outer(dv, dv) * (noise.can_speed_mps / self.k0) ** 2
+        cov[:3, :3] += np.outer(dw, dw) * noise.can_yaw_rate_rps**2
+        cov[:3, :3] += np.diag(np.array([noise.pos_rw, noise.pos_rw, noise.heading_rw]) ** 2 * dt)
+        for i, age, rw, _ in held:
+            if age is None:  # measured: no held error
+                cov[i, :] = cov[:, i] = 0.0
+            elif math.isfinite(age):
+                cov[i, i] += rw**2 * dt  # the held value's error walks on
+        self.dx += v * dt * c
+        self.dy += v * dt * s
+        self.dth += w * dt
+        self.T += dt
+
+    def delta(self, b: float, k: float) -> FloatArray:
+        """(dx, dy, dtheta) at the calibration ``(b, k)`` (first order about ``(b0, k0)``)."""
+        return np.array([self.dx, self.dy, self.dth]) + self.J @ np.array([b - self.b0, k - self.k0])
+
+
+def integrate(steps: list[Step], b0: float, k0: float, noise: NoiseSettings, until: float = math.inf) -> Odometry:
+    """The steps up to time ``until`` integrated at ``(b0, k0)`` (a step that straddles it, in part)."""
+    odo = Odometry(b0, k0)
+    for s in steps:
+        dt = min(s.dt, until - s.t0)
+        if dt <= 0.0:
+            break
+        odo.add(s, dt, noise)
+    return odo
+
+
+def after(steps: list[Step], t: float) -> list[Step]:
+    """The part of ``steps`` after time ``t``."""
+    out = []
+    for s in steps:
+        if s.t0 + s.dt <= t:
+            continue
+        cut = max(t - s.t0, 0.0)
+        out.append(dataclasses.replace(s, t0=s.t0 + cut, dt=s.dt - cut) if cut else s)
+    return out
+
+
+# ---- the factors (GTSAM's CustomFactor: error and Jacobians on the tangent spaces) -----------------------------
+
+ErrorFunction = Callable[[Any, Any, Any], FloatArray]
+
+
+def odometry_error(odo: Odometry) -> ErrorFunction:
+    """Keys ``(X_i, X_j, C_i)``: ``[R_i' (t_j - t_i) - (dx, dy), theta_j - theta_i - dtheta]`` at ``C_i``."""
+
+    def error(this: Any, values: Any, H: Any) -> FloatArray:
+        ki, kj, kc = this.keys()
+        xi, xj, c = values.atPose2(ki), values.atPose2(kj), values.atVector(kc)
+        p = np.array([xj.x() - xi.x(), xj.y() - xi.y()])
+        q = _rot(xi.theta()).T @ p
+        d = odo.delta(float(c[0]), float(c[1]))
+        e = np.array([q[0] - d[0], q[1] - d[1], wrap_angle(xj.theta() - xi.theta() - d[2])])
+        if H is not None:
+            H[0] = np.array([[-1.0, 0.0, q[1]], [0.0, -1.0, -q[0]], [0.0, 0.0, -1.0]])
+            Hj = np.eye(3)
+            Hj[:2, :2] = _rot(xj.theta() - xi.theta())
+            H[1] = Hj
+            H[2] = -odo.J
+        return e
+
+    return error
+
+
+def position_error(z: FloatArray) -> ErrorFunction:
+    """Key ``X``: its position minus the fix (east, north)."""
+
+    def error(this: Any, values: Any, H: Any) -> FloatArray:
+        x = values.atPose2(this.keys()[0])
+        if H is not None:
+            Hx = np.zeros((2, 3))
+            Hx[:, :2] = _rot(x.theta())
+            H[0] = Hx
+        return np.array([x.x() - z[0], x.y() - z[1]])
+
+    return error
+
+
+def azimuth_error(phi: float) -> ErrorFunction:
+    """Key ``X``: its theta minus the measured azimuth's (``pi/2 - phi``)."""
+
+    def error(this: Any, values: Any, H: Any) -> FloatArray:
+        x = values.atPose2(this.keys()[0])
+        if H is not None:
+            H[0] = np.array([[0.0, 0.0, 1.0]])
+        return np.array([wrap_angle(x.theta() - (0.5 * math.pi - phi))])
+
+    return error
+
+
+def speed_error(sog: float, can_speed: float) -> ErrorFunction:
+    """Key ``C``: ``k sog - CAN speed`` (the CAN speed at the fix's time, its speed over ground ``sog``)."""
+
+    def error(this: Any, values: Any, H: Any) -> FloatArray:
+        c = values.atVector(this.keys()[0])
+        if H is not None:
+            H[0] = np.array([[0.0, sog]])
+        return np.array([float(c[1]) * sog - can_speed])
+
+    return error
+
+
+def bias_error(yaw_rate: float) -> ErrorFunction:
+    """Key ``C``: its bias minus the CAN yaw rate at a standstill (the EKF's pseudo-measurement ``omega = 0``)."""
+
+    def error(this: Any, values: Any, H: Any) -> FloatArray:
+        c = values.atVector(this.keys()[0])
+        if H is not None:
+            H[0] = np.array([[1.0, 0.0]])
+        return np.array([float(c[0]) - yaw_rate])
+
+    return error
+
+
+def gaussian(cov: FloatArray) -> Any:
+    return gtsam.noiseModel.Gaussian.Covariance(cov + MIN_VARIANCE * np.eye(len(cov)))
+
+
+# ---- the estimator -----------------------------------------------------------------------------------------------
+
+
+@dataclass(slots=True)
+class Node:
+    """The newest node: index, time (s), its estimate (east, north, theta; b, k) and, once asked for, its marginal
+    covariances (pose in the world frame east, north, theta; calibration)."""
+
+    index: int
+    t: float
+    pose: FloatArray
+    calib: FloatArray
+    pose_cov: FloatArray | None = None
+    calib_cov: FloatArray | None = None
+
+
+@dataclass(slots=True)
+class Opened:
+    """The node of the epoch being processed: its time, odometry from the newest node (computed when first
+    needed), the factors committed to it and the widening a re-acquisition asked for (world frame)."""
+
+    t: float
+    odo: Odometry | None = None
+    factors: list[tuple[ErrorFunction, FloatArray, str]] = field(default_factory=list)
+    widen: FloatArray = field(default_factory=lambda: np.zeros((5, 5)))
+    priors: tuple[FloatArray, FloatArray] | None = None
+
+
+class GtsamFls(RecursiveEstimator):
+    """GTSAM's iSAM2 fixed-lag smoother over the CAN odometry and GNSS (``gtsam-fls``; the module docstring)."""
+
+    name = "gtsam-fls"
+
+    def __init__(self, settings: EstimationSettings | None = None, table: GtsamSettings | None = None) -> None:
+        settings = settings or EstimationSettings()
+        self.table = table or settings.estimator.gtsam_fls
+        super().__init__(settings, self.table.noise)
+
+    @classmethod
+    def from_config(cls, config: Config) -> GtsamFls:
+        return cls(config.estimation)
+
+    def stats(self) -> dict[str, float | int | str]:
+        out = dict(super().stats())
+        if self._smoother is not None:
+            out["graph_values"] = int(self._smoother.getLinearizationPoint().size())
+        return out
+
+    # ---- the smoother ---------------------------------------------------------------------------------------
+
+    def _reset_filter(self) -> None:
+        self._smoother: Any = None
+        self._node: Node | None = None
+        self._opened: Opened | None = None
+        self._steps: list[Step] = []
+        self._now: Odometry | None = None
+        self._fix_pos = np.zeros(2)
+        self._fix_sigma = np.full(2, NO_GRAPH_SIGMA_M)
+        self._calib0 = np.array([0.0, 1.0])
+        self._calib_sigma0 = np.array([FIXED_SIGMA, FIXED_SIGMA])
+        self._speed, self._yaw_rate, self._standstill = 0.0, 0.0, False
+        self._speed_t = self._yaw_rate_t = -math.inf
+        self._still: list[float] = []
+
+    def _new_smoother(self) -> Any:
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.table.relinearize_threshold)
+        params.relinearizeSkip = self.table.relinearize_skip
+        params.setFactorization("QR")  # the calibration's random walk over 0.1 s is stiff: QR, the safer one
+        return gtsam.IncrementalFixedLagSmoother(self.table.lag_s, params)
+
+    def _start(self, x0: FloatArray, P0: FloatArray) -> None:
+        lay = self.layout
+        self._fix_pos = x0[[E, N]].copy()
+        self._fix_sigma = np.sqrt(np.diag(P0)[[E, N]])
+        self._calib0 = np.array([0.0, 1.0])
+        self._calib_sigma0 = np.array(
+            [math.sqrt(P0[r, r]) if r is not None else FIXED_SIGMA for r in (lay.b, lay.k)],
+        )
+        self._opened = Opened(self._t_state)
+        if self._heading_known:
+            self._open_graph(x0[PHI], math.sqrt(P0[PHI, PHI]))
+
+    def _open_graph(self, phi: float, sigma_phi: float) -> None:
+        """Start the graph at the opened node: priors on its position (the newest fix), azimuth and calibration."""
+        assert self._opened is not None
+        self._smoother = self._new_smoother()
+        self._opened.priors = (
+            np.array([*self._fix_pos, 0.5 * math.pi - phi]),
+            np.array([*self._fix_sigma, sigma_phi]),
+        )
+        self._steps = after(self._steps, self._opened.t)
+
+    def _flush(self) -> None:
+        """Add the opened node and its factors to the smoother and take the new estimate."""
+        node, opened = self._node, self._opened
+        assert opened is not None and self._smoother is not None
+        odo = self._node_odometry() if opened.priors is None else None
+        self._opened = None
+        i = 0 if node is None else node.index + 1
+        X, C = gtsam.symbol("x", i), gtsam.symbol("c", i)
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        if opened.priors is not None:
+            mean, sigma = opened.priors
+            graph.add(gtsam.CustomFactor(gaussian(np.diag(sigma[:2] ** 2)), [X], position_error(mean[:2])))
+            graph.add(
+                gtsam.CustomFactor(gaussian(np.diag(sigma[2:] ** 2)), [X], azimuth_error(0.5 * math.pi - mean[2]))
+            )
+            graph.add(gtsam.PriorFactorVector(C, self._calib0, gtsam.noiseModel.Diagonal.Sigmas(self._calib_sigma0)))
+            pose, calib = mean, self._calib0
+        else:
+            assert node is not None and odo is not None
+            pose, _ = self._predict_node(node, odo)
+            calib = node.calib
+            cov = odo.cov[:3, :3].copy()
+            R = np.eye(3)
+            R[:2, :2] = _rot(node.pose[2])
+            cov += R.T @ opened.widen[:3, :3] @ R  # a re-acquisition's widening, in the node's frame
+            Xp, Cp = gtsam.symbol("x", node.index), gtsam.symbol("c", node.index)
+            graph.add(gtsam.CustomFactor(gaussian(cov), [Xp, X, Cp], odometry_error(odo)))
+            rw = np.array([self.noise.bias_rw, self.noise.scale_rw]) ** 2 * max(odo.T, 1e-3)
+            rw = np.where(self._calib_sigma0 <= FIXED_SIGMA, FIXED_SIGMA**2, rw) + np.diag(opened.widen)[3:]
+            graph.add(gtsam.BetweenFactorVector(Cp, C, np.zeros(2), gtsam.noiseModel.Diagonal.Variances(rw)))
+        if self._still and self.layout.b is not None and self.noise.standstill_rps > 0.0:
+            var = (self.noise.can_yaw_rate_rps**2 + self.noise.standstill_rps**2) / len(self._still)
+            still = bias_error(float(np.mean(self._still)))
+            graph.add(gtsam.CustomFactor(gaussian(np.array([[var]])), [C if node is None else Cp], still))
+        self._still = []
+        for error, cov, key in opened.factors:
+            graph.add(gtsam.CustomFactor(gaussian(cov), [C if key == "c" else X], error))
+        values.insert(X, gtsam.Pose2(*pose))
+        values.insert(C, np.asarray(calib, dtype=float))
+        stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        stamps.insert((X, opened.t))
+        stamps.insert((C, opened.t))
+        try:
+            self._smoother.update(graph, values, stamps)
+            est = self._smoother.calculateEstimatePose2(X)
+            calib = self._smoother.calculateEstimateVector(C)
+        except RuntimeError as e:  # GTSAM's indeterminant system and the like
+            raise np.linalg.LinAlgError(f"GTSAM: {e}") from e
+        self._node = Node(i, opened.t, np.array([est.x(), est.y(), est.theta()]), np.asarray(calib, dtype=float))
+        self._steps = after(self._steps, opened.t)
+        self._now = integrate(self._steps, *self._node.calib, self.noise)
+
+    def _node_odometry(self) -> Odometry:
+        """The odometry from the newest node to the opened node (computed once per node)."""
+        assert self._opened is not None and self._node is not None
+        if self._opened.odo is None:
+            self._opened.odo = integrate(self._steps, *self._node.calib, self.noise, until=self._opened.t)
+        return self._opened.odo
+
+    def _predict_node(self, node: Node, odo: Odometry) -> tuple[FloatArray, FloatArray]:
+        """The pose (east, north, theta) at the end of ``odo`` from ``node``, and the covariance of
+        (east, north, theta, b, k) there (the node's marginals carried by the odometry)."""
+        if node.pose_cov is None or node.calib_cov is None:
+            X, C = gtsam.symbol("x", node.index), gtsam.symbol("c", node.index)
+            T = np.eye(3)
+            T[:2, :2] = _rot(node.pose[2])
+            node.pose_cov = T @ self._smoother.marginalCovariance(X) @ T.T  # body tangent -> world
+            node.calib_cov = np.asarray(self._smoother.marginalCovariance(C))
+        R = _rot(node.pose[2])
+        d = np.array([odo.dx, odo.dy])
+        pose = np.array([*(node.pose[:2] + R @ d), node.pose[2] + odo.dth])
+        Jx = np.eye(3)
+        Jx[:2, 2] = _rot(node.pose[2] + 0.5 * math.pi) @ d  # d(R d)/dtheta
+        Jc = np.vstack([R @ odo.J[:2], odo.J[2:]])
+        Rb = np.eye(3)
+        Rb[:2, :2] = R
+        P = np.zeros((5, 5))
+        P[:3, :3] = Jx @ node.pose_cov @ Jx.T + Jc @ node.calib_cov @ Jc.T + Rb @ odo.cov[:3, :3] @ Rb.T
+        P[:3, 3:] = Jc @ node.calib_cov
+        P[3:, :3] = P[:3, 3:].T
+        P[3:, 3:] = node.calib_cov
+        return pose, P
+
+    # ---- the RecursiveEstimator's hooks ---------------------------------------------------------------------
+
+    def on_epoch(self, epoch: Epoch) -> StateEstimate:
+        """The epoch's node (after the start); its estimate is the node's, at the epoch's time."""
+        if not epoch.start and self._smoother is None:  # no azimuth yet: only the steps after the epoch matter
+            self._opened = Opened(epoch.t)
+            self._steps = after(self._steps, epoch.t)
+        elif not epoch.start and self._opened is None and epoch.t > self._node_time():
+            self._opened = Opened(epoch.t)
+        estimate = super().on_epoch(epoch)
+        node = self._node
+        if node is not None and node.t == epoch.t:
+            estimate = dataclasses.replace(
+                estimate,
+                east_m=float(node.pose[0]),
+                north_m=float(node.pose[1]),
+                azimuth_rad=float((0.5 * math.pi - node.pose[2]) % (2.0 * math.pi)),
+            )
+        return estimate
+
+    def _node_time(self) -> float:
+        return self._node.t if self._node is not None else -math.inf
+
+    def _predict(self, dt: float, inputs: Inputs) -> None:
+        self._hold(inputs, self._t_state + dt)
+        t0 = self._t_state
+        speed_age = None if inputs.speed is not None else t0 - self._speed_t
+        yaw_rate_age = None if inputs.yaw_rate is not None else t0 - self._yaw_rate_t
+        step = Step(t0, dt, self._speed, self._yaw_rate, self._standstill, speed_age, yaw_rate_age)
+        self._steps.append(step)
+        if self._now is not None:
+            self._now.add(step, dt, self.noise)
+
+    def _can_update(self, inputs: Inputs) -> None:
+        self._hold(inputs, self._t_state)
+        if inputs.standstill and inputs.yaw_rate is not None:  # at a standstill the CAN yaw rate is the bias
+            self._still.append(inputs.yaw_rate)
+
+    def _hold(self, inputs: Inputs, t: float) -> None:
+        """Keep the CAN values of ``inputs`` measured (at ``t``): a missing one stays as it was."""
+        if inputs.speed is not None:
+            self._speed, self._speed_t, self._standstill = inputs.speed, t, inputs.standstill
+        if inputs.yaw_rate is not None:
+            self._yaw_rate, self._yaw_rate_t = inputs.yaw_rate, t
+
+    def _innovation(self, kind: str, z: FloatArray, R: FloatArray, lag: float) -> Pending:
+        opened = self._opened
+        assert opened is not None
+        if self._smoother is None:  # no azimuth yet: the newest fix is the estimate
+            pose, P = np.array([*self._fix_pos, 0.0]), np.diag([NO_GRAPH_SIGMA_M**2] * 2 + [math.pi**2, 1.0, 1.0])
+        elif self._node is None:
+            assert opened.priors is not None
+            pose, sigma = opened.priors
+            P = np.diag([*sigma**2, *self._calib_sigma0**2])
+        else:
+            pose, P = self._predict_node(self._node, self._node_odometry())
+        P = P + opened.widen
+        calib = self._node.calib if self._node is not None else self._calib0
+        if kind == POSITION:
+            nu, S, H = z - pose[:2], P[:2, :2] + R, None
+            factor: tuple[ErrorFunction, FloatArray, str] | None = (position_error(z.copy()), R, "x")
+        elif kind == AZIMUTH:
+            nu = np.array([wrap_angle(z[0] - (0.5 * math.pi - pose[2]))])
+            S, factor = P[2:3, 2:3] + R, (azimuth_error(float(z[0])), R, "x")
+        else:
+            measured = self.frontend.can["speed"].at(opened.t, self.settings.can.max_gap_s)
+            can = float(z[0]) * float(calib[1]) if measured is None else measured  # no CAN: no factor below
+            H = np.array([[0.0, 0.0, 0.0, 0.0, -can / calib[1] ** 2]])
+            nu = np.array([z[0] - can / calib[1]])
+            # one CAN sample: its noise and its resolution (uniform rounding error)
+            var_can = self.noise.can_speed_mps**2 + self.settings.can.speed_quantum_mps**2 / 12.0
+            S = H @ P @ H.T + R + var_can / calib[1] ** 2
+            factor = (speed_error(float(z[0]), can), np.asarray(R * calib[1] ** 2 + var_can), "c")
+            if measured is None:
+                factor = None
+
+        def commit() -> None:
+            if self._smoother is None:
+                if kind == POSITION:
+                    self._fix_pos, self._fix_sigma = z.copy(), np.sqrt(np.diag(R))
+                return
+            if factor is not None:
+                opened.factors.append(factor)
+
+        return Pending(nu, np.atleast_2d(S), commit)
+
+    def _inflate(self, kind: str, nu: FloatArray, R: FloatArray) -> None:
+        assert self._opened is not None
+        rows = {POSITION: [0, 1], AZIMUTH: [2], GPS_SPEED: [4]}[kind]
+        extra = np.outer(nu, nu) + R
+        if kind == GPS_SPEED:
+            calib = self._node.calib if self._node is not None else self._calib0
+            extra = extra * calib[1] ** 4 / max(self._speed, 1.0) ** 2  # in k: d(can / k)/dk
+        self._opened.widen[np.ix_(rows, rows)] += extra
+
+    def _init_heading(self, phi: float, sigma: float) -> None:
+        if self._smoother is None and self._opened is not None:
+            self._open_graph(phi, sigma)
+
+    def _mean(self) -> FloatArray:
+        if self._opened is not None and self._smoother is not None and self._opened.t <= self._t_state:
+            self._flush()
+        x = np.zeros(self.layout.n)
+        if self.layout.g is not None:
+            x[self.layout.g] = 1.0
+        node = self._node
+        b, k = node.calib if node is not None else self._calib0
+        x[V] = self._speed / k
+        x[OMEGA] = 0.0 if self._standstill else self._yaw_rate - b
+        if node is None or self._now is None:
+            x[E], x[N] = self._fix_pos
+            return x
+        R = _rot(node.pose[2])
+        x[[E, N]] = node.pose[:2] + R @ np.array([self._now.dx, self._now.dy])
+        x[PHI] = wrap_angle(0.5 * math.pi - node.pose[2] - self._now.dth)
+        if self.layout.b is not None:
+            x[self.layout.b] = b
+        if self.layout.k is not None:
+            x[self.layout.k] = k
+        return kin.wrap_state(x)

@@ -1,0 +1,323 @@
+"""GTSAM's fixed-lag smoother peer (``gtsam-fls``): the odometry factor's maths, the factors' Jacobians, the
+calibration states, CAN gaps, an outage on a simulated drive, the lag, and its settings."""
+
+from __future__ import annotations
+
+import dataclasses
+import heapq
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sumhe.bench.tune import build, start_values, with_value
+from sumhe.cli import main as cli_main
+from sumhe.config import PACKAGE_DATA, DatumSettings, GpsSettings, load_config
+from sumhe.errors import ConfigError
+from sumhe.estimator import registry
+from sumhe.estimator.registry import estimator_names, make_estimator
+from sumhe.frontend.fixes import FixConverter, LocalFix
+from sumhe.io.fixtime import stamp_fix
+from sumhe.messages import CanSample
+from sumhe.settings import EstimationSettings, NoiseSettings
+from sumhe.sim import SimSettings, simulate
+
+gtsam = pytest.importorskip("gtsam", reason=registry.missing_requirement("gtsam-fls") or "")
+
+from test_estimator_contract import errors, run, synthetic_drive  # noqa: E402
+
+from sumhe.baseline.gtsam_fls import (  # noqa: E402 (after the skip: the module imports gtsam)
+    GtsamFls,
+    Odometry,
+    Step,
+    azimuth_error,
+    integrate,
+    odometry_error,
+    position_error,
+    speed_error,
+)
+
+NOISE = NoiseSettings()
+
+
+def curving_steps(n: int = 200, dt: float = 0.02) -> list[Step]:
+    """4 s of CAN at 50 Hz: 12 m/s, the yaw rate swinging through +-0.3 rad/s."""
+    return [
+        Step(k * dt, dt, 12.0 + 0.5 * math.sin(0.7 * k * dt), 0.3 * math.sin(1.3 * k * dt), False) for k in range(n)
+    ]
+
+
+def motion(odo: Odometry) -> np.ndarray:
+    return np.array([odo.dx, odo.dy, odo.dth])
+
+
+# ---- the CAN odometry ---------------------------------------------------------------------------------------------
+
+
+def test_odometry_first_order_calibration_matches_reintegration() -> None:
+    steps = curving_steps()
+    b0, k0 = 0.002, 1.01
+    odo = integrate(steps, b0, k0, NOISE)
+    assert pytest.approx(4.0) == odo.T and math.hypot(odo.dx, odo.dy) > 40.0
+    misfit = []
+    for h in (0.02, 0.01, 0.005):
+        for db, dk in ((h, 0.0), (0.0, h), (h, -h)):
+            truth = motion(integrate(steps, b0 + db, k0 + dk, NOISE))
+            first = odo.delta(b0 + db, k0 + dk)
+            zeroth = motion(odo)
+            # the correction removes the first-order part: what is left is far smaller than the change itself
+            assert np.linalg.norm(first - truth) < 0.05 * np.linalg.norm(zeroth - truth)
+        misfit.append(np.linalg.norm(odo.delta(b0 + h, k0 + h) - motion(integrate(steps, b0 + h, k0 + h, NOISE))))
+    # second order: halving the change quarters the misfit
+    assert misfit[1] / misfit[0] == pytest.approx(0.25, abs=0.03)
+    assert misfit[2] / misfit[1] == pytest.approx(0.25, abs=0.03)
+
+
+def test_odometry_stops_where_asked_and_splits_a_step() -> None:
+    steps = curving_steps(10, 0.1)
+    whole = integrate(steps, 0.0, 1.0, NOISE)
+    half = integrate(steps, 0.0, 1.0, NOISE, until=0.55)
+    assert pytest.approx(0.55) == half.T
+    assert math.hypot(half.dx, half.dy) == pytest.approx(0.55 * 12.0, rel=0.05)
+    assert pytest.approx(1.0) == whole.T
+
+
+def test_a_can_gap_widens_the_odometry_with_its_age() -> None:
+    measured = integrate(curving_steps(50), 0.0, 1.0, NOISE)
+    held = [dataclasses.replace(s, speed_age=s.t0, yaw_rate_age=s.t0) for s in curving_steps(50)]
+    gap = integrate(held, 0.0, 1.0, NOISE)
+    never = integrate([dataclasses.replace(s, speed_age=math.inf) for s in curving_steps(50)], 0.0, 1.0, NOISE)
+    # same motion (the held values are the ones moved with), wider covariance: more the longer the gap, and
+    # the widest when the speed was never measured
+    assert gap.dx == pytest.approx(measured.dx)
+    assert np.all(np.diag(gap.cov)[:3] > np.diag(measured.cov)[:3])
+    assert never.cov[0, 0] > 100.0 * gap.cov[0, 0]
+    assert np.all(np.linalg.eigvalsh(gap.cov) > -1e-12)
+    longer = integrate([dataclasses.replace(s, speed_age=s.t0 + 5.0) for s in curving_steps(50)], 0.0, 1.0, NOISE)
+    assert longer.cov[0, 0] > gap.cov[0, 0]
+
+
+# ---- the factors: errors and Jacobians against numerical derivatives ----------------------------------------------
+
+
+def numerical_jacobians(factor: gtsam.CustomFactor, values: gtsam.Values, h: float = 1e-6) -> list[np.ndarray]:
+    keys = factor.keys()
+    e0 = factor.unwhitenedError(values)
+    out = []
+    for key in keys:
+        pose = _is_pose(values, key)
+        dim = 3 if pose else len(values.atVector(key))
+        J = np.zeros((len(e0), dim))
+        for i in range(dim):
+            d = np.zeros(dim)
+            d[i] = h
+            moved = gtsam.Values(values)
+            if pose:
+                moved.update(key, values.atPose2(key).retract(d))
+            else:
+                moved.update(key, values.atVector(key) + d)
+            J[:, i] = (factor.unwhitenedError(moved) - e0) / h
+        out.append(J)
+    return out
+
+
+def _is_pose(values: gtsam.Values, key: int) -> bool:
+    try:
+        values.atPose2(key)
+    except RuntimeError:
+        return False
+    return True
+
+
+def analytic_jacobians(factor: gtsam.CustomFactor, values: gtsam.Values) -> list[np.ndarray]:
+    linear = factor.linearize(values)  # whitened: the noise models below are unit
+    A = linear.jacobian()[0]
+    keys = factor.keys()
+    sizes = [3 if _is_pose(values, k) else len(values.atVector(k)) for k in keys]
+    return np.split(A, np.cumsum(sizes)[:-1], axis=1)
+
+
+@pytest.mark.parametrize("which", ["odometry", "position", "azimuth", "speed"])
+def test_factor_jacobians_match_numerical_derivatives(which: str) -> None:
+    xi, xj, c = gtsam.symbol("x", 0), gtsam.symbol("x", 1), gtsam.symbol("c", 0)
+    values = gtsam.Values()
+    values.insert(xi, gtsam.Pose2(3.0, -2.0, 0.7))
+    values.insert(xj, gtsam.Pose2(9.0, 4.0, 1.1))
+    values.insert(c, np.array([0.01, 1.02]))
+    odo = integrate(curving_steps(40), 0.0, 1.0, NOISE)
+    error, keys = {
+        "odometry": (odometry_error(odo), [xi, xj, c]),
+        "position": (position_error(np.array([2.0, -1.0])), [xi]),
+        "azimuth": (azimuth_error(0.9), [xi]),
+        "speed": (speed_error(11.0, 11.3), [c]),
+    }[which]
+    dim = {"odometry": 3, "position": 2, "azimuth": 1, "speed": 1}[which]
+    factor = gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(dim), keys, error)
+    for analytic, numeric in zip(analytic_jacobians(factor, values), numerical_jacobians(factor, values), strict=True):
+        np.testing.assert_allclose(analytic, numeric, atol=1e-4)
+
+
+# ---- the estimator on drives --------------------------------------------------------------------------------------
+
+
+def test_learns_a_yaw_rate_bias_and_a_speed_scale() -> None:
+    drive = synthetic_drive(30.0)
+    bias, scale = 0.01, 1.03
+    samples = [
+        dataclasses.replace(s, value=s.value + bias if s.quantity == "yaw_rate" else s.value * scale)
+        if isinstance(s, CanSample)
+        else s
+        for s in drive.samples
+    ]
+    est = make_estimator("gtsam-fls", load_config())
+    assert isinstance(est, GtsamFls)
+    late = [e for e in run(est, samples).estimates if e.t > drive.t[0] + 10.0]
+    assert est._node is not None
+    b, k = est._node.calib
+    assert b == pytest.approx(bias, abs=0.002) and k == pytest.approx(scale, abs=0.01)
+    assert np.percentile(errors(drive, late), 95) < 0.5
+
+
+@pytest.mark.parametrize("standstill_rps", [0.001, 0.0])
+def test_a_standstill_measures_the_bias_before_the_graph_starts(standstill_rps: float) -> None:
+    """At a standstill the CAN yaw rate is the bias (the EKF's pseudo-measurement ``omega = 0``, off when its
+    sigma is 0): 5 s parked, no course yet, then the drive; with it the first nodes have the bias already."""
+    drive = synthetic_drive(10.0)
+    bias, t0 = 0.006, drive.t[0]
+    rng = np.random.default_rng(3)
+    parked: list[CanSample | LocalFix] = [CanSample(t0 - 5.0 + 0.02 * i, "speed", 0.0) for i in range(250)]
+    parked += [CanSample(t0 - 4.995 + 0.01 * i, "yaw_rate", bias + rng.normal(0.0, 0.002)) for i in range(500)]
+    parked += [
+        LocalFix(
+            t=t0 - 4.95 + 0.1 * i, valid=True, east_m=0.0, north_m=0.0, gst_sigma_east_m=0.3, gst_sigma_north_m=0.3
+        )
+        for i in range(50)
+    ]
+    moving = [
+        dataclasses.replace(s, value=s.value + bias) if isinstance(s, CanSample) and s.quantity == "yaw_rate" else s
+        for s in drive.samples
+    ]
+    config = load_config(overrides={"estimator.gtsam_fls.noise.standstill_rps": standstill_rps})
+    est = make_estimator("gtsam-fls", config)
+    assert isinstance(est, GtsamFls)
+    stream = iter(sorted(parked, key=lambda s: s.t) + moving)
+    while est._node is None:  # up to the graph's first node
+        est.push(next(stream))
+    if standstill_rps:
+        assert est._node.calib[0] == pytest.approx(bias, abs=0.0005)
+    else:
+        assert abs(est._node.calib[0] - bias) > 0.004
+
+
+@pytest.mark.parametrize(("gap", "bound_m"), [((6.0, 3.0), 0.5), ((0.0, 99.0), 1.5)])
+def test_a_can_gap_holds_the_newest_can_values(gap: tuple[float, float], bound_m: float) -> None:
+    """A 3 s gap in the CAN data is bridged with the values held; with no CAN at all the nodes follow the fixes."""
+    drive = synthetic_drive(20.0)
+    a, n = drive.t[0] + gap[0], gap[1]
+    samples = [s for s in drive.samples if not (isinstance(s, CanSample) and a <= s.t < a + n)]
+    est = make_estimator("gtsam-fls", load_config())
+    late = [e for e in run(est, samples).estimates if e.t > drive.t[0] + 5.0]
+    assert late and np.max(errors(drive, late)) < bound_m
+    assert est.stats().get("gps_rejected", 0) == 0
+
+
+@pytest.fixture(scope="module")
+def outage_drive() -> tuple[list, object]:
+    """An urban drive with a 30 s outage at 70 s; the CAN yaw rate biased by 0.5 deg/s, the CAN speed 3 % high."""
+    settings = SimSettings(
+        scenario="urban",
+        seed=21,
+        duration_s=150.0,
+        gps_error="gaussian",
+        gps_error_m=0.3,
+        outages=((70.0, 30.0),),
+        yaw_rate_bias_dps=0.5,
+        speed_scale=1.03,
+    )
+    drive = simulate(settings)
+    converter = FixConverter(DatumSettings("fixed", settings.datum_lat_deg, settings.datum_lon_deg))
+    fixes = [converter.convert(stamp_fix(f, GpsSettings())) for f in drive.fixes()]
+    return list(heapq.merge(fixes, drive.can_samples(), key=lambda s: s.t)), drive
+
+
+def outage_errors(name: str, outage_drive: tuple[list, object], **overrides: object) -> np.ndarray:
+    samples, drive = outage_drive
+    est = make_estimator(name, load_config(overrides=overrides))
+    out = [e for e in run(est, samples).epochs if e.gps == "outage"]
+    assert len(out) == pytest.approx(300, abs=1)
+    truth = drive.truth.at(np.array([e.t for e in out]))  # type: ignore[attr-defined]
+    return np.hypot(np.array([e.east_m for e in out]) - truth.east, np.array([e.north_m for e in out]) - truth.north)
+
+
+@pytest.mark.slow
+def test_a_30_s_outage_is_bridged_with_the_calibration_learned(outage_drive: tuple[list, object]) -> None:
+    fls, ekf = outage_errors("gtsam-fls", outage_drive), outage_errors("ekf", outage_drive)
+    assert np.max(fls) < 1.0  # 0.30 m when written; the EKF 0.46 m
+    assert np.mean(fls) < 1.5 * np.mean(ekf)
+    # without the bias and scale nodes the odometry is taken as it is: metres off (6.9 m mean when written)
+    raw = outage_errors("gtsam-fls", outage_drive, **{"estimator.yaw_rate_bias": False, "estimator.speed_scale": False})
+    assert np.mean(raw) > 5.0 * np.mean(fls)
+
+
+def test_the_lag_bounds_the_graph() -> None:
+    drive = synthetic_drive(20.0)
+    for lag in (1.0, 3.0):
+        est = make_estimator("gtsam-fls", load_config(overrides={"estimator.gtsam_fls.lag_s": lag}))
+        run(est, drive.samples)
+        # two variables (pose, calibration) per node, a node per 0.1 s epoch, within the lag (and one beyond)
+        assert 2 * 10 * lag <= est.stats()["graph_values"] <= 2 * (10 * lag + 2)
+
+
+# ---- settings and the optional package ----------------------------------------------------------------------------
+
+
+def test_the_table_reaches_the_estimator(tmp_path: Path) -> None:
+    path = tmp_path / "c.toml"
+    path.write_text("[estimator.gtsam_fls]\nlag_s = 2.5\n[estimator.gtsam_fls.noise]\nbias_rw = 1e-4\n")
+    est = make_estimator("gtsam-fls", load_config(path, env={}))
+    assert isinstance(est, GtsamFls)
+    assert est.table.lag_s == 2.5 and est.noise.bias_rw == 1e-4
+    assert est.noise.pos_rw == load_config().estimator.gtsam_fls.noise.pos_rw
+
+
+@pytest.mark.parametrize(
+    ("text", "key"),
+    [
+        ("lag_s = 0.0\n", "estimator.gtsam_fls.lag_s"),
+        ("relinearize_skip = 0\n", "estimator.gtsam_fls.relinearize_skip"),
+        ("relinearize_threshold = -1.0\n", "estimator.gtsam_fls.relinearize_threshold"),
+        ("lagg_s = 3.0\n", "estimator.gtsam_fls.lagg_s"),
+        ("[estimator.gtsam_fls.noise]\ngps_scale = 0.0\n", "estimator.gtsam_fls.noise.gps_scale"),
+    ],
+)
+def test_bad_settings_name_the_key(tmp_path: Path, text: str, key: str) -> None:
+    path = tmp_path / "c.toml"
+    path.write_text("[estimator.gtsam_fls]\n" + text)
+    with pytest.raises(ConfigError) as err:
+        load_config(path, env={})
+    assert key in str(err.value)
+
+
+def test_a_missing_optional_package_names_the_extra(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setitem(registry.REQUIRES, "gtsam-fls", ("no_such_package_sumhe", "peers"))
+    with pytest.raises(ConfigError, match=r"estimator\.name: .*no_such_package_sumhe: pip install 'sumhe\[peers\]'"):
+        make_estimator("gtsam-fls", load_config())
+    drive = PACKAGE_DATA / "drive"
+    argv = ["replay", str(drive / "drive.log"), "--nmea", str(drive / "drive.nmea"), "--estimator", "gtsam-fls"]
+    assert cli_main(argv) == 1
+    assert "pip install 'sumhe[peers]'" in capsys.readouterr().err
+    assert "gtsam-fls" in estimator_names() and "gtsam-fls" not in estimator_names(available_only=True)
+    monkeypatch.undo()
+    assert "gtsam-fls" in estimator_names(available_only=True)
+
+
+def test_the_tuning_search_builds_it_with_the_noise_searched() -> None:
+    settings = EstimationSettings()
+    start = start_values("gtsam-fls", settings)
+    assert start["noise"] == settings.estimator.gtsam_fls.noise
+    est = build("gtsam-fls", settings, with_value(start, "pos_rw", 0.01))
+    assert isinstance(est, GtsamFls) and est.noise.pos_rw == 0.01
+    assert est.noise.bias_rw == start["noise"].bias_rw and est.table.lag_s == settings.estimator.gtsam_fls.lag_s
