@@ -72,6 +72,28 @@ def test_the_can_states_correct_the_samples() -> None:
     assert pred[1] == pytest.approx(radius * math.sin(0.1), abs=1e-4)
 
 
+def test_the_offset_is_taken_between_the_steps_own_can_outputs() -> None:
+    """A yaw rate that is 0.01 rad/s at the steps' instants and 0 between them (a point interpolation reads the
+    spikes): states fitted to the steps' CAN outputs (0, their means) plus the offset turn by what the samples
+    turned, nothing; the offset between interpolated ends instead adds the spikes' trapezoid to every step."""
+
+    def yaw_rate(t):
+        return np.where(np.abs(t - np.round(t, 1)) < 1e-6, 0.01, 0.0)
+
+    can = _buffer(0.0, 2.0, lambda t: 10.0, yaw_rate, rate_hz=200.0)
+    x0, x1 = _state(0.0, 10.0, 0.0), _state(0.0, 10.0, 0.0)
+    ends = np.array([[10.0, 0.0], [10.0, 0.0]])
+    own, _ = step_motion(MODEL, can, 1.0, 1.1, x0, x1, SETTINGS, ends)
+    fine = -np.trapezoid(yaw_rate(np.arange(1.0, 1.1 + 1e-9, 0.005))[1:-1], dx=0.005)  # the inner samples' turn
+    assert MODEL.transition(x0, x1, 0.1)[MODEL.i_phi] + own[MODEL.i_phi] == pytest.approx(fine, abs=1e-9)
+    pointwise, _ = step_motion(MODEL, can, 1.0, 1.1, x0, x1, SETTINGS)
+    spike = 0.1 * 0.01 - 0.005 * 0.01  # the ends' trapezoid less the spikes' own half-samples in the fine integral
+    assert pointwise[MODEL.i_phi] - own[MODEL.i_phi] == pytest.approx(spike, rel=1e-6)
+    missing = np.array([[np.nan, np.nan], [10.0, 0.0]])  # a step without CAN outputs: its interpolated samples
+    partial, _ = step_motion(MODEL, can, 1.0, 1.1, x0, x1, SETTINGS, missing)
+    assert partial[MODEL.i_phi] - own[MODEL.i_phi] == pytest.approx(0.5 * spike, rel=1e-6)
+
+
 def test_a_gap_in_the_can_data_leaves_the_model_step() -> None:
     can = _buffer(0.0, 1.0, lambda t: 10.0, lambda t: 0.0)
     assert step_motion(MODEL, can, 1.0, 3.0, _state(0.0, 10.0, 0.0), _state(0.0, 10.0, 0.0), SETTINGS) is None

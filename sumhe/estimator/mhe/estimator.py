@@ -257,10 +257,14 @@ class MovingHorizonEstimator(StreamEstimator):
 
     def _step_motion(self, j: int) -> None:
         """The offset and CAN noise bound of the transition into step ``j`` from the CAN data between it and the
-        step before (:mod:`.preintegration`; none across a gap in the CAN data)."""
-        win = self.window
+        step before, the yaw rate between the two steps' own CAN outputs (:mod:`.preintegration`; none across a gap
+        in the CAN data)."""
+        win, model = self.window, self.model
+        rows = slice(j - 1, j + 1)
+        ends = np.full((2, 2), np.nan)
+        ends[:, 1] = np.where(win.avail[rows, model.j_can_yaw_rate], win.y[rows, model.j_can_yaw_rate], np.nan)
         motion = step_motion(
-            self.model, self.frontend.can, float(win.t[j - 1]), float(win.t[j]), win.x[j - 1], win.x[j], self.settings
+            model, self.frontend.can, float(win.t[j - 1]), float(win.t[j]), win.x[j - 1], win.x[j], self.settings, ends
         )
         offset, bound = motion if motion is not None else (0.0, np.nan)
         win.offset[j] = offset
