@@ -171,6 +171,8 @@ class DecodeStats:
     frames_lost: int = 0
     stale: int = 0
     error_frames: int = 0
+    fd_frames: int = 0
+    """CAN FD frames on ids of classic messages (or unused ids): ignored."""
     remote_frames: int = 0
     per_message: dict[str, int] = field(default_factory=dict)
     unused_ids: dict[int, int] = field(default_factory=dict)
@@ -318,6 +320,9 @@ class CanDecoder:
             return None
         key = frame_key(msg.arbitration_id, msg.is_extended_id)
         route = self._routes.get(key)
+        if msg.is_fd and (route is None or not route.message.is_fd):
+            stats.fd_frames += 1
+            return None
         if route is None:
             stats.unused += 1
             ids = stats.unused_ids
