@@ -167,7 +167,7 @@ class Service:
         tasks = [asyncio.create_task(self._read(name, src), name=f"read-{name}") for name, src in self.sources.items()]
         tasks.append(asyncio.create_task(self._estimate(), name="estimate"))
         tasks.append(asyncio.create_task(self._status(), name="status"))
-        tasks.append(asyncio.create_task(self._ready(), name="ready"))
+        ready = asyncio.create_task(self._ready(), name="ready")  # ends by itself: not watched
         try:
             stopper = asyncio.create_task(stop.wait())
             done, _ = await asyncio.wait([stopper, *tasks], return_when=asyncio.FIRST_COMPLETED)
@@ -175,9 +175,9 @@ class Service:
                 if task is not stopper and task.exception() is not None:
                     raise task.exception()  # type: ignore[misc]
         finally:
-            for task in tasks:
+            for task in (*tasks, ready):
                 task.cancel()
-            await asyncio.gather(*tasks, return_exceptions=True)
+            await asyncio.gather(*tasks, ready, return_exceptions=True)
             for src in self.sources.values():
                 close = getattr(src, "close", None)
                 if close is not None:
@@ -329,7 +329,7 @@ class Service:
         down = "".join(
             f" {name}=DOWN({c.get('last_error', '')})"
             for name, c in s["sources"].items()
-            if c.get("connected") is False
+            if c.get("connected") is False and c.get("last_error")
         )
         return (
             f"{rates} fix={s['fix']} gps={s['gps']} mode={s['mode']} window={s['window']} "
