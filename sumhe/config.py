@@ -407,7 +407,8 @@ def _legacy_output(table: Mapping[str, Any], origins: Mapping[str, str], source:
     for f in formats:
         if f not in ("json", "nmea"):
             raise ConfigError(f"{where}: output.formats: unknown format {f!r} (json, nmea)")
-        out[f] = udp
+    for f in ("json", "nmea"):
+        out[f] = udp if f in formats else []
     new = " and ".join(f"{f} = {udp!r}".replace("'", '"') for f in formats)
     log.warning(
         "%s: output.%s: replaced by one destination list per format; write %s under [output]",

@@ -235,8 +235,12 @@ def test_permanent_and_transient_open_errors(err, first, after):
     ("channel", "err", "fix"),
     [
         ("vcan0", ENODEV, "modprobe vcan; ip link add dev vcan0 type vcan; ip link set up vcan0"),
-        ("can1", ENODEV, "plug in the adapter, load its driver, then `ip link set can1 up type can bitrate 250000`"),
-        ("can1", ENETDOWN, "the interface is down: `ip link set can1 up type can bitrate 250000`"),
+        (
+            "can1",
+            ENODEV,
+            "plug in the adapter, load its driver, then `ip link set can1 up type can bitrate 250000 restart-ms 100`",
+        ),
+        ("can1", ENETDOWN, "the interface is down: `ip link set can1 up type can bitrate 250000 restart-ms 100`"),
         ("vcan0", OSError(errno.EAFNOSUPPORT, "x"), "modprobe can_raw"),
     ],
 )

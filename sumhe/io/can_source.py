@@ -122,12 +122,26 @@ def _errno(err: BaseException) -> int | None:
     return None
 
 
+RESTART_MS = 100
+"""Bus-off auto-recovery delay of a real controller (ms) set by :func:`link_commands` (the daemon also reopens
+the bus after bus-off)."""
+
+
+def link_commands(channel: str, bitrate: int | str, exists: bool, up: bool) -> list[list[str]]:
+    """The commands that make a SocketCAN ``channel`` exist and be up: a ``vcan*`` is created (``modprobe vcan``,
+    ``ip link add``) and set up; a real one is (re)started at ``bitrate`` with bus-off auto-recovery."""
+    if channel.startswith("vcan"):
+        create = [] if exists else [["modprobe", "vcan"], ["ip", "link", "add", "dev", channel, "type", "vcan"]]
+        return [*create, *([] if up else [["ip", "link", "set", "up", channel]])]
+    bring_up = ["ip", "link", "set", channel, "up", "type", "can", "bitrate", str(bitrate)]
+    bring_up += ["restart-ms", str(RESTART_MS)]
+    return [*([["ip", "link", "set", channel, "down"]] if up else []), bring_up]
+
+
 def bring_up_hint(settings: CanSettings) -> str:
-    """The commands that create and bring up the configured SocketCAN channel."""
-    ch = settings.channel
-    if ch.startswith("vcan"):
-        return f"modprobe vcan; ip link add dev {ch} type vcan; ip link set up {ch}"
-    return f"ip link set {ch} up type can bitrate {settings.bitrate or 500000}"
+    """The shell commands that create and bring up the configured SocketCAN channel."""
+    commands = link_commands(settings.channel, settings.bitrate or "BITRATE", exists=False, up=False)
+    return "; ".join(" ".join(cmd) for cmd in commands)
 
 
 def explain_open_error(settings: CanSettings, err: BaseException) -> str:
