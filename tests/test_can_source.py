@@ -186,6 +186,7 @@ def test_bus_off_error_frame_reopens_the_bus_and_raw_frames_resume(channel):
     run(main())
 
 
+@pytest.mark.socketcan
 def test_a_socketcan_interface_that_cannot_exist_ends_the_source_with_the_fix():
     """Here the kernel has no AF_CAN (EAFNOSUPPORT); in the CI virtual machine vcan97 does not exist (ENODEV):
     both are permanent at start-up, and the message names interface and channel and says what to do."""
@@ -323,6 +324,7 @@ def test_unknown_interface_and_bad_mapping_fail_at_construction(channel):
         CanBusSource.from_config(config)
 
 
+@pytest.mark.socketcan
 @needs_vcan0()
 def test_socketcan_vcan0_with_kernel_filters():
     async def main():

@@ -88,6 +88,7 @@ def test_a_config_without_yaw_rate_stops_at_start_up_with_the_key(tmp_path, caps
     assert f"error: {config}: can.signals.yaw_rate: not mapped" in capsys.readouterr().err
 
 
+@pytest.mark.socketcan
 def test_a_socketcan_interface_that_cannot_be_opened_exits_1_naming_it_with_the_fix(tmp_path):
     """The default config here (no AF_CAN) and in the CI virtual machine (vcan97 does not exist): both permanent."""
     proc = _sumhe(

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import TextIO
 
 from sumhe.commands.candump import reference_config
-from sumhe.config import load_config
+from sumhe.config import load_config, require_signals
 from sumhe.estimator.registry import make_estimator
 from sumhe.io.replay import log_samples
 from sumhe.io.udp import estimate_to_json
@@ -42,6 +42,7 @@ def _write(out: TextIO, estimates: list[Estimate], solve_ms: list[float]) -> Non
 
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config) if args.config else reference_config()
+    require_signals(config)
     estimator = make_estimator(args.estimator or config.estimator.name, config)
     pipeline = Pipeline(config, estimator)
     solve_ms: list[float] = []

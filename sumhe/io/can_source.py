@@ -160,7 +160,8 @@ def explain_open_error(settings: CanSettings, err: BaseException) -> str:
             if not settings.channel.startswith("vcan"):
                 fix = f"no such interface: plug in the adapter, load its driver, then `{bring_up_hint(settings)}`"
         elif code == errno.ENETDOWN:
-            fix = f"the interface is down: `{bring_up_hint(settings)}`"
+            up = link_commands(settings.channel, settings.bitrate or "BITRATE", exists=True, up=False)
+            fix = f"the interface is down: `{'; '.join(' '.join(c) for c in up)}`"
     if code in NO_PERMISSION:
         fix = "permission denied: run as a user allowed to open it"
     if isinstance(err, can.CanInterfaceNotImplementedError | ImportError) or (

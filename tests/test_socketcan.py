@@ -1,0 +1,286 @@
+"""The daemon on a real SocketCAN bus, vcan0 (``.ci/vcan`` runs these in a virtual machine: this kernel has no
+AF_CAN, so here they skip with the reason).
+
+1. ``sumhe run`` on vcan0 fed by ``sumhe play`` (the simulated drive: a GPS outage and a 50 m jump); mid-drive
+   the link is set down and up again (``ip link``), and CAN FD frames on the speed message's id and error frames
+   are put on the bus. The positions arrive over UDP on 127.0.0.1 and are checked against the truth; the final
+   status says the link loss was recovered from and the foreign frames were counted and ignored.
+2. The same daemon fed by can-utils' ``canplayer`` (a client we did not write; the NMEA from ``sumhe play
+   --no-can`` in step), recorded by ``candump -L vcan0``; the recording is then replayed by ``sumhe replay`` and
+   checked against the truth too.
+3. ``sumhe can-up`` creates and brings up a vcan interface from a config.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import can
+import numpy as np
+import pytest
+
+from sumhe.sim.truth import Truth
+
+from live import (
+    DURATION_S,
+    OUTAGE,
+    SIGNALS,
+    Listener,
+    check_drive,
+    make_drive,
+    sumhe_process,
+    wait_for,
+)
+from vcan import needs_vcan0
+
+pytestmark = [pytest.mark.slow, pytest.mark.socketcan, needs_vcan0()]
+
+SUMHE = [sys.executable, "-m", "sumhe"]
+LINK_DOWN = (25.0, 1.5)
+"""Drive time (s) at which vcan0 is set down, and for how long."""
+FOREIGN_AT_S = 30.0
+FD_FRAMES = 5
+ERROR_FRAMES = 3
+CAN_ERR_CRTL = 0x04
+"""Error class of a controller problem (``linux/can/error.h``): not bus-off, so the bus stays open."""
+SPEED_ID = 0x1A0
+START_MARGIN_S = 12.0
+"""How far ahead the NMEA player of test 2 is told to start (its Python start-up under emulation takes seconds)."""
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory):
+    return make_drive(tmp_path_factory.mktemp("drive"))
+
+
+class StatusListener:
+    """Keeps the newest JSON status datagram the daemon sends (the last one is sent as it stops)."""
+
+    def __init__(self) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.2)
+        self.port = self.sock.getsockname()[1]
+        self.last: dict = {}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self.last = json.loads(self.sock.recv(65535))
+            except TimeoutError:
+                continue
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2)
+        self.sock.close()
+
+
+def _service_config(tmp: Path, json_port: int, status_port: int, latency: float) -> Path:
+    path = tmp / "service.toml"
+    path.write_text(
+        '[can]\ninterface = "socketcan"\nchannel = "vcan0"\ne2e = ["ESP_YAW_RATE", "ESP_VEHICLE_SPEED"]\n'
+        f"reconnect_max_s = 0.5\n{SIGNALS}"
+        f'[gps]\nport = "{tmp / "gps"}"\nlatency_s = {latency}\nreconnect_max_s = 0.5\nreceive_timeout_s = 1.0\n'
+        f'[output]\njson = ["127.0.0.1:{json_port}"]\nstatus_udp = "127.0.0.1:{status_port}"\n'
+        "status_interval_s = 1.0\n"
+    )
+    return path
+
+
+def _player_config(tmp: Path) -> Path:
+    path = tmp / "player.toml"
+    path.write_text('[can]\ninterface = "socketcan"\nchannel = "vcan0"\n')
+    return path
+
+
+def _offset(player_log: Path) -> float:
+    assert wait_for(player_log, "clock offset", 60), player_log.read_text()
+    return float(re.search(r"clock offset (-?\d+\.\d+) s", player_log.read_text()).group(1))
+
+
+def _at(when_unix: float, action) -> threading.Timer:
+    timer = threading.Timer(max(0.0, when_unix - time.time()), action)
+    timer.daemon = True
+    timer.start()
+    return timer
+
+
+def _ip_link(state: str) -> None:
+    subprocess.run(["ip", "link", "set", "vcan0", state], check=True)
+
+
+def _foreign_frames() -> None:
+    """CAN FD frames on the speed message's id (all 0xFF: decoded from their first bytes they would say 655 km/h)
+    and controller error frames, from a bus of our own."""
+    with can.Bus(interface="socketcan", channel="vcan0", fd=True) as bus:
+        for _ in range(FD_FRAMES):
+            bus.send(can.Message(arbitration_id=SPEED_ID, is_extended_id=False, is_fd=True, data=b"\xff" * 64))
+        for _ in range(ERROR_FRAMES):
+            bus.send(can.Message(arbitration_id=CAN_ERR_CRTL, is_error_frame=True, data=bytes(8)))
+
+
+def _stop(service: subprocess.Popen) -> tuple[int, float]:
+    service.send_signal(signal.SIGTERM)
+    t_term = time.monotonic()
+    code = service.wait(20)
+    return code, time.monotonic() - t_term
+
+
+def _per_second(records: list[dict], t0: float, lo: float, hi: float) -> np.ndarray:
+    t = np.array([r["t"] for r in records]) - t0
+    return np.array([np.sum((t >= b) & (t < b + 1)) for b in np.arange(lo, hi)])
+
+
+def test_sumhe_play_on_vcan0_through_link_down_and_foreign_frames(drive, tmp_path):
+    drive_dir, sim = drive
+    listener, status = Listener(None), StatusListener()
+    latency = sim.settings.gps_latency_s + sim.settings.gps_latency_jitter_s / 2
+    svc_log, player_log = tmp_path / "service.log", tmp_path / "player.log"
+    service = sumhe_process(
+        "run", "--config", str(_service_config(tmp_path, listener.port, status.port, latency)), stderr_path=svc_log
+    )
+    timers = []
+    try:
+        assert wait_for(svc_log, "sumhe ready", 120), svc_log.read_text()
+        player = sumhe_process(
+            "play", str(drive_dir), "--config", str(_player_config(tmp_path)), "--pty", str(tmp_path / "gps"),
+            stderr_path=player_log,
+        )  # fmt: skip
+        offset = _offset(player_log)
+        drive_t0 = sim.settings.start_unix_s + offset  # service time of the drive's start
+        timers = [
+            _at(drive_t0 + LINK_DOWN[0], lambda: _ip_link("down")),
+            _at(drive_t0 + LINK_DOWN[0] + LINK_DOWN[1], lambda: _ip_link("up")),
+            _at(drive_t0 + FOREIGN_AT_S, _foreign_frames),
+        ]
+        assert player.wait(DURATION_S + 60) == 0, player_log.read_text()
+        time.sleep(1.5)
+        code, stop_s = _stop(service)
+    finally:
+        for timer in timers:
+            timer.cancel()
+        if service.poll() is None:
+            service.kill()
+        listener.close()
+        status.close()
+        _ip_link("up")
+    svc_text = svc_log.read_text()
+    check_drive(listener.json, code, stop_s, offset, sim, svc_text)
+    can_counters = status.last["sources"]["can"]
+    assert can_counters["reconnects"] >= 1, "the link loss was seen and recovered from"
+    assert (can_counters["fd_frames"], can_counters["error_frames"]) == (FD_FRAMES, ERROR_FRAMES)
+    stopped = next(line for line in svc_text.splitlines() if "sumhe stopped" in line)
+    assert f"error_frames={ERROR_FRAMES} fd_frames={FD_FRAMES}" in stopped
+    assert "Network is down" in svc_text and "ip link set up vcan0" in svc_text, "the loss is logged with the fix"
+    per_second = _per_second(listener.json, sim.settings.start_unix_s + offset, LINK_DOWN[0] + 3.0, DURATION_S - 2)
+    assert per_second.min() >= 40, f"CAN-rate output (50 Hz speed) resumed after the link came back: {per_second}"
+    speeds = [r["speed"] for r in listener.json if r["speed"] is not None]
+    assert max(speeds) < 30.0, "no speed read from the FD frames"
+
+
+def _shifted_truth_errors(records: list[dict], sim, offset: float) -> tuple[np.ndarray, np.ndarray]:
+    """Horizontal errors of estimates on the service clock (drive time + offset) and their drive times."""
+    t = np.array([r["t"] for r in records]) - offset
+    frame = sim.frame
+    enu = frame.to_enu(np.array([r["lat"] for r in records]), np.array([r["lon"] for r in records]), frame.alt0_m)
+    truth: Truth = sim.truth
+    at = truth.at(t)
+    return np.hypot(enu[:, 0] - at.east, enu[:, 1] - at.north), t - sim.settings.start_unix_s
+
+
+@pytest.mark.skipif(shutil.which("canplayer") is None, reason="needs can-utils (canplayer, candump)")
+def test_canplayer_feeds_the_daemon_and_its_candump_recording_replays(drive, tmp_path):
+    drive_dir, sim = drive
+    listener, status = Listener(None), StatusListener()
+    latency = sim.settings.gps_latency_s + sim.settings.gps_latency_jitter_s / 2
+    svc_cfg = _service_config(tmp_path, listener.port, status.port, latency)
+    svc_log, player_log, recording = tmp_path / "service.log", tmp_path / "player.log", tmp_path / "candump.log"
+    service = sumhe_process("run", "--config", str(svc_cfg), stderr_path=svc_log)
+    candump = None
+    try:
+        assert wait_for(svc_log, "sumhe ready", 120), svc_log.read_text()
+        with open(recording, "w") as rec:
+            candump = subprocess.Popen(["candump", "-L", "vcan0"], stdout=rec, stderr=subprocess.DEVNULL)
+        nmea_lines = [ln for ln in (drive_dir / "drive.nmea").read_text().splitlines() if ln.startswith("(")]
+        first_nmea = float(nmea_lines[0][1 : nmea_lines[0].index(")")])
+        log_lines = (drive_dir / "drive.log").read_text().splitlines()
+        first_frame = float(log_lines[0][1 : log_lines[0].index(")")])
+        start_at = time.time() + START_MARGIN_S
+        player = sumhe_process(
+            "play", str(drive_dir), "--config", str(_player_config(tmp_path)), "--no-can",
+            "--pty", str(tmp_path / "gps"), "--start-at", f"{start_at:.6f}", stderr_path=player_log,
+        )  # fmt: skip
+        # canplayer replays the log's time differences from its first frame, which comes before the first NMEA
+        # line: start it that much earlier, and 20 ms more, so CAN leads rather than lags the GNSS
+        time.sleep(max(0.0, start_at + (first_frame - first_nmea) - 0.02 - time.time()))
+        canplayer = subprocess.run(
+            ["canplayer", "-I", str(drive_dir / "drive.log"), "vcan0=can0"],
+            capture_output=True,
+            text=True,
+            timeout=DURATION_S + 60,
+        )
+        assert canplayer.returncode == 0, canplayer.stderr
+        assert player.wait(30) == 0, player_log.read_text()
+        time.sleep(1.5)
+        code, stop_s = _stop(service)
+    finally:
+        if candump is not None:
+            candump.send_signal(signal.SIGINT)
+            candump.wait(10)
+        if service.poll() is None:
+            service.kill()
+        listener.close()
+        status.close()
+    nmea_offset = _offset(player_log)
+    recorded = recording.read_text().splitlines()
+    assert len(recorded) == len(log_lines), "candump recorded every frame canplayer sent"
+    can_offset = float(recorded[0][1 : recorded[0].index(")")]) - first_frame
+    lead = nmea_offset - can_offset
+    assert -0.1 < lead < 0.1, f"CAN and NMEA players in step (CAN leads by {lead * 1000:.0f} ms)"
+    check_drive(listener.json, code, stop_s, nmea_offset, sim, svc_log.read_text())
+    assert status.last["sources"]["can"]["frames"] > 0.5 * len(log_lines)
+
+    # the recording replayed: the NMEA log moved onto the recording's clock, as the daemon saw it
+    out = tmp_path / "replay.jsonl"
+    replay = subprocess.run(
+        [*SUMHE, "replay", str(recording), "--nmea", str(drive_dir / "drive.nmea"), "--offset", f"{nmea_offset}",
+         "--config", str(svc_cfg), "--out", str(out)],
+        capture_output=True, text=True, timeout=300, env=dict(os.environ, OPENBLAS_NUM_THREADS="1"),
+    )  # fmt: skip
+    assert replay.returncode == 0, replay.stderr
+    records = [json.loads(line) for line in out.read_text().splitlines()]
+    assert len(records) > 0.9 * len(listener.json)
+    err, t = _shifted_truth_errors(records, sim, nmea_offset)
+    gps = np.array([r["gps"] for r in records])
+    inside = (t > OUTAGE[0] + 0.3) & (t < OUTAGE[0] + OUTAGE[1] - 0.2)
+    assert np.mean(err[(t > 5.0) & (gps == "ok")]) < 2.5
+    assert np.max(err[inside]) < 12.0
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="creating a network interface needs root")
+def test_can_up_creates_and_brings_up_the_configured_vcan(tmp_path):
+    config = tmp_path / "c.toml"
+    config.write_text('[can]\ninterface = "socketcan"\nchannel = "vcan5"\n')
+    try:
+        done = subprocess.run([*SUMHE, "can-up", "--config", str(config)], capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr
+        assert "ip link add dev vcan5 type vcan" in done.stdout
+        assert int(Path("/sys/class/net/vcan5/flags").read_text(), 16) & 0x1
+        again = subprocess.run([*SUMHE, "can-up", "--config", str(config)], capture_output=True, text=True)
+        assert again.returncode == 0 and again.stdout == "" and "nothing to do" in again.stderr
+    finally:
+        subprocess.run(["ip", "link", "del", "vcan5"], check=False)
