@@ -60,7 +60,8 @@ def make_drive(d: Path):
 
 
 class Listener:
-    """Receives sumhe's datagrams on 127.0.0.1: JSON kept, NMEA forwarded to gpsd (when it runs)."""
+    """Receives sumhe's datagrams on 127.0.0.1: JSON estimates kept, the newest JSON status in ``status`` (the
+    daemon sends its last one as it stops), NMEA forwarded to gpsd (when it runs)."""
 
     def __init__(self, forward_port: int | None) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -68,6 +69,7 @@ class Listener:
         self.sock.settimeout(0.2)
         self.port = self.sock.getsockname()[1]
         self.json: list[dict] = []
+        self.status: dict = {}
         self.nmea = 0
         self.forward_port = forward_port
         self._out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -82,7 +84,11 @@ class Listener:
             except TimeoutError:
                 continue
             if data.startswith(b"{"):
-                self.json.append(json.loads(data))
+                obj = json.loads(data)
+                if obj.get("class") == "STATUS":
+                    self.status = obj
+                else:
+                    self.json.append(obj)
             else:
                 self.nmea += 1
                 if self.forward_port:

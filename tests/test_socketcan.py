@@ -18,7 +18,6 @@ import os
 import re
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -63,39 +62,14 @@ def drive(tmp_path_factory):
     return make_drive(tmp_path_factory.mktemp("drive"))
 
 
-class StatusListener:
-    """Keeps the newest JSON status datagram the daemon sends (the last one is sent as it stops)."""
-
-    def __init__(self) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(0.2)
-        self.port = self.sock.getsockname()[1]
-        self.last: dict = {}
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                self.last = json.loads(self.sock.recv(65535))
-            except TimeoutError:
-                continue
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(2)
-        self.sock.close()
-
-
-def _service_config(tmp: Path, json_port: int, status_port: int, latency: float) -> Path:
+def _service_config(tmp: Path, port: int, latency: float) -> Path:
+    """The daemon on vcan0 sending its JSON estimates and status to ``port``."""
     path = tmp / "service.toml"
     path.write_text(
         '[can]\ninterface = "socketcan"\nchannel = "vcan0"\ne2e = ["ESP_YAW_RATE", "ESP_VEHICLE_SPEED"]\n'
         f"reconnect_max_s = 0.5\n{SIGNALS}"
         f'[gps]\nport = "{tmp / "gps"}"\nlatency_s = {latency}\nreconnect_max_s = 0.5\nreceive_timeout_s = 1.0\n'
-        f'[output]\njson = ["127.0.0.1:{json_port}"]\nstatus_udp = "127.0.0.1:{status_port}"\n'
+        f'[output]\njson = ["127.0.0.1:{port}"]\nstatus_udp = "127.0.0.1:{port}"\n'
         "status_interval_s = 1.0\n"
     )
     return path
@@ -147,11 +121,11 @@ def _per_second(records: list[dict], t0: float, lo: float, hi: float) -> np.ndar
 
 def test_sumhe_play_on_vcan0_through_link_down_and_foreign_frames(drive, tmp_path):
     drive_dir, sim = drive
-    listener, status = Listener(None), StatusListener()
+    listener = Listener(None)
     latency = sim.settings.gps_latency_s + sim.settings.gps_latency_jitter_s / 2
     svc_log, player_log = tmp_path / "service.log", tmp_path / "player.log"
     service = sumhe_process(
-        "run", "--config", str(_service_config(tmp_path, listener.port, status.port, latency)), stderr_path=svc_log
+        "run", "--config", str(_service_config(tmp_path, listener.port, latency)), stderr_path=svc_log
     )
     timers = []
     try:
@@ -176,11 +150,10 @@ def test_sumhe_play_on_vcan0_through_link_down_and_foreign_frames(drive, tmp_pat
         if service.poll() is None:
             service.kill()
         listener.close()
-        status.close()
         _ip_link("up")
     svc_text = svc_log.read_text()
     check_drive(listener.json, code, stop_s, offset, sim, svc_text)
-    can_counters = status.last["sources"]["can"]
+    can_counters = listener.status["sources"]["can"]
     assert can_counters["reconnects"] >= 1, "the link loss was seen and recovered from"
     assert (can_counters["fd_frames"], can_counters["error_frames"]) == (FD_FRAMES, ERROR_FRAMES)
     stopped = next(line for line in svc_text.splitlines() if "sumhe stopped" in line)
@@ -205,9 +178,9 @@ def _shifted_truth_errors(records: list[dict], sim, offset: float) -> tuple[np.n
 @pytest.mark.skipif(shutil.which("canplayer") is None, reason="needs can-utils (canplayer, candump)")
 def test_canplayer_feeds_the_daemon_and_its_candump_recording_replays(drive, tmp_path):
     drive_dir, sim = drive
-    listener, status = Listener(None), StatusListener()
+    listener = Listener(None)
     latency = sim.settings.gps_latency_s + sim.settings.gps_latency_jitter_s / 2
-    svc_cfg = _service_config(tmp_path, listener.port, status.port, latency)
+    svc_cfg = _service_config(tmp_path, listener.port, latency)
     svc_log, player_log, recording = tmp_path / "service.log", tmp_path / "player.log", tmp_path / "candump.log"
     service = sumhe_process("run", "--config", str(svc_cfg), stderr_path=svc_log)
     candump = None
@@ -244,7 +217,6 @@ def test_canplayer_feeds_the_daemon_and_its_candump_recording_replays(drive, tmp
         if service.poll() is None:
             service.kill()
         listener.close()
-        status.close()
     nmea_offset = _offset(player_log)
     recorded = recording.read_text().splitlines()
     assert len(recorded) == len(log_lines), "candump recorded every frame canplayer sent"
@@ -252,7 +224,7 @@ def test_canplayer_feeds_the_daemon_and_its_candump_recording_replays(drive, tmp
     lead = nmea_offset - can_offset
     assert -0.1 < lead < 0.1, f"CAN and NMEA players in step (CAN leads by {lead * 1000:.0f} ms)"
     check_drive(listener.json, code, stop_s, nmea_offset, sim, svc_log.read_text())
-    assert status.last["sources"]["can"]["frames"] > 0.5 * len(log_lines)
+    assert listener.status["sources"]["can"]["frames"] > 0.5 * len(log_lines)
 
     # the recording replayed: the NMEA log moved onto the recording's clock, as the daemon saw it
     out = tmp_path / "replay.jsonl"
