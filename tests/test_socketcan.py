@@ -129,7 +129,7 @@ def test_sumhe_play_on_vcan0_through_link_down_and_foreign_frames(drive, tmp_pat
     )
     timers = []
     try:
-        assert wait_for(svc_log, "sumhe ready", 120), svc_log.read_text()
+        assert wait_for(svc_log, "can: opened socketcan vcan0", 120), svc_log.read_text()  # gps: the player's pty
         player = sumhe_process(
             "play", str(drive_dir), "--config", str(_player_config(tmp_path)), "--pty", str(tmp_path / "gps"),
             stderr_path=player_log,
@@ -185,7 +185,7 @@ def test_canplayer_feeds_the_daemon_and_its_candump_recording_replays(drive, tmp
     service = sumhe_process("run", "--config", str(svc_cfg), stderr_path=svc_log)
     candump = None
     try:
-        assert wait_for(svc_log, "sumhe ready", 120), svc_log.read_text()
+        assert wait_for(svc_log, "can: opened socketcan vcan0", 120), svc_log.read_text()  # gps: the player's pty
         with open(recording, "w") as rec:
             candump = subprocess.Popen(["candump", "-L", "vcan0"], stdout=rec, stderr=subprocess.DEVNULL)
         nmea_lines = [ln for ln in (drive_dir / "drive.nmea").read_text().splitlines() if ln.startswith("(")]

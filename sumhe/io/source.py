@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import threading
+import time
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import AsyncIterator
@@ -26,6 +27,9 @@ from typing import Generic, TypeVar
 from sumhe.errors import SourceError
 
 log = logging.getLogger(__name__)
+
+REPEAT_LOG_S = 60.0
+"""The same open or read failure, repeating while a device is away, is logged at most this often (s)."""
 
 T = TypeVar("T")
 
@@ -118,6 +122,7 @@ class ThreadedSource(ABC, Generic[T]):
         self._thread: threading.Thread | None = None
         self._queue: DropOldestQueue[T] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._next_repeat_log = 0.0
 
     @abstractmethod
     def _open(self) -> None:
@@ -221,11 +226,22 @@ class ThreadedSource(ABC, Generic[T]):
         self._loop.call_soon_threadsafe(self._queue.fail, error)
 
     def _note_failure(self, what: str, err: Exception) -> None:
+        """Count, log (a new failure at once, the same one again at most every ``REPEAT_LOG_S``), back off."""
         self.stats.errors += 1
-        self.stats.last_error = f"{what}: {err}"
+        last, self.stats.last_error = self.stats.last_error, f"{what}: {err}"
         delay = self._backoff.next_delay()
         self.stats.reconnects += 1
-        log.warning("%s: %s failed: %s; retrying in %.1f s", self.name, what, self._explain(err), delay)
+        now = time.monotonic()
+        if self.stats.last_error != last or now >= self._next_repeat_log:
+            self._next_repeat_log = now + REPEAT_LOG_S
+            log.warning(
+                "%s: %s failed: %s; retrying in %.1f s (%d failures so far)",
+                self.name,
+                what,
+                self._explain(err),
+                delay,
+                self.stats.errors,
+            )
         self._stop.wait(delay)
 
     def _safe_close(self) -> None:
