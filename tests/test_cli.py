@@ -73,7 +73,8 @@ def test_the_daemon_says_starting_ready_status_and_stopped_at_the_default_level(
     assert status["class"] == "STATUS" and status["sources"]["can"]["connected"] is True
     assert {"fd_frames", "error_frames", "reconnects"} <= set(status["sources"]["can"])
     lines = err.splitlines()
-    order = ["sumhe 0.1.0 starting: estimator mhe; reading can virtual sumhe-cli-test", "sumhe ready:", "status:"]
+    starting = "sumhe starting (version 0.1.0): estimator mhe; reading can virtual sumhe-cli-test"
+    order = [starting, "sumhe ready:", "status:"]
     found = [next(i for i, line in enumerate(lines) if want in line) for want in order]
     assert found == sorted(found), err
     assert re.search(r"sumhe stopped after \d+\.\d s: can=0Hz gps=0Hz fix=no fix yet", err)

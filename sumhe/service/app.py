@@ -158,7 +158,7 @@ class Service:
 
     async def run(self, stop: asyncio.Event) -> None:
         """Run until ``stop`` is set; everything is closed when this returns."""
-        log.info("sumhe %s starting: %s", __version__, self.summary())
+        log.info("sumhe starting (version %s): %s", __version__, self.summary())
         log.info("config: %s", json.dumps(describe(self.config), default=str))
         for src in self.sources.values():
             start = getattr(src, "start", None)
