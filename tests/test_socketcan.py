@@ -5,8 +5,8 @@ AF_CAN, so here they skip with the reason).
    the link is set down and up again (``ip link``), and CAN FD frames on the speed message's id and error frames
    are put on the bus. The positions arrive over UDP on 127.0.0.1 and are checked against the truth; the final
    status says the link loss was recovered from and the foreign frames were counted and ignored.
-2. The same daemon fed by can-utils' ``canplayer`` (a client we did not write; the NMEA from ``sumhe play
-   --no-can`` in step), recorded by ``candump -L vcan0``; the recording is then replayed by ``sumhe replay`` and
+2. The same daemon fed by can-utils' ``canplayer`` (a client we did not write; the NMEA played into its pty in
+   step), recorded by ``candump -L vcan0``; the recording is then replayed by ``sumhe replay`` and
    checked against the truth too.
 3. ``sumhe can-up`` creates and brings up a vcan interface from a config.
 """
@@ -28,6 +28,7 @@ import can
 import numpy as np
 import pytest
 
+from sumhe.io.player import Player, Pty, read_nmea_log
 from sumhe.sim.truth import Truth
 
 from live import (
@@ -152,7 +153,9 @@ def test_sumhe_play_on_vcan0_through_link_down_and_foreign_frames(drive, tmp_pat
         listener.close()
         _ip_link("up")
     svc_text = svc_log.read_text()
-    check_drive(listener.json, code, stop_s, offset, sim, svc_text, MAX_STOP_S)
+    # under emulation the estimator falls behind when CAN stops, and skips the epochs of the gap (issue 15)
+    link_gap = (LINK_DOWN[0], LINK_DOWN[0] + LINK_DOWN[1] + 1.0)
+    check_drive(listener.json, code, stop_s, offset, sim, svc_text, MAX_STOP_S, gap=link_gap)
     can_counters = listener.status["sources"]["can"]
     assert can_counters["reconnects"] >= 1, "the link loss was seen and recovered from"
     assert (can_counters["fd_frames"], can_counters["error_frames"]) == (FD_FRAMES, ERROR_FRAMES)
@@ -177,56 +180,52 @@ def _shifted_truth_errors(records: list[dict], sim, offset: float) -> tuple[np.n
 
 @pytest.mark.skipif(shutil.which("canplayer") is None, reason="needs can-utils (canplayer, candump)")
 def test_canplayer_feeds_the_daemon_and_its_candump_recording_replays(drive, tmp_path):
+    """canplayer replays the CAN log; the NMEA goes into the daemon's pty from this process, started when the first
+    frame is on the bus (by its kernel time), so both keep the drive's timing."""
     drive_dir, sim = drive
     listener = Listener(None)
     latency = sim.settings.gps_latency_s + sim.settings.gps_latency_jitter_s / 2
     svc_cfg = _service_config(tmp_path, listener.port, latency)
-    svc_log, player_log, recording = tmp_path / "service.log", tmp_path / "player.log", tmp_path / "candump.log"
-    launched = time.monotonic()
+    svc_log, recording = tmp_path / "service.log", tmp_path / "candump.log"
+    log_lines = (drive_dir / "drive.log").read_text().splitlines()
+    first_frame = float(log_lines[0][1 : log_lines[0].index(")")])
+    pty = Pty(tmp_path / "gps")
+    nmea = Player([], read_nmea_log(drive_dir / "drive.nmea"), None, pty)
     service = sumhe_process("run", "--config", str(svc_cfg), stderr_path=svc_log)
-    candump = None
+    candump = canplayer = None
     try:
-        assert wait_for(svc_log, "can: opened socketcan vcan0", 120), svc_log.read_text()  # gps: the player's pty
-        startup_s = time.monotonic() - launched
+        assert wait_for(svc_log, "sumhe ready", 120), svc_log.read_text()
         with open(recording, "w") as rec:
             candump = subprocess.Popen(["candump", "-L", "vcan0"], stdout=rec, stderr=subprocess.DEVNULL)
-        nmea_lines = [ln for ln in (drive_dir / "drive.nmea").read_text().splitlines() if ln.startswith("(")]
-        first_nmea = float(nmea_lines[0][1 : nmea_lines[0].index(")")])
-        log_lines = (drive_dir / "drive.log").read_text().splitlines()
-        first_frame = float(log_lines[0][1 : log_lines[0].index(")")])
-        start_at = time.time() + 1.5 * startup_s + 2.0  # the player's start-up takes less than the daemon's
-        player = sumhe_process(
-            "play", str(drive_dir), "--config", str(_player_config(tmp_path)), "--no-can",
-            "--pty", str(tmp_path / "gps"), "--start-at", f"{start_at:.6f}", stderr_path=player_log,
-        )  # fmt: skip
-        assert wait_for(player_log, "playing", start_at - time.time() - 0.5), "the NMEA player was not ready in time"
-        # canplayer replays the log's time differences from its first frame, which comes before the first NMEA
-        # line: start it that much earlier, and 20 ms more, so CAN leads rather than lags the GNSS
-        time.sleep(max(0.0, start_at + (first_frame - first_nmea) - 0.02 - time.time()))
-        canplayer = subprocess.run(
-            ["canplayer", "-I", str(drive_dir / "drive.log"), "vcan0=can0"],
-            capture_output=True,
-            text=True,
-            timeout=DURATION_S + 60,
-        )
-        assert canplayer.returncode == 0, canplayer.stderr
-        assert player.wait(30) == 0, player_log.read_text()
+        with can.Bus(interface="socketcan", channel="vcan0") as watch:
+            canplayer = subprocess.Popen(
+                ["canplayer", "-I", str(drive_dir / "drive.log"), "vcan0=can0"], stderr=subprocess.PIPE, text=True
+            )
+            first = watch.recv(60)
+        assert first is not None, "canplayer sent nothing"
+        can_offset = first.timestamp - first_frame  # service time = drive time + offset
+        time.sleep(max(0.0, nmea.t0 + can_offset - time.time()))
+        nmea.start()
+        assert canplayer.wait(DURATION_S + 60) == 0, canplayer.stderr.read()
+        assert nmea.join(30)
         time.sleep(1.5)
         code, stop_s = _stop(service)
     finally:
-        if candump is not None:
-            candump.send_signal(signal.SIGINT)
-            candump.wait(10)
+        nmea.stop()
+        pty.close()
+        for proc in (candump, canplayer):
+            if proc is not None and proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+                proc.wait(10)
         if service.poll() is None:
             service.kill()
         listener.close()
-    nmea_offset = _offset(player_log)
+    nmea_offset = nmea.start_t - nmea.t0
+    lead = nmea_offset - can_offset
+    assert -0.1 < lead < 0.1, f"CAN and NMEA in step (CAN leads by {lead * 1000:.0f} ms)"
+    check_drive(listener.json, code, stop_s, nmea_offset, sim, svc_log.read_text(), MAX_STOP_S)
     recorded = recording.read_text().splitlines()
     assert len(recorded) == len(log_lines), "candump recorded every frame canplayer sent"
-    can_offset = float(recorded[0][1 : recorded[0].index(")")]) - first_frame
-    lead = nmea_offset - can_offset
-    assert -0.1 < lead < 0.1, f"CAN and NMEA players in step (CAN leads by {lead * 1000:.0f} ms)"
-    check_drive(listener.json, code, stop_s, nmea_offset, sim, svc_log.read_text(), MAX_STOP_S)
     assert listener.status["sources"]["can"]["frames"] > 0.5 * len(log_lines)
 
     # the recording replayed: the NMEA log moved onto the recording's clock, as the daemon saw it

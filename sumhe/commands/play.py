@@ -4,8 +4,7 @@ CAN frames go onto the bus of ``[can]`` in the config (e.g. ``vcan0`` or a ``udp
 are written into a new pseudo-terminal reachable at ``--pty`` (a symlink), which a service reads as its serial
 port (``gps.port``). Runs at real time (``--speed 1``) unless told otherwise. ``--reopen-pty-at S`` closes the
 pseudo-terminal S seconds into the drive and opens a new one at the same path (an unplugged receiver);
-``--can-silence START+LEN`` stops sending CAN for LEN seconds (a bus that went down). ``--start-at UNIX`` waits
-until then to start (``--no-can`` plays the NMEA while can-utils' ``canplayer`` plays the CAN log in step).
+``--can-silence START+LEN`` stops sending CAN for LEN seconds (a bus that went down).
 """
 
 from __future__ import annotations
@@ -15,7 +14,6 @@ import logging
 import signal
 import sys
 import threading
-import time
 from pathlib import Path
 
 import can
@@ -51,12 +49,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-can", action="store_true", help="play the NMEA only")
     parser.add_argument("--reopen-pty-at", type=float, metavar="S", help="unplug and replug the pty S s in")
     parser.add_argument("--can-silence", type=_span, metavar="START+LEN", help="no CAN frames for LEN s from START")
-    parser.add_argument(
-        "--start-at",
-        type=float,
-        metavar="UNIX",
-        help="start playing at this Unix time (to run in step with another player, e.g. can-utils' canplayer)",
-    )
 
 
 def _drive_files(args: argparse.Namespace) -> tuple[Path, Path | None]:
@@ -110,8 +102,6 @@ def run(args: argparse.Namespace) -> int:
         file=sys.stderr,
         flush=True,
     )
-    if args.start_at is not None:
-        time.sleep(max(0.0, args.start_at - time.time()))
     try:
         player.run()
     finally:
