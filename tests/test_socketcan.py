@@ -54,6 +54,10 @@ ERROR_FRAMES = 3
 CAN_ERR_CRTL = 0x04
 """Error class of a controller problem (``linux/can/error.h``): not bus-off, so the bus stays open."""
 SPEED_ID = 0x1A0
+ESTIMATOR = "ekf"
+"""The estimator of these tests, which are about the SocketCAN path: under emulation on shared cores (the CI
+virtual machine: Python runs ~10x slower) the MHE falls behind real time and skips epochs; the EKF keeps up. The MHE
+runs the same live path on the host over udp_multicast (test_e2e.py)."""
 MAX_STOP_S = 10.0
 """SIGTERM to exit (s): under emulation (the CI virtual machine) the last solves and thread joins take seconds."""
 
@@ -71,7 +75,7 @@ def _service_config(tmp: Path, port: int, latency: float) -> Path:
         f"reconnect_max_s = 0.5\n{SIGNALS}"
         f'[gps]\nport = "{tmp / "gps"}"\nlatency_s = {latency}\nreconnect_max_s = 0.5\nreceive_timeout_s = 1.0\n'
         f'[output]\njson = ["127.0.0.1:{port}"]\nstatus_udp = "127.0.0.1:{port}"\n'
-        "status_interval_s = 1.0\n"
+        f'status_interval_s = 1.0\n[estimator]\nname = "{ESTIMATOR}"\n'
     )
     return path
 
@@ -130,7 +134,7 @@ def test_sumhe_play_on_vcan0_through_link_down_and_foreign_frames(drive, tmp_pat
     )
     timers = []
     try:
-        assert wait_for(svc_log, "can: opened socketcan vcan0", 120), svc_log.read_text()  # gps: the player's pty
+        assert wait_for(svc_log, "can: opened socketcan vcan0", 240), svc_log.read_text()  # gps: the player's pty
         player = sumhe_process(
             "play", str(drive_dir), "--config", str(_player_config(tmp_path)), "--pty", str(tmp_path / "gps"),
             stderr_path=player_log,
@@ -153,9 +157,7 @@ def test_sumhe_play_on_vcan0_through_link_down_and_foreign_frames(drive, tmp_pat
         listener.close()
         _ip_link("up")
     svc_text = svc_log.read_text()
-    # under emulation the estimator falls behind when CAN stops, and skips the epochs of the gap (issue 15)
-    link_gap = (LINK_DOWN[0], LINK_DOWN[0] + LINK_DOWN[1] + 1.0)
-    check_drive(listener.json, code, stop_s, offset, sim, svc_text, MAX_STOP_S, gap=link_gap)
+    check_drive(listener.json, code, stop_s, offset, sim, svc_text, MAX_STOP_S)
     can_counters = listener.status["sources"]["can"]
     assert can_counters["reconnects"] >= 1, "the link loss was seen and recovered from"
     assert (can_counters["fd_frames"], can_counters["error_frames"]) == (FD_FRAMES, ERROR_FRAMES)
@@ -194,7 +196,7 @@ def test_canplayer_feeds_the_daemon_and_its_candump_recording_replays(drive, tmp
     service = sumhe_process("run", "--config", str(svc_cfg), stderr_path=svc_log)
     candump = canplayer = None
     try:
-        assert wait_for(svc_log, "sumhe ready", 120), svc_log.read_text()
+        assert wait_for(svc_log, "sumhe ready", 240), svc_log.read_text()
         with open(recording, "w") as rec:
             candump = subprocess.Popen(["candump", "-L", "vcan0"], stdout=rec, stderr=subprocess.DEVNULL)
         with can.Bus(interface="socketcan", channel="vcan0") as watch:
