@@ -98,7 +98,7 @@ def test_a_socketcan_interface_that_cannot_be_opened_exits_1_naming_it_with_the_
         str(REPO / "configs" / "default.toml"),
         env={"SUMHE_CAN__CHANNEL": "vcan97", "SUMHE_GPS__PORT": str(tmp_path / "no-gps")},
     )
-    _, err = proc.communicate(timeout=120)
+    _, err = proc.communicate(timeout=300)
     assert proc.returncode == 1, err
     last = err.strip().splitlines()[-1]
     assert last.startswith("error: can: cannot use socketcan channel 'vcan97': ")
