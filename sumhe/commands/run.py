@@ -28,9 +28,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 async def serve(args: argparse.Namespace) -> None:
     config = load_config(args.config)
-    require_signals(config)
     name = args.estimator or config.estimator.name
     check_live(name)
+    require_signals(config)
     sources = {"can": CanBusSource.from_config(config), "gps": SerialNmeaSource(config.gps)}
     estimator = make_estimator(name, config)
     stop = asyncio.Event()
