@@ -112,7 +112,13 @@ def _foreign_frames() -> None:
             bus.send(can.Message(arbitration_id=CAN_ERR_CRTL, is_error_frame=True, data=bytes(8)))
 
 
-def _stop(service: subprocess.Popen) -> tuple[int, float]:
+def _stop(service: subprocess.Popen, listener: Listener) -> tuple[int, float]:
+    """SIGTERM once the daemon has sent everything (under emulation it may lag real time by seconds)."""
+    count, quiet_since, deadline = -1, time.monotonic(), time.monotonic() + 120
+    while time.monotonic() - quiet_since < 3.0 and time.monotonic() < deadline:
+        if len(listener.json) != count:
+            count, quiet_since = len(listener.json), time.monotonic()
+        time.sleep(0.2)
     service.send_signal(signal.SIGTERM)
     t_term = time.monotonic()
     code = service.wait(20)
@@ -147,8 +153,7 @@ def test_sumhe_play_on_vcan0_through_link_down_and_foreign_frames(drive, tmp_pat
             _at(drive_t0 + FOREIGN_AT_S, _foreign_frames),
         ]
         assert player.wait(DURATION_S + 60) == 0, player_log.read_text()
-        time.sleep(1.5)
-        code, stop_s = _stop(service)
+        code, stop_s = _stop(service, listener)
     finally:
         for timer in timers:
             timer.cancel()
@@ -211,8 +216,7 @@ def test_canplayer_feeds_the_daemon_and_its_candump_recording_replays(drive, tmp
         nmea.start()
         assert canplayer.wait(DURATION_S + 60) == 0, canplayer.stderr.read()
         assert nmea.join(30)
-        time.sleep(1.5)
-        code, stop_s = _stop(service)
+        code, stop_s = _stop(service, listener)
     finally:
         nmea.stop()
         pty.close()
