@@ -1,9 +1,10 @@
 """Configuration: one TOML file loaded once into frozen, validated settings.
 
 This is the only module that reads configuration files or the environment. Precedence:
-overrides (CLI) > environment (``SUMHE_<SECTION>__<KEY>``, e.g. ``SUMHE_CAN__CHANNEL=vcan1``) > file >
-defaults. Every error is a :class:`~sumhe.errors.ConfigError` naming the key and where it was set: the file,
-the environment variable (``SUMHE_CAN__CHANEL`` for a typo there), or the command line.
+overrides (CLI) > environment (``SUMHE_<SECTION>__<KEY>``, e.g. ``SUMHE_CAN__CHANNEL=vcan1``; a nested table's
+key with one ``__`` per level, ``SUMHE_ESTIMATOR__MHE__STEPS=80``) > file > defaults. Every error is a
+:class:`~sumhe.errors.ConfigError` naming the key and where it was set: the file, the environment variable
+(``SUMHE_CAN__CHANEL`` for a typo there), or the command line.
 """
 
 from __future__ import annotations
@@ -21,8 +22,9 @@ from pathlib import Path
 from typing import Any, Union
 
 from sumhe.errors import ConfigError
-from sumhe.estimator.settings import EstimatorSettings
-from sumhe.messages import CAN_QUANTITIES
+from sumhe.messages import CAN_QUANTITIES, GNSS_QUANTITIES
+from sumhe.settings import EstimationSettings, EstimatorSettings, SensorSettings, VehicleSettings
+from sumhe.settings.moved import MOVED
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -44,13 +46,18 @@ def default_can_interface() -> str:
 class SignalSpec:
     """Where one quantity lives in the DBC: ``MESSAGE.SIGNAL``; unit from the DBC unless overridden.
 
-    ``scale`` multiplies the SI value (use -1 to flip a sign convention).
+    ``scale`` multiplies the SI value (use -1 to flip a sign convention). ``channel`` restricts the quantity to
+    frames of that bus channel (as the log or interface names it: ``1``, ``"can0"``; compared as text), for logs
+    of several buses whose ids repeat; None takes the frames of every channel. ``valid`` names a signal of the
+    same message that flags the value: the value is used only when that signal is non-zero.
     """
 
     message: str
     signal: str
     scale: float = 1.0
     unit: str | None = None
+    channel: str | None = None
+    valid: str | None = None
 
     @property
     def name(self) -> str:
@@ -59,10 +66,13 @@ class SignalSpec:
 
 @dataclass(frozen=True, slots=True)
 class CanSettings:
+    """The CAN bus and its decoding. ``dbc`` is one database file or a list of them (e.g. the car's OBD-II
+    replies and a logger's own sensors); a message name is looked up in all of them."""
+
     interface: str = field(default_factory=default_can_interface)
     channel: str = "vcan0"
     bitrate: int | None = None
-    dbc: str = DEFAULT_DBC
+    dbc: str | tuple[str, ...] = DEFAULT_DBC
     dbc_strict: bool = True
     receive_timeout_s: float = 1.0
     queue_size: int = 2000
@@ -75,17 +85,29 @@ class CanSettings:
         _positive(self, "receive_timeout_s", "queue_size", "reconnect_max_s")
         if self.bitrate is not None and self.bitrate <= 0:
             raise ValueError("bitrate: must be positive")
+        if not self.dbc_files or not all(self.dbc_files):
+            raise ValueError("dbc: name at least one database file")
+
+    @property
+    def dbc_files(self) -> tuple[str, ...]:
+        """``dbc`` as a tuple of file names."""
+        return (self.dbc,) if isinstance(self.dbc, str) else self.dbc
 
 
 @dataclass(frozen=True, slots=True)
 class GpsSettings:
-    """The GNSS receiver: a serial ``port`` (a device, or a pyserial URL such as ``socket://host:port``).
+    """The GNSS receiver. ``source = "nmea"``: NMEA on a serial ``port`` (a device, or a pyserial URL such as
+    ``socket://host:port``), or an NMEA log in a replay. ``source = "can"``: fixes decoded from CAN frames by the
+    ``signals`` mapping (quantities :data:`~sumhe.messages.GNSS_QUANTITIES`; ``lat`` and ``lon`` needed), one fix
+    per epoch (:mod:`sumhe.io.can_gnss`): the frames of one epoch arrive within ``epoch_span_s`` of its first.
 
     ``time`` says which time a fix's position refers to on the service clock: ``"utc"``, the fix's own UTC time
     of fix when it lies within ``max_clock_offset_s`` of its receive time (a service clock on UTC: NTP live,
-    recorded logs), else ``receive time - latency_s``; ``"receive"``, always ``receive time - latency_s``.
+    recorded logs), else ``receive time - latency_s``; ``"receive"``, always ``receive time - latency_s``. The
+    receive time of a fix from CAN is the timestamp of the frame carrying its position.
     """
 
+    source: str = "nmea"
     port: str | None = "/dev/ttyUSB0"
     baudrate: int = 115200
     time: str = "utc"
@@ -94,13 +116,23 @@ class GpsSettings:
     receive_timeout_s: float = 2.0
     queue_size: int = 200
     reconnect_max_s: float = 5.0
+    signals: Mapping[str, SignalSpec] = field(default_factory=dict)
+    epoch_span_s: float = 0.1
 
     def __post_init__(self) -> None:
-        _positive(self, "baudrate", "receive_timeout_s", "queue_size", "reconnect_max_s", "max_clock_offset_s")
+        _positive(
+            self, "baudrate", "receive_timeout_s", "queue_size", "reconnect_max_s", "max_clock_offset_s", "epoch_span_s"
+        )
         if self.time not in ("utc", "receive"):
             raise ValueError("time: must be 'utc' or 'receive'")
         if not 0.0 <= self.latency_s <= 5.0:
             raise ValueError("latency_s: must be within [0, 5] s")
+        if self.source not in ("nmea", "can"):
+            raise ValueError("source: must be 'nmea' or 'can'")
+        if self.source == "can" and not {"lat", "lon"} <= set(self.signals):
+            raise ValueError("signals: gps.source = 'can' needs lat and lon (e.g. lat = 'MESSAGE.SIGNAL')")
+        if self.source == "nmea" and self.signals:
+            raise ValueError("signals: read only with gps.source = 'can'")
 
 
 @dataclass(frozen=True, slots=True)
@@ -167,9 +199,13 @@ class Config:
     gps: GpsSettings = field(default_factory=GpsSettings)
     datum: DatumSettings = field(default_factory=DatumSettings)
     output: OutputSettings = field(default_factory=OutputSettings)
+    vehicle: VehicleSettings = field(default_factory=VehicleSettings)
+    sensors: SensorSettings = field(default_factory=SensorSettings)
     estimator: EstimatorSettings = field(default_factory=EstimatorSettings)
     source: str = "<defaults>"
     base_dir: Path = field(default_factory=Path.cwd)
+    log_dirs: tuple[Path, ...] = ()
+    """The folders of the logs being replayed: files named in the config are looked for there too."""
     origins: Mapping[str, str] = field(default_factory=dict)
 
     def blame(self, key: str) -> str:
@@ -182,19 +218,40 @@ class Config:
         return ConfigError(f"{self.blame(key)}: {key}: {text}")
 
     def resolve_path(self, value: str, key: str) -> Path:
-        """Find a file named in the config: absolute, next to the config file, in the working directory,
-        or bundled with the package (``dbc/...`` and ``data/...``)."""
+        """Find a file named in the config: absolute, next to the config file, in the working directory, beside
+        the logs being replayed (:attr:`log_dirs`), or bundled with the package (``dbc/...`` and ``data/...``)."""
         p = Path(value).expanduser()
-        candidates = [p] if p.is_absolute() else [self.base_dir / p, Path.cwd() / p, PACKAGE_DATA / p.name]
+        dirs = [self.base_dir, Path.cwd(), *self.log_dirs]
+        candidates = [p] if p.is_absolute() else [*(d / p for d in dirs), PACKAGE_DATA / p.name]
         for c in candidates:
             if c.is_file():
                 return c
-        raise self.error(key, f"file not found: {value}")
+        where = (
+            ""
+            if p.is_absolute()
+            else f" (looked in {', '.join(str(d) for d in dict.fromkeys(dirs))} and the bundled files)"
+        )
+        raise self.error(key, f"file not found: {value}{where}")
 
     @property
-    def dbc_path(self) -> Path:
-        return self.resolve_path(self.can.dbc, "can.dbc")
+    def dbc_paths(self) -> tuple[Path, ...]:
+        """The files of ``can.dbc``, found by :meth:`resolve_path`."""
+        return tuple(self.resolve_path(name, "can.dbc") for name in self.can.dbc_files)
 
+    @classmethod
+    def of(cls, estimation: EstimationSettings, **sections: Any) -> Config:
+        """A config with the estimator, vehicle and sensors of ``estimation`` (and other ``sections`` given)."""
+        sensors = SensorSettings(estimation.gnss, estimation.can)
+        return cls(estimator=estimation.estimator, vehicle=estimation.vehicle, sensors=sensors, **sections)
+
+    @property
+    def estimation(self) -> EstimationSettings:
+        """What an estimator reads: ``[estimator]``, ``[vehicle]`` and ``[sensors]``."""
+        return EstimationSettings.of(self.estimator, self.vehicle, self.sensors)
+
+
+_SIGNAL_QUANTITIES: dict[type, tuple[str, ...]] = {CanSettings: CAN_QUANTITIES, GpsSettings: GNSS_QUANTITIES}
+"""Settings classes with a ``signals`` table -> the quantities it may map."""
 
 REQUIRED_SIGNALS: tuple[str, ...] = ("speed", "yaw_rate")
 """The CAN quantities every estimator needs: ``sumhe run`` and ``sumhe replay`` refuse to start without them."""
@@ -217,6 +274,8 @@ _SECTIONS: dict[str, type] = {
     "gps": GpsSettings,
     "datum": DatumSettings,
     "output": OutputSettings,
+    "vehicle": VehicleSettings,
+    "sensors": SensorSettings,
     "estimator": EstimatorSettings,
 }
 
@@ -243,14 +302,17 @@ def _positive(obj: object, *names: str) -> None:
             raise ValueError(f"{n}: must be positive")
 
 
+_SIGNAL_KEYS = ("signal", "scale", "unit", "channel", "valid")
+
+
 def _parse_signal(value: Any, key: str) -> SignalSpec:
     if isinstance(value, str):
         value = {"signal": value}
     if not isinstance(value, Mapping):
         raise ValueError(f"{key}: expected 'MESSAGE.SIGNAL' or a table with 'signal'")
-    unknown = set(value) - {"signal", "scale", "unit"}
+    unknown = set(value) - set(_SIGNAL_KEYS)
     if unknown:
-        raise ValueError(f"{key}.{sorted(unknown)[0]}: unknown key (signal, scale, unit)")
+        raise ValueError(f"{key}.{sorted(unknown)[0]}: unknown key ({', '.join(_SIGNAL_KEYS)})")
     name = value.get("signal")
     if not isinstance(name, str) or name.count(".") != 1 or "" in name.split("."):
         raise ValueError(f"{key}: expected 'MESSAGE.SIGNAL', got {name!r}")
@@ -261,7 +323,21 @@ def _parse_signal(value: Any, key: str) -> SignalSpec:
     unit = value.get("unit")
     if unit is not None and not isinstance(unit, str):
         raise ValueError(f"{key}.unit: must be a string")
-    return SignalSpec(message, signal, float(scale), unit)
+    valid = value.get("valid")
+    if valid is not None and (not isinstance(valid, str) or not valid or "." in valid):
+        raise ValueError(f"{key}.valid: expected the name of a signal of {message}, got {valid!r}")
+    return SignalSpec(message, signal, float(scale), unit, _parse_channel(value.get("channel"), key), valid)
+
+
+def _parse_channel(channel: Any, key: str) -> str | None:
+    """A bus channel as text: a non-negative integer (MF4 ``BusChannel``, ``1``) or a name (``"can0"``)."""
+    if channel is None:
+        return None
+    if isinstance(channel, int) and not isinstance(channel, bool) and channel >= 0:
+        return str(channel)
+    if isinstance(channel, str) and channel.strip():
+        return channel.strip()
+    raise ValueError(f"{key}.channel: expected a channel number (e.g. 1) or name (e.g. 'can0'), got {channel!r}")
 
 
 def _coerce(value: Any, hint: Any, key: str) -> Any:
@@ -304,28 +380,40 @@ def _coerce(value: Any, hint: Any, key: str) -> Any:
     raise ValueError(f"{key}: unsupported setting type {hint!r}")
 
 
-def build_section(cls: type, table: Mapping[str, Any], section: str) -> Any:
-    """Build one frozen settings dataclass from a TOML table; ValueError messages name ``section.key``."""
+def build_section(cls: type, table: Mapping[str, Any], section: str, base: Any = None) -> Any:
+    """Build one frozen settings dataclass from a TOML table; ValueError messages name ``section.key``.
+
+    A nested settings table (e.g. ``[estimator.mhe]``) changes the keys it names in its field's default; a key
+    that moved elsewhere is refused naming its new place (:data:`sumhe.settings.moved.MOVED`)."""
     hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls) if f.init}
+    defaults = {f.name: f for f in dataclasses.fields(cls) if f.init}
     kwargs: dict[str, Any] = {}
     for key, value in table.items():
         full = f"{section}.{key}"
-        if key not in names:
-            close = difflib.get_close_matches(key, names, n=1)
+        if full in MOVED:
+            raise ValueError(f"{full}: moved: set {MOVED[full]}")
+        if key not in defaults:
+            close = difflib.get_close_matches(key, defaults, n=1)
             guess = f"did you mean {section}.{close[0]}? " if close else ""
-            raise ValueError(f"{full}: unknown key ({guess}known: {', '.join(sorted(names))})")
-        if cls is CanSettings and key == "signals":
+            raise ValueError(f"{full}: unknown key ({guess}known: {', '.join(sorted(defaults))})")
+        if key == "signals" and cls in _SIGNAL_QUANTITIES:
+            quantities = _SIGNAL_QUANTITIES[cls]
             if not isinstance(value, Mapping):
                 raise ValueError(f"{full}: expected a table of quantity = 'MESSAGE.SIGNAL'")
             for q in value:
-                if q not in CAN_QUANTITIES:
-                    raise ValueError(f"{full}.{q}: unknown quantity (known: {', '.join(CAN_QUANTITIES)})")
+                if q not in quantities:
+                    raise ValueError(f"{full}.{q}: unknown quantity (known: {', '.join(quantities)})")
             kwargs[key] = {q: _parse_signal(v, f"{full}.{q}") for q, v in value.items()}
+        elif dataclasses.is_dataclass(hints[key]):
+            if not isinstance(value, Mapping):
+                raise ValueError(f"{full}: expected a table")
+            f = defaults[key]
+            default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+            kwargs[key] = build_section(hints[key], value, full, default)
         else:
             kwargs[key] = _coerce(value, hints[key], full)
     try:
-        return cls(**kwargs)
+        return dataclasses.replace(base, **kwargs) if base is not None else cls(**kwargs)
     except ValueError as e:
         msg = str(e)
         raise ValueError(msg if msg.startswith(section + ".") else f"{section}.{msg}") from e

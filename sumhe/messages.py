@@ -29,6 +29,13 @@ accelerations m/s^2."""
 
 CAN_QUANTITIES: tuple[str, ...] = CanQuantity.__args__  # type: ignore[attr-defined]
 
+GnssQuantity = Literal["lat", "lon", "alt", "accuracy", "speed", "course", "heading", "time", "sats"]
+"""Quantities a GNSS receiver's CAN frames may provide (``[gps] source = "can"``), as :class:`GnssFix` holds them:
+lat and lon degrees (WGS84), alt m, accuracy m (horizontal 1-sigma), speed m/s (over ground), course (over
+ground) and heading rad clockwise from north, time s (UTC, Unix), sats a count."""
+
+GNSS_QUANTITIES: tuple[str, ...] = GnssQuantity.__args__  # type: ignore[attr-defined]
+
 GpsStatus = Literal["ok", "outage", "rejected"]
 
 

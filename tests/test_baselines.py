@@ -10,23 +10,27 @@ import pytest
 from sumhe.baseline import kinematics as kin
 from sumhe.baseline.ekf import Ekf
 from sumhe.baseline.imm import Imm, transition_matrix
-from sumhe.baseline.kinematics import Layout, Noise
+from sumhe.baseline.kinematics import Layout
 from sumhe.baseline.particle import ParticleFilter, systematic_resample
 from sumhe.baseline.rts import Rts
 from sumhe.baseline.stream import Gate
-from sumhe.baseline.tuning import main as tuning_main
 from sumhe.baseline.ukf import Ukf
+from sumhe.cli import main as cli_main
 from sumhe.config import load_config
 from sumhe.errors import ConfigError
-from sumhe.estimator.base import LocalFix, StateEstimate
+from sumhe.estimator.base import StateEstimate
 from sumhe.estimator.registry import ESTIMATORS, estimator_class, estimator_names, make_estimator
-from sumhe.estimator.settings import EstimatorSettings
+from sumhe.frontend.fixes import LocalFix
 from sumhe.messages import CanSample
+from sumhe.settings import EstimationSettings, NoiseSettings, with_changes
 
 # ---- the linear case: straight north, heading known exactly, position and speed measured ------------------------
 
-LINEAR_SETTINGS = EstimatorSettings(yaw_rate_bias=False, speed_scale=False, gps_heading_sigma_rad=1e-12)
-LINEAR_NOISE = Noise(
+LINEAR_SETTINGS = with_changes(
+    EstimationSettings(),
+    {"estimator.yaw_rate_bias": False, "estimator.speed_scale": False, "gnss.heading_sigma_rad": 1e-12},
+)
+LINEAR_NOISE = NoiseSettings(
     pos_rw=0.2,
     heading_rw=0.0,
     speed_rw=0.7,
@@ -45,7 +49,15 @@ def linear_stream(seconds: float = 6.0) -> list[LocalFix | CanSample]:
     rng = np.random.default_rng(3)
     t0 = 100.0
     samples: list[LocalFix | CanSample] = [
-        LocalFix(t=t0, valid=True, east_m=0.3, north_m=-0.2, sigma_m=SIGMA_FIX, heading_rad=0.0)
+        LocalFix(
+            t=t0,
+            valid=True,
+            east_m=0.3,
+            north_m=-0.2,
+            gst_sigma_east_m=SIGMA_FIX,
+            gst_sigma_north_m=SIGMA_FIX,
+            heading_rad=0.0,
+        )
     ]
     events = [(t0 + 0.02 * k, "can") for k in range(1, int(seconds / 0.02))]
     events += [(t0 + 0.1 * k + 0.005, "fix") for k in range(1, int(seconds / 0.1))]
@@ -55,7 +67,14 @@ def linear_stream(seconds: float = 6.0) -> list[LocalFix | CanSample]:
         else:
             n = 8.0 * (t - t0)
             samples.append(
-                LocalFix(t=t, valid=True, east_m=rng.normal(0, 1), north_m=n + rng.normal(0, 1), sigma_m=SIGMA_FIX)
+                LocalFix(
+                    t=t,
+                    valid=True,
+                    east_m=rng.normal(0, 1),
+                    north_m=n + rng.normal(0, 1),
+                    gst_sigma_east_m=SIGMA_FIX,
+                    gst_sigma_north_m=SIGMA_FIX,
+                )
             )
     return samples
 
@@ -199,7 +218,7 @@ def test_chi2_thresholds() -> None:
 )
 def test_noise_is_validated(field: str, value: float) -> None:
     with pytest.raises(ValueError, match=field):
-        Noise(**{field: value})
+        NoiseSettings(**{field: value})
 
 
 # ---- gate -------------------------------------------------------------------------------------------------------
@@ -226,10 +245,18 @@ def test_late_fixes_are_dropped_and_counted() -> None:
     can = [CanSample(10.0 + 0.02 * k, "speed", 5.0) for k in range(1, 70)]
     for sample in can[:60]:
         assert ekf.push(sample) == []
-    assert len(ekf.push(LocalFix(t=10.0, valid=True, east_m=0.0, north_m=0.0, sigma_m=1.0))) == 1
+    assert (
+        len(
+            ekf.push(LocalFix(t=10.0, valid=True, east_m=0.0, north_m=0.0, gst_sigma_east_m=1.0, gst_sigma_north_m=1.0))
+        )
+        == 1
+    )
     for sample in can[60:65]:
         ekf.push(sample)
-    assert ekf.push(LocalFix(t=10.1, valid=True, east_m=0.0, north_m=0.5, sigma_m=1.0)) == []
+    assert (
+        ekf.push(LocalFix(t=10.1, valid=True, east_m=0.0, north_m=0.5, gst_sigma_east_m=1.0, gst_sigma_north_m=1.0))
+        == []
+    )
     assert ekf.stats()["late_fixes"] == 1
 
 
@@ -313,13 +340,13 @@ def test_registry_uses_the_config_settings() -> None:
 
 def test_search_refuses_test_seeds(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
-        tuning_main(["search", "ekf", "--seeds", "5-7"])
+        cli_main(["bench", "tune", "search", "ekf", "--seeds", "5-7"])
     assert "test seeds" in capsys.readouterr().err
 
 
 def test_gnss_period_follows_the_epochs() -> None:
     ekf = Ekf()
-    assert ekf.period_s == ekf.settings.step_s
+    assert ekf.period_s == ekf.settings.gnss.period_s
     ekf.push(LocalFix(t=1.0, valid=False))
     ekf.push(LocalFix(t=1.01, valid=False))
     ekf.push(LocalFix(t=1.1, valid=False))
@@ -339,7 +366,9 @@ def test_absurd_fix_sigmas_do_not_break_a_filter(name: str, sigma: float) -> Non
     for s in samples[:100]:
         est.push(s)
     t = samples[99].t
-    est.push(LocalFix(t=t + 0.001, valid=True, east_m=3.0, north_m=8.0, sigma_m=sigma))
+    est.push(
+        LocalFix(t=t + 0.001, valid=True, east_m=3.0, north_m=8.0, gst_sigma_east_m=sigma, gst_sigma_north_m=sigma)
+    )
     out = [e for s in samples[100:] for e in est.push(s)]
     out += est.finish() if hasattr(est, "finish") else []  # type: ignore[attr-defined]
     assert out and all(math.isfinite(e.east_m) and math.isfinite(e.north_m) for e in out)

@@ -6,7 +6,8 @@ import re
 
 import pytest
 
-from sumhe.bench.mhe import MheBenchSettings, run_benchmark
+from sumhe.bench.mhe import MheBenchSettings
+from sumhe.bench.mhe_report import run_benchmark
 
 
 def test_the_accuracy_part_compares_with_the_ekf_raw_and_net_of_the_gnss_offset() -> None:

@@ -10,12 +10,14 @@ import time
 import numpy as np
 import pytest
 
-from sumhe.bench import peers
-from sumhe.bench.peers import BenchRunError, Outage, PeersSettings, call_isolated, outage_plan, run_bench, summarise
+from sumhe.bench import drives, report
+from sumhe.bench.drives import Outage, PeersSettings, outage_plan
+from sumhe.bench.peers import BenchRunError, call_isolated, run_bench
+from sumhe.bench.report import summarise
 from sumhe.cli import main
 from sumhe.commands.candump import reference_config
-from sumhe.estimator.base import LocalFix
 from sumhe.estimator.registry import ESTIMATORS, estimator_names
+from sumhe.frontend.fixes import LocalFix
 from sumhe.messages import CanSample, GnssFix
 from sumhe.sim import SimSettings, simulate, write_drive
 
@@ -95,19 +97,19 @@ def test_outages_are_labelled_by_the_truths_motion_and_remove_only_the_fixes_ins
     speed = drive.truth.speed
     assert speed.min() < 0.2, "an urban drive has a stop"
     stopped = drive.truth.t[np.argmax(speed < 0.2)] - t0
-    outages = peers.place_outages(drive.truth, [(max(stopped - 1.0, 0.0), 2.0)], t0)
+    outages = drives.place_outages(drive.truth, [(max(stopped - 1.0, 0.0), 2.0)], t0)
     assert outages[0].motion == "stop"
     fix = GnssFix(t=t0 + 10.0, time_utc=None, lat_deg=50.0, lon_deg=14.0, alt_m=0.0, quality=1, valid=True)
     samples = [fix, dataclasses.replace(fix, t=t0 + 20.0), CanSample(t0 + 10.5, "speed", 1.0)]
     outage = Outage(t0 + 10.0, 5.0, "straight")
-    kept = peers.without_fixes_in(samples, [outage])
+    kept = drives.without_fixes_in(samples, [outage])
     assert kept == samples[1:]
     # the outage lasts, for the scores, until the first valid fix after it
     assert outage.scored_span == (t0 + 10.0, t0 + 15.0)
     no_fix = dataclasses.replace(fix, t=t0 + 15.05, valid=False)
-    (back,) = peers.with_gps_back([outage], [CanSample(t0 + 15.0, "speed", 1.0), no_fix, *kept])
+    (back,) = drives.with_gps_back([outage], [CanSample(t0 + 15.0, "speed", 1.0), no_fix, *kept])
     assert back.gps_back_s == t0 + 20.0 and back.scored_span == (t0 + 10.0, t0 + 20.0)
-    assert peers.with_gps_back([outage], samples[:1])[0].scored_span == (t0 + 10.0, t0 + 15.0)
+    assert drives.with_gps_back([outage], samples[:1])[0].scored_span == (t0 + 10.0, t0 + 15.0)
 
 
 def test_settings_are_validated():
@@ -153,12 +155,12 @@ def test_a_failing_estimator_is_recorded_and_the_others_still_run(monkeypatch):
     monkeypatch.setitem(ESTIMATORS, "broken", (__name__, "BrokenEstimator"))
     ps = PeersSettings(**{**{f: getattr(SHORT, f) for f in SHORT.__slots__}, "estimators": ("broken", "ekf")})
     progress = Progress()
-    report = run_bench(ps, reference_config(), progress)
+    bench = run_bench(ps, reference_config(), progress)
     assert progress.started == ["urban-gaussian-3 broken", "urban-gaussian-3 ekf"]
     broken, ekf = progress.done
     assert not broken.ok and "RuntimeError: broken on purpose" in broken.error
     assert ekf.ok and len(ekf.outage_errors) == 2
-    summary = summarise(report, "test")
+    summary = summarise(bench, "test")
     json.dumps(summary, allow_nan=False)
     assert summary["failures"] == [{"estimator": "broken", "drive": "urban-gaussian-3", "error": broken.error}]
     assert summary["estimators"]["broken"]["kind"] == "failed"
@@ -168,7 +170,7 @@ def test_a_failing_estimator_is_recorded_and_the_others_still_run(monkeypatch):
     assert 0.0 < e["outage"]["all"]["mean_m"] < 20.0
     assert 0.0 < e["with_gps"]["mean_m"] < 5.0
     assert e["latency_ms"]["epoch"]["n"] > 0 and e["throughput_x"] > 1.0
-    text = peers.markdown(summary)
+    text = report.markdown(summary)
     assert "## Failed runs" in text and "RuntimeError: broken on purpose" in text
     assert "| `broken` | failed | – |" in text
 

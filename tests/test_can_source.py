@@ -31,15 +31,6 @@ DEG = math.pi / 180
 _channels = itertools.count()
 
 
-@pytest.fixture(autouse=True)
-def no_bus_left_open():
-    """Fail a test that leaves a virtual bus open (its source was not closed)."""
-    yield
-    left = list(can.interfaces.virtual.channels)
-    can.interfaces.virtual.channels.clear()
-    assert not left, f"virtual buses left open on channels {left}"
-
-
 @pytest.fixture
 def channel() -> str:
     return f"sumhe-test-{next(_channels)}"

@@ -1,3 +1,4 @@
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -6,6 +7,9 @@ from sumhe.config import Config, load_config, parse_host_port, require_signals
 from sumhe.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[1]
+REAL_DRIVE = REPO.parent / "shared" / "data" / "real_drives" / "canedge_obd_2021-07-26_a"
+LOGGER_DBCS = {"canmod-gps.dbc"}
+"""DBCs that ship with a logger and are found beside its logs (never copied into the repo)."""
 
 
 def _write(tmp_path: Path, text: str) -> Path:
@@ -19,7 +23,15 @@ def test_every_example_config_loads():
     assert configs, "configs/ has example configs"
     for path in configs:
         cfg = load_config(path, env={})
-        assert cfg.dbc_path.is_file()
+        for name in cfg.can.dbc_files:
+            if name in LOGGER_DBCS:
+                with pytest.raises(ConfigError, match=r"can\.dbc: file not found: canmod-gps\.dbc \(looked in"):
+                    cfg.resolve_path(name, "can.dbc")
+                if REAL_DRIVE.is_dir():
+                    beside = dataclasses.replace(cfg, log_dirs=(REAL_DRIVE,))
+                    assert beside.resolve_path(name, "can.dbc") == REAL_DRIVE / name
+            else:
+                assert cfg.resolve_path(name, "can.dbc").is_file()
 
 
 def test_defaults_are_socketcan_on_vcan0_on_linux(monkeypatch):
@@ -86,9 +98,22 @@ def test_missing_file_and_bad_toml(tmp_path):
 
 
 def test_missing_dbc_names_the_key(tmp_path):
-    cfg = load_config(_write(tmp_path, "[can]\ndbc = 'no/such.dbc'\n"), env={})
-    with pytest.raises(ConfigError, match=r"can\.dbc"):
-        _ = cfg.dbc_path
+    cfg = load_config(_write(tmp_path, "[can]\ndbc = ['dbc/obd2.dbc', 'no/such.dbc']\n"), env={})
+    with pytest.raises(ConfigError, match=r"can\.dbc: file not found: no/such\.dbc"):
+        _ = cfg.dbc_paths
+
+
+def test_dbc_files_are_found_beside_the_logs_too(tmp_path):
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    (logs / "logger.dbc").write_text('VERSION ""\n')
+    cfg = load_config(_write(tmp_path, "[can]\ndbc = ['dbc/obd2.dbc', 'logger.dbc']\n"), env={})
+    assert cfg.can.dbc_files == ("dbc/obd2.dbc", "logger.dbc")
+    with pytest.raises(ConfigError, match=r"logger\.dbc"):
+        _ = cfg.dbc_paths
+    paths = dataclasses.replace(cfg, log_dirs=(logs,)).dbc_paths
+    assert paths[0].name == "obd2.dbc" and paths[0].is_file()
+    assert paths[1] == logs / "logger.dbc"
 
 
 def test_precedence_overrides_then_env_then_file(tmp_path):
@@ -147,7 +172,7 @@ def test_a_setting_in_the_environment_is_blamed_by_later_checks(tmp_path):
     assert cfg.blame("can.dbc") == "environment variable SUMHE_CAN__DBC"
     assert cfg.blame("can.channel") == cfg.source
     with pytest.raises(ConfigError, match=r"^environment variable SUMHE_CAN__DBC: can\.dbc: file not found"):
-        _ = cfg.dbc_path
+        _ = cfg.dbc_paths
     cfg = load_config(None, env={}, overrides={"can.signals": {"speed": "A.B"}})
     assert cfg.blame("can.signals.speed") == "command line"
 

@@ -12,8 +12,10 @@ import numpy as np
 import pytest
 
 from sumhe.config import DatumSettings, GpsSettings, load_config
-from sumhe.estimator.base import Estimator, FixConverter, LocalFix, StateEstimate
+from sumhe.estimator.base import Estimator, StateEstimate, StreamEstimator
 from sumhe.estimator.registry import estimator_names, make_estimator
+from sumhe.frontend.fixes import FixConverter, LocalFix
+from sumhe.frontend.stream import Epoch
 from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample, GnssFix
 from sumhe.sim import Drive, SimSettings, simulate
@@ -75,7 +77,8 @@ def synthetic_drive(
                 valid=True,
                 east_m=east[i] + e,
                 north_m=north[i] + n,
-                sigma_m=0.3,
+                gst_sigma_east_m=0.3,
+                gst_sigma_north_m=0.3,
                 speed_mps=v[i],
                 course_rad=phi[i] % (2 * math.pi),
             )
@@ -131,6 +134,29 @@ def test_is_an_estimator(estimator: Estimator) -> None:
     stats = estimator.stats()
     assert isinstance(stats, Mapping)
     assert all(isinstance(k, str) and isinstance(v, int | float | str) for k, v in stats.items())
+
+
+def test_live_estimators_answer_the_front_ends_events(estimator: Estimator) -> None:
+    """The smaller interface under ``push``: one estimate per epoch at its time (``outage`` without a fix, the
+    ``start`` epoch ``ok``), and per CAN speed tick one estimate at the tick's measurement time or stamp."""
+    assert isinstance(estimator, StreamEstimator)
+    drive = synthetic_drive(8.0, nofix=[(4.0, 0.5)])
+    epochs = ticks = 0
+    for sample in drive.samples:
+        for event in estimator.frontend.push(sample):
+            if isinstance(event, Epoch):
+                e = estimator.on_epoch(event)
+                assert e.t == event.t
+                assert e.gps == "ok" if event.start else e.gps in ("ok", "rejected", "outage")
+                assert event.fix is not None or e.gps == "outage"
+                epochs += 1
+            else:
+                answer = estimator.on_can(event)
+                if event.output:
+                    assert answer is not None and answer.t in (event.t, event.stamp)
+                    ticks += 1
+    assert epochs == sum(isinstance(s, LocalFix) for s in drive.samples)  # a usable fix first: every one counts
+    assert ticks > 300
 
 
 def test_nothing_before_the_first_valid_fix(estimator: Estimator) -> None:
@@ -227,7 +253,7 @@ def test_bad_data_never_raises(estimator: Estimator) -> None:
         CanSample(t + 0.01, "no_such_quantity", 1.0),
         LocalFix(t=math.inf, valid=True, east_m=0.0, north_m=0.0),
         LocalFix(t=t + 0.05, valid=True, east_m=math.nan, north_m=1.0),
-        LocalFix(t=t + 0.15, valid=True, east_m=1.0, north_m=1.0, sigma_m=-1.0),
+        LocalFix(t=t + 0.15, valid=True, east_m=1.0, north_m=1.0, gst_sigma_east_m=-1.0, gst_sigma_north_m=-1.0),
         GnssFix(t=t + 0.2, time_utc=None, lat_deg=None, lon_deg=None, alt_m=None, quality=0, valid=False),
         "not a sample",
         CanSample(t + 0.3, "speed", 10.0),
@@ -244,7 +270,12 @@ def test_reset_forgets_the_drive(estimator: Estimator) -> None:
     estimator.reset()
     t = max(s.t for s in drive.samples)
     assert estimator.push(CanSample(t + 0.02, "speed", 0.0)) == []
-    fixes = [LocalFix(t=t + 0.05 + 0.1 * k, valid=True, east_m=500.0, north_m=-20.0, sigma_m=0.5) for k in range(3)]
+    fixes = [
+        LocalFix(
+            t=t + 0.05 + 0.1 * k, valid=True, east_m=500.0, north_m=-20.0, gst_sigma_east_m=0.5, gst_sigma_north_m=0.5
+        )
+        for k in range(3)
+    ]
     outputs = run(estimator, fixes)
     assert outputs.estimates and all(e.t >= t for e in outputs.estimates)
     for e in outputs.estimates:
@@ -258,7 +289,12 @@ def test_restarts_after_a_long_data_gap(estimator: Estimator) -> None:
     run(estimator, drive.samples, finish=False)
     t = max(s.t for s in drive.samples) + 60.0
     assert estimator.push(CanSample(t, "speed", 0.0)) == []
-    fixes = [LocalFix(t=t + 0.01 + 0.1 * k, valid=True, east_m=-300.0, north_m=7.0, sigma_m=0.5) for k in range(3)]
+    fixes = [
+        LocalFix(
+            t=t + 0.01 + 0.1 * k, valid=True, east_m=-300.0, north_m=7.0, gst_sigma_east_m=0.5, gst_sigma_north_m=0.5
+        )
+        for k in range(3)
+    ]
     outputs = run(estimator, fixes)
     assert outputs.estimates and all(e.t >= t for e in outputs.estimates)
     assert all(e.east_m == pytest.approx(-300.0, abs=0.5) for e in outputs.estimates)

@@ -12,9 +12,9 @@ from sumhe.estimator.batch import estimate_batch, estimate_lp, model_for
 from sumhe.estimator.bounds import noise_bounds
 from sumhe.estimator.grid import Grid, build_grid
 from sumhe.estimator.lp import displacements, solve_lp
-from sumhe.estimator.settings import EstimatorSettings
+from sumhe.settings import EstimationSettings, with_changes
 
-SETTINGS = EstimatorSettings(yaw_rate_bias=False, speed_scale=False)
+SETTINGS = with_changes(EstimationSettings(), {"estimator.yaw_rate_bias": False, "estimator.speed_scale": False})
 
 
 def _lp(samples, settings=SETTINGS, grid: Grid | None = None):
@@ -69,7 +69,7 @@ def test_missing_fix_drops_exactly_its_constraints() -> None:
 
 def test_infeasible_lp_is_retried_with_wider_bounds(caplog: pytest.LogCaptureFixture) -> None:
     # CAN speed 10 % high, no scale state: with the caps of a gentle vehicle the LP is infeasible
-    settings = dataclasses.replace(SETTINGS, max_accel_mps2=0.5)
+    settings = with_changes(SETTINGS, {"vehicle.max_accel_mps2": 0.5})
     samples = S.window(S.Motion(v=15.0, omega=0.0), 3.0, scale=1.1)
     with caplog.at_level(logging.INFO, logger="sumhe.estimator.lp"):
         _, bounds, lp = _lp(samples, settings)
@@ -77,11 +77,11 @@ def test_infeasible_lp_is_retried_with_wider_bounds(caplog: pytest.LogCaptureFix
     assert "widening" in caplog.text
     assert np.any(lp.q > bounds.q_hi[:2])  # the solution needed the widened bounds
     with pytest.raises(SolverError, match="widenings"):
-        _lp(samples, dataclasses.replace(settings, max_widenings=0))
+        _lp(samples, with_changes(settings, {"estimator.batch.max_widenings": 0}))
 
 
 def test_batch_survives_a_failed_lp(caplog: pytest.LogCaptureFixture) -> None:
-    settings = dataclasses.replace(SETTINGS, max_accel_mps2=0.5, max_widenings=0)
+    settings = with_changes(SETTINGS, {"vehicle.max_accel_mps2": 0.5, "estimator.batch.max_widenings": 0})
     with caplog.at_level(logging.WARNING):
         res = estimate_batch(S.window(S.Motion(v=15.0, omega=0.0), 3.0, scale=1.1), settings, frame=S.FRAME)
     assert "starts from the interpolated fixes" in caplog.text
@@ -92,7 +92,7 @@ def test_batch_survives_a_failed_lp(caplog: pytest.LogCaptureFixture) -> None:
 
 @pytest.mark.parametrize("model", ["su5", "su7"])
 def test_lp_and_nlp_agree_on_noise_free_data(model: str) -> None:
-    settings = dataclasses.replace(SETTINGS, model=model)
+    settings = with_changes(SETTINGS, {"estimator.model": model})
     motion = S.Motion(v=8.0, omega=0.25)
     samples = S.window(motion, 3.0, antennas=2 if model == "su7" else 1)
     lp = estimate_lp(samples, settings, frame=S.FRAME)

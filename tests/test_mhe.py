@@ -12,20 +12,23 @@ import pytest
 from sumhe.bench.mhe import drive_stream, run_stream
 from sumhe.config import Config, GpsSettings
 from sumhe.errors import ConfigError
-from sumhe.estimator.base import Estimator, LocalFix, StateEstimate
+from sumhe.estimator.base import Estimator, StateEstimate
 from sumhe.estimator.batch import model_for, state_box
 from sumhe.estimator.bounds import noise_bounds
 from sumhe.estimator.grid import build_grid
 from sumhe.estimator.mhe import MovingHorizonEstimator
+from sumhe.estimator.mhe.nlp import NlpSolver
+from sumhe.estimator.mhe.problem import WindowProblem
+from sumhe.estimator.mhe.sqp import SqpSolver
 from sumhe.estimator.registry import make_estimator
-from sumhe.estimator.settings import EstimatorSettings
-from sumhe.estimator.sqp import NlpSolver, SqpSolver, WindowProblem
+from sumhe.frontend.fixes import LocalFix
 from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample, GnssFix
+from sumhe.settings import EstimationSettings, with_changes
 from sumhe.sim import SimSettings, simulate
 from sumhe.sim.drive import Drive
 
-SETTINGS = EstimatorSettings(can_delay_s=0.02)
+SETTINGS = with_changes(EstimationSettings(), {"can.delay_s": 0.02})
 
 
 @pytest.fixture(scope="module")
@@ -45,15 +48,15 @@ def errors(drive: Drive, estimates: list[StateEstimate]) -> np.ndarray:
 
 
 def test_registry_builds_it_and_it_is_an_estimator() -> None:
-    est = make_estimator("mhe", Config(estimator=SETTINGS))
+    est = make_estimator("mhe", Config.of(SETTINGS))
     assert isinstance(est, MovingHorizonEstimator)
     assert isinstance(est, Estimator)
-    assert EstimatorSettings().name == "mhe"
+    assert EstimationSettings().estimator.name == "mhe"
 
 
 def test_su7_is_refused() -> None:
     with pytest.raises(ConfigError, match="su5"):
-        MovingHorizonEstimator(dataclasses.replace(SETTINGS, model="su7"))
+        MovingHorizonEstimator(with_changes(SETTINGS, {"estimator.model": "su7"}))
 
 
 def test_contract_one_estimate_per_epoch_and_per_speed_sample(drive: Drive, stream: list) -> None:
@@ -70,7 +73,7 @@ def test_contract_one_estimate_per_epoch_and_per_speed_sample(drive: Drive, stre
             epochs += 1
         elif item.quantity == "speed":
             can = [e for e in out if e.mode == "can"]
-            assert len(can) == 1 and can[0].t == pytest.approx(item.t - SETTINGS.can_delay_s)
+            assert len(can) == 1 and can[0].t == pytest.approx(item.t - SETTINGS.can.delay_s)
             speed += 1
         else:
             assert all(e.mode != "can" for e in out)
@@ -105,16 +108,20 @@ def test_accuracy_on_a_drive_with_an_outage(drive: Drive, stream: list) -> None:
 def test_window_grows_through_an_outage_and_shrinks_back(stream: list) -> None:
     est = MovingHorizonEstimator(SETTINGS)
     windows = [e.window for e in run_stream(est, stream).estimates if e.mode != "can"]
-    assert max(windows) == SETTINGS.mhe_steps_before + 40 + SETTINGS.mhe_steps_after - 1
-    assert windows[-1] == SETTINGS.mhe_steps
+    assert max(windows) == SETTINGS.estimator.mhe.steps_before + 40 + SETTINGS.estimator.mhe.steps_after - 1
+    assert windows[-1] == SETTINGS.estimator.mhe.steps
 
 
 @pytest.mark.parametrize(
     "changes",
-    [{"yaw_rate_bias": False, "speed_scale": False}, {"discretisation": "euler"}, {"mhe_sqp_iterations": 1}],
+    [
+        {"estimator.yaw_rate_bias": False, "estimator.speed_scale": False},
+        {"estimator.discretisation": "euler"},
+        {"estimator.mhe.sqp_iterations": 1},
+    ],
 )
 def test_model_variants_run(drive: Drive, stream: list, changes: dict[str, object]) -> None:
-    est = MovingHorizonEstimator(dataclasses.replace(SETTINGS, **changes))  # type: ignore[arg-type]
+    est = MovingHorizonEstimator(with_changes(SETTINGS, changes))
     out = [e for e in run_stream(est, stream).estimates if e.mode != "can"]
     assert {e.mode for e in out} <= {"init", "mhe", "mhe-widened"}
     assert np.max(errors(drive, out[50:])) < 4.0
@@ -177,13 +184,15 @@ def test_gnss_is_reacquired_within_a_second_after_a_60_s_outage() -> None:
     first_second = [e.gps for e in out if back <= e.t < back + 1.0]
     assert first_second.count("ok") >= 5
     assert all(e.gps == "ok" for e in out if e.t >= back + 1.0)
-    assert max(e.window for e in out) == SETTINGS.mhe_max_steps
+    assert max(e.window for e in out) == SETTINGS.estimator.mhe.max_steps
     assert np.mean(errors(drive, [e for e in out if e.t >= back + 2.0])) < 2.0
 
 
 def test_an_injected_solver_failure_falls_back_to_the_prediction(drive: Drive, stream: list) -> None:
     # IPOPT allowed one iteration: every solve ends at its iteration limit
-    failing = dataclasses.replace(SETTINGS, mhe_solver="ipopt", ipopt_max_iter=1, mhe_max_retries=1)
+    failing = with_changes(
+        SETTINGS, {"estimator.mhe.solver": "ipopt", "estimator.mhe.nlp_max_iter": 1, "estimator.mhe.max_retries": 1}
+    )
     est = MovingHorizonEstimator(failing)
     out = run_stream(est, stream[:3000]).estimates
     epochs = [e for e in out if e.mode != "can"]
@@ -328,7 +337,7 @@ def test_warm_start_reduces_nlp_iterations(drive: Drive, solver: str) -> None:
 def test_the_nlp_solvers_agree_with_the_sqp(drive: Drive, stream: list, solver: str) -> None:
     part = stream[:12000]
     ref = [e for e in run_stream(MovingHorizonEstimator(SETTINGS), part).estimates if e.mode != "can"]
-    est = MovingHorizonEstimator(dataclasses.replace(SETTINGS, mhe_solver=solver))
+    est = MovingHorizonEstimator(with_changes(SETTINGS, {"estimator.mhe.solver": solver}))
     out = [e for e in run_stream(est, part).estimates if e.mode != "can"]
     assert len(out) == len(ref)
     diff = [math.hypot(a.east_m - b.east_m, a.north_m - b.north_m) for a, b in zip(out, ref, strict=True)]
@@ -345,7 +354,9 @@ def test_merging_steps_in_a_long_outage_does_not_move_the_estimate() -> None:
     stream = drive_stream(drive)
     runs = []
     for max_steps, max_merge in ((300, 1), (100, 4)):
-        est = MovingHorizonEstimator(dataclasses.replace(SETTINGS, mhe_max_steps=max_steps, mhe_max_merge=max_merge))
+        est = MovingHorizonEstimator(
+            with_changes(SETTINGS, {"estimator.mhe.max_steps": max_steps, "estimator.mhe.max_merge": max_merge})
+        )
         out = run_stream(est, stream).estimates
         runs.append({round(e.t, 3): e for e in out if e.mode == "can" and e.gps == "outage"})
     assert max(e.window for e in out) == 100  # the coarse window did merge

@@ -9,7 +9,10 @@ import pytest
 from sumhe.model import (
     antenna_azimuth,
     antenna_distance_residual,
+    integrate_odometry,
+    output_noise,
     output_residuals,
+    state_noise,
     state_residuals,
     su5_output,
     su5_step,
@@ -18,6 +21,7 @@ from sumhe.model import (
     su_model,
     wrap_angle,
 )
+from sumhe.model.su import can_motion
 
 
 def test_su5_step_by_hand() -> None:
@@ -140,3 +144,88 @@ def test_unknown_model_or_scheme() -> None:
         su_model("su9")
     with pytest.raises(ValueError, match="discretisation"):
         su_model("su5", discretisation="rk4")
+
+
+def test_can_motion_inverts_the_can_outputs() -> None:
+    m = su_model("su5", yaw_rate_bias=True, speed_scale=True)
+    x = np.array([0.0, 0.0, 0.1, 12.0, 0.2, 0.01, 1.03])
+    speed, yaw_rate = m.output(x)[m.j_can_speed], m.output(x)[m.j_can_yaw_rate]
+    assert can_motion(speed, yaw_rate, x, m.i_bias, m.i_scale) == pytest.approx([12.0, 0.2])
+    assert can_motion(5.0, 0.1, x[:5], None, None) == [5.0, 0.1]
+
+
+def test_named_indices() -> None:
+    m = su_model("su5", yaw_rate_bias=True, speed_scale=True, gps_speed=True)
+    assert (m.i_phi, m.i_v, m.i_omega, m.i_bias, m.i_scale) == (2, 3, 4, 5, 6)
+    assert (m.j_position, m.j_azimuth, m.j_gps_speed, m.j_can_speed, m.j_can_yaw_rate) == ((0, 1), 2, 3, 4, 5)
+    plain = su_model("su7")
+    assert (plain.i_phi, plain.i_bias, plain.i_scale, plain.j_gps_speed) == (4, None, None, None)
+    assert (plain.j_azimuth, plain.j_can_speed, plain.j_can_yaw_rate) == (4, 5, 6)
+
+
+def test_one_angle_rule_for_residuals_numpy_and_casadi() -> None:
+    model = su_model("su5", discretisation="trapezoid")
+    xp = np.array([0.0, 0.0, 3.1, 0.0, 0.0])
+    xn = np.array([0.0, 0.0, 3.1 + 2 * math.pi + 0.01, 0.0, 0.0])
+    # the azimuth state is continuous: a 2 pi jump is state noise, not wrapped away
+    assert state_noise(model, xp, xn, 0.1)[2] == pytest.approx(2 * math.pi + 0.01)
+    # a measured course of -3.1 rad is 0.083 rad from a state at 3.1 rad: output residuals are wrapped
+    y = np.array([0.0, 0.0, -3.1, 0.0, 0.0])
+    assert output_noise(model, xp, y)[2] == pytest.approx(2 * math.pi - 6.2)
+    sp, sn, sy = ca.SX.sym("xp", 5), ca.SX.sym("xn", 5), ca.SX.sym("y", 5)
+    f = ca.Function(
+        "r", [sp, sn, sy], [ca.vertcat(*state_noise(model, sp, sn, 0.1, ca), *output_noise(model, sp, sy, ca))]
+    )
+    expected = np.array([*state_noise(model, xp, xn, 0.1), *output_noise(model, xp, y)], dtype=float)
+    assert np.asarray(f(xp, xn, y)).ravel() == pytest.approx(expected)
+
+
+def test_odometry_is_exact_on_a_line_and_second_order_on_a_circle() -> None:
+    t = np.linspace(0.0, 10.0, 101)
+    east, north, phi = integrate_odometry(t, np.full_like(t, 5.0), np.zeros_like(t), 1.0, 2.0, math.pi / 2)
+    assert east[-1] == pytest.approx(51.0) and north[-1] == pytest.approx(2.0) and phi[-1] == math.pi / 2
+    v, omega = 10.0, 0.3
+    errors = []
+    for n in (51, 101):
+        t = np.linspace(0.0, 5.0, n)
+        east, north, phi = integrate_odometry(t, np.full(n, v), np.full(n, omega))
+        truth_e, truth_n = (v / omega) * (np.cos(-omega * t) - 1.0), -(v / omega) * np.sin(-omega * t)
+        assert phi[-1] == pytest.approx(-omega * 5.0)
+        errors.append(max(abs(east[-1] - truth_e[-1]), abs(north[-1] - truth_n[-1])))
+    assert errors[1] < 0.3 * errors[0]  # halving the step quarters the error
+
+
+# ---- the Kalman peers run this model ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("bias", "scale"), [(False, False), (True, False), (True, True)])
+@pytest.mark.parametrize("dt", [0.02, -0.15])
+def test_kalman_kinematics_are_su5(bias: bool, scale: bool, dt: float) -> None:
+    from sumhe.baseline import kinematics as kin
+
+    layout = kin.Layout(bias=bias, scale=scale)
+    su5 = su_model("su5", bias, scale, "trapezoid")
+    assert (layout.b, layout.k) == (su5.i_bias, su5.i_scale)
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=layout.n) + np.r_[0.0, 0.0, 0.0, 12.0, 0.0, [0.0] * bias, [1.0] * scale]
+    # the step is su5's transition at constant speed and yaw rate: the midpoint rule
+    assert kin.step(x, dt) == pytest.approx(su5.transition(x, x, dt))
+    mid = x[2] - 0.5 * dt * x[4]
+    assert kin.step(x, dt)[:3] == pytest.approx(
+        [x[0] + dt * x[3] * math.sin(mid), x[1] + dt * x[3] * math.cos(mid), x[2] - dt * x[4]]
+    )
+    stacked = np.column_stack([x, 2 * x])
+    assert kin.step(stacked, dt)[:, 1] == pytest.approx(kin.step(2 * x, dt))
+    # Jacobians: CasADi's, checked against central differences
+    eps = 1e-6
+    fd = np.column_stack([(kin.step(x + eps * e, dt) - kin.step(x - eps * e, dt)) / (2 * eps) for e in np.eye(len(x))])
+    assert kin.step_jacobian(x, dt) == pytest.approx(fd, abs=1e-7)
+    rows = (kin.CAN_SPEED, kin.CAN_YAW_RATE, kin.STANDSTILL)
+    assert kin.can_model(x, rows, layout)[:2] == pytest.approx(su5.output(x)[-2:])
+    fd = np.column_stack(
+        [
+            (kin.can_model(x + eps * e, rows, layout) - kin.can_model(x - eps * e, rows, layout)) / (2 * eps)
+            for e in np.eye(len(x))
+        ]
+    )
+    assert kin.can_jacobian(x, rows, layout) == pytest.approx(fd, abs=1e-7)

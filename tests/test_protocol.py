@@ -15,7 +15,7 @@ from sumhe.bench.protocol import (
     summarise,
 )
 from sumhe.cli import main
-from sumhe.estimator.settings import EstimatorSettings
+from sumhe.settings import EstimationSettings, with_changes
 from sumhe.sim import SimSettings, simulate
 
 SHORT = ProtocolSettings(duration_s=40.0, placements=2, methods=("nlp", "lp", "dr"))
@@ -27,7 +27,7 @@ def drive():
 
 
 def test_windows_cut_the_outage(drive) -> None:
-    est = EstimatorSettings()
+    est = EstimationSettings()
     windows = make_windows(drive, SHORT, est)
     assert len(windows) == 2
     for w in windows:
@@ -40,7 +40,7 @@ def test_windows_cut_the_outage(drive) -> None:
 
 
 def test_dead_reckoning_is_exact_at_fixes_and_drifts_in_the_outage(drive) -> None:
-    est = EstimatorSettings(can_delay_s=drive.settings.can_sensor_delay_s)
+    est = with_changes(EstimationSettings(), {"can.delay_s": drive.settings.can_sensor_delay_s})
     w = make_windows(drive, SHORT, est)[1]
     east, north = dead_reckoning(w, est, drive.frame)
     truth = drive.truth.at(w.epoch_t)
@@ -75,8 +75,9 @@ def test_settings_are_checked() -> None:
         ProtocolSettings(methods=("kalman",))
     with pytest.raises(ValueError, match="placements"):
         ProtocolSettings(placements=0)
-    paper = method_settings("paper", EstimatorSettings())
-    assert (paper.objective, paper.centre, paper.derived_floors, paper.yaw_rate_bias) == ("log", "none", False, False)
+    paper = method_settings("paper", EstimationSettings())
+    b = paper.estimator.batch
+    assert (b.objective, b.centre, b.derived_floors, paper.estimator.yaw_rate_bias) == ("log", "none", False, False)
 
 
 @pytest.mark.slow

@@ -30,7 +30,7 @@ def test_window_bounds_of_nothing():
 @pytest.mark.slow
 def test_su_batch_smooths_a_drive_through_an_outage():
     sim = simulate(SimSettings(scenario="urban", seed=3, duration_s=50.0, outages=((20.0, 8.0),)))
-    config = load_config(None, env={}, overrides={"estimator.name": "su-batch", "estimator.batch_window_s": 20.0})
+    config = load_config(None, env={}, overrides={"estimator.name": "su-batch", "estimator.batch.window_s": 20.0})
     pipeline = Pipeline(config, make_estimator("su-batch", config))
     fixes = [stamp_fix(f, config.gps) for f in sim.fixes()]
     can = [c for c in sim.can_samples() if isinstance(c, CanSample)]

@@ -5,14 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sumhe.estimator.settings import EstimatorSettings
-from sumhe.estimator.window import Plan, Window, WindowPolicy, outage_anchor, plan_window
+from sumhe.config import load_config
+from sumhe.errors import ConfigError
+from sumhe.estimator.mhe.window import Plan, Window, outage_anchor, plan_window
+from sumhe.settings import MheSettings
 
 PERIOD = 0.1
-POLICY = WindowPolicy(steps=20, before=5, after=4, max_steps=60, shrink=2, max_merge=4)
+POLICY = MheSettings(steps=20, steps_before=5, steps_after=4, max_steps=60, shrink_steps=2, max_merge=4)
 
 
-def run(gps_pattern: list[bool], policy: WindowPolicy = POLICY) -> tuple[Window, list[int], list[int]]:
+def run(gps_pattern: list[bool], policy: MheSettings = POLICY) -> tuple[Window, list[int], list[int]]:
     """Append one step per flag (GNSS or not), apply each plan; the window, its lengths and GNSS epochs before the
     newest outage after every step."""
     win = Window(policy.max_steps + 1, n_states=1, n_outputs=1)
@@ -44,7 +46,7 @@ def test_grows_through_an_outage_keeping_n_b_gnss_epochs() -> None:
     # the outage is longer than N - N_B = 15 steps after 15 of its steps: from then on nothing is dropped
     assert lengths[30 + 14] == 20
     assert lengths[-1] == 5 + 40
-    assert all(k == POLICY.before for k in kept[30 + 16 :])
+    assert all(k == POLICY.steps_before for k in kept[30 + 16 :])
     assert lengths[30 + 16 :] == list(range(22, 46))
 
 
@@ -53,9 +55,9 @@ def test_shrinks_progressively_once_gnss_is_back_for_n_a_epochs() -> None:
     assert lengths[69] == 45
     # N_A - 1 epochs after the return the window still grows; then it loses ``shrink`` steps per epoch (it drops
     # 1 + shrink, one is appended) down to N, and stays there
-    assert lengths[70 : 70 + POLICY.after - 1] == list(range(46, 46 + POLICY.after - 1))
-    after = lengths[70 + POLICY.after - 1 :]
-    assert after[: after.index(20)] == list(range(after[0], 20, -POLICY.shrink))
+    assert lengths[70 : 70 + POLICY.steps_after - 1] == list(range(46, 46 + POLICY.steps_after - 1))
+    after = lengths[70 + POLICY.steps_after - 1 :]
+    assert after[: after.index(20)] == list(range(after[0], 20, -POLICY.shrink_steps))
     assert set(after[after.index(20) :]) == {20}
 
 
@@ -63,18 +65,18 @@ def test_coarsens_a_long_outage_to_n_max_and_keeps_the_anchor() -> None:
     win, lengths, kept = run([True] * 30 + [False] * 120)
     assert max(lengths) <= POLICY.max_steps
     assert lengths[-1] == POLICY.max_steps
-    assert kept[-1] == POLICY.before
+    assert kept[-1] == POLICY.steps_before
     h = np.diff(win.t)
     assert h.max() <= POLICY.max_merge * PERIOD + 1e-9
     # the outage is coarsened behind its newest N steps, which are still at the GNSS period
     assert np.allclose(h[-(POLICY.steps - 1) :], PERIOD)
-    assert np.all(h[POLICY.before : POLICY.before + 10] > PERIOD)
+    assert np.all(h[POLICY.steps_before : POLICY.steps_before + 10] > PERIOD)
     assert win.t[-1] == pytest.approx(149 * PERIOD)
-    assert win.t[-1] - win.t[POLICY.before] > 11.5
+    assert win.t[-1] - win.t[POLICY.steps_before] > 11.5
 
 
 def test_drops_the_oldest_steps_when_nothing_can_be_merged() -> None:
-    policy = WindowPolicy(steps=20, before=5, after=4, max_steps=40, shrink=2, max_merge=1)
+    policy = MheSettings(steps=20, steps_before=5, steps_after=4, max_steps=40, shrink_steps=2, max_merge=1)
     win, lengths, _ = run([True] * 30 + [False] * 80, policy)
     assert max(lengths) <= 40
     assert np.allclose(np.diff(win.t), PERIOD)
@@ -118,23 +120,33 @@ def test_window_container() -> None:
 
 @pytest.mark.parametrize(
     ("field", "value"),
-    [("steps", 1), ("before", 20), ("before", -1), ("after", -1), ("max_steps", 10), ("max_merge", 0)],
+    [
+        ("steps", 1),
+        ("steps_before", 20),
+        ("steps_before", -1),
+        ("steps_after", -1),
+        ("shrink_steps", -1),
+        ("max_steps", 10),
+        ("max_merge", 0),
+    ],
 )
 def test_policy_rejects_bad_values(field: str, value: int) -> None:
     with pytest.raises(ValueError, match=field):
-        WindowPolicy(**{**{"steps": 20, "before": 5}, field: value})
+        MheSettings(**{**{"steps": 20, "steps_before": 5}, field: value})  # type: ignore[arg-type]
 
 
 @pytest.mark.parametrize(
     ("field", "value"),
-    [("mhe_steps", 1), ("mhe_max_steps", 10), ("mhe_steps_before", 50), ("mhe_solver", "cplex"), ("mhe_gate_m", 0)],
+    [("steps", 1), ("max_steps", 10), ("steps_before", 50), ("solver", "cplex"), ("gate_m", 0)],
 )
 def test_settings_reject_bad_mhe_values(field: str, value: object) -> None:
     with pytest.raises(ValueError, match=field):
-        EstimatorSettings(**{field: value})  # type: ignore[arg-type]
+        MheSettings(**{field: value})  # type: ignore[arg-type]
 
 
-def test_policy_from_settings() -> None:
-    s = EstimatorSettings(mhe_steps=30, mhe_steps_before=7, mhe_max_steps=90)
-    p = WindowPolicy.from_settings(s)
-    assert (p.steps, p.before, p.max_steps) == (30, 7, 90)
+def test_the_policy_is_the_mhe_table() -> None:
+    config = load_config(overrides={"estimator.mhe.steps": 30, "estimator.mhe.steps_before": 7})
+    p = config.estimation.estimator.mhe
+    assert (p.steps, p.steps_before, p.max_steps) == (30, 7, 300)
+    with pytest.raises(ConfigError, match=r"estimator\.mhe_steps: moved: set estimator\.mhe\.steps"):
+        load_config(overrides={"estimator.mhe_steps": 30})

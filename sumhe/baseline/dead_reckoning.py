@@ -15,11 +15,11 @@ import math
 import numpy as np
 
 from sumhe.baseline import kinematics as kin
-from sumhe.baseline.kinematics import OMEGA, PHI, FloatArray, Noise, V
+from sumhe.baseline.kinematics import OMEGA, PHI, FloatArray, V
 from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
 from sumhe.config import Config
-from sumhe.estimator.base import LocalFix
-from sumhe.estimator.settings import EstimatorSettings
+from sumhe.frontend.stream import FixMeasurement
+from sumhe.settings import EstimationSettings, NoiseSettings
 
 MOTION_HEADING_M = 5.0
 """Distance (m) between fixes that gives an azimuth when the receiver sends neither course nor heading."""
@@ -35,12 +35,12 @@ class DeadReckoning(RecursiveEstimator):
     gated = False
     uses_gps_speed = False
 
-    def __init__(self, settings: EstimatorSettings | None = None, noise: Noise | None = None) -> None:
-        super().__init__(settings or EstimatorSettings(), noise or Noise())
+    def __init__(self, settings: EstimationSettings | None = None, noise: NoiseSettings | None = None) -> None:
+        super().__init__(settings or EstimationSettings(), noise or NoiseSettings())
 
     @classmethod
     def from_config(cls, config: Config) -> DeadReckoning:
-        return cls(config.estimator)
+        return cls(config.estimation)
 
     def _reset_filter(self) -> None:
         self.x = np.zeros(self.layout.n)
@@ -82,16 +82,16 @@ class DeadReckoning(RecursiveEstimator):
         self.x[PHI] = phi
         kin.wrap_state(self.x)
 
-    def _fix_angle(self, fix: LocalFix) -> tuple[float, float] | None:
+    def _fix_angle(self, fix: FixMeasurement) -> tuple[float, float] | None:
         angle = super()._fix_angle(fix)
-        here = np.array([fix.east_m, fix.north_m])
-        if angle is not None or self._anchor is None or fix.t - self._anchor_t > MOTION_HEADING_MAX_S:
-            self._anchor, self._anchor_t = here, fix.t
+        here, t = np.array([fix.east_m, fix.north_m]), fix.t
+        if angle is not None or self._anchor is None or t - self._anchor_t > MOTION_HEADING_MAX_S:
+            self._anchor, self._anchor_t = here, t
             return angle
         d = here - self._anchor
         if math.hypot(*d) < MOTION_HEADING_M:
             return None
-        self._anchor, self._anchor_t = here, fix.t
+        self._anchor, self._anchor_t = here, t
         return math.atan2(d[0], d[1]), MOTION_HEADING_SIGMA_RAD
 
     def _mean(self) -> FloatArray:

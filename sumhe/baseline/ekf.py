@@ -14,11 +14,10 @@ import math
 import numpy as np
 
 from sumhe.baseline import kinematics as kin
-from sumhe.baseline.kinematics import PHI, FloatArray, Noise
+from sumhe.baseline.kinematics import PHI, FloatArray
 from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
-from sumhe.baseline.tuning import tuned_noise
 from sumhe.config import Config
-from sumhe.estimator.settings import EstimatorSettings
+from sumhe.settings import EstimationSettings, NoiseSettings
 
 
 def kf_predict(P: FloatArray, F: FloatArray, Q: FloatArray) -> FloatArray:
@@ -58,7 +57,7 @@ def set_heading(x: FloatArray, P: FloatArray, phi: float, sigma: float) -> tuple
 
 
 def ekf_predict(
-    x: FloatArray, P: FloatArray, dt: float, noise: Noise, layout: kin.Layout
+    x: FloatArray, P: FloatArray, dt: float, noise: NoiseSettings, layout: kin.Layout
 ) -> tuple[FloatArray, FloatArray]:
     """The EKF time update over ``dt`` seconds."""
     F = kin.step_jacobian(x, dt)
@@ -82,7 +81,7 @@ def can_rows(inputs: Inputs) -> tuple[tuple[str, ...], FloatArray]:
 
 
 def ekf_can_update(
-    x: FloatArray, P: FloatArray, inputs: Inputs, noise: Noise, layout: kin.Layout
+    x: FloatArray, P: FloatArray, inputs: Inputs, noise: NoiseSettings, layout: kin.Layout
 ) -> tuple[FloatArray, FloatArray, float]:
     """The EKF update with the CAN rows of ``inputs``; also returns the update's log-likelihood."""
     rows, z = can_rows(inputs)
@@ -112,10 +111,24 @@ def gaussian_loglik(nu: FloatArray, S: FloatArray) -> float:
 
 
 class GaussianFilter(RecursiveEstimator):
-    """A filter whose belief is a mean ``x`` and a covariance ``P`` (the layout of :mod:`.kinematics`)."""
+    """A filter whose belief is a mean ``x`` and a covariance ``P`` (the layout of :mod:`.kinematics`); its noise
+    is its own table's (:meth:`tuned`) unless given."""
 
     x: FloatArray
     P: FloatArray
+
+    def __init__(self, settings: EstimationSettings | None = None, noise: NoiseSettings | None = None) -> None:
+        settings = settings or EstimationSettings()
+        super().__init__(settings, noise or self.tuned(settings))
+
+    @classmethod
+    def from_config(cls, config: Config) -> GaussianFilter:
+        return cls(config.estimation)
+
+    @staticmethod
+    def tuned(settings: EstimationSettings) -> NoiseSettings:
+        """The noise of its table, ``[estimator.ekf]``."""
+        return settings.estimator.ekf
 
     def _reset_filter(self) -> None:
         self.x = np.zeros(self.layout.n)
@@ -138,13 +151,6 @@ class Ekf(GaussianFilter):
     """Extended Kalman filter (``ekf``): the shared model linearised at the estimate."""
 
     name = "ekf"
-
-    def __init__(self, settings: EstimatorSettings | None = None, noise: Noise | None = None) -> None:
-        super().__init__(settings or EstimatorSettings(), noise or tuned_noise(self.name))
-
-    @classmethod
-    def from_config(cls, config: Config) -> Ekf:
-        return cls(config.estimator)
 
     def _predict(self, dt: float, inputs: Inputs) -> None:
         self.x, self.P = ekf_predict(self.x, self.P, dt, self.noise, self.layout)

@@ -6,7 +6,7 @@ yaw rate and azimuth nearly constant (small random walks), the turning model let
 fast and the position slip sideways (large ones). A two-state Markov chain with mean sojourn times
 ``sojourn_s`` switches them; each predict step mixes the cells (interaction), each update (CAN rows, GNSS)
 weighs the models by the likelihood of its innovation, and the output is the probability-weighted mean.
-Measurement noise, gate and priors come from the straight model's :class:`~sumhe.baseline.kinematics.Noise`.
+Measurement noise, gate and priors come from the straight model's :class:`~sumhe.baseline.kinematics.NoiseSettings`.
 """
 
 from __future__ import annotations
@@ -26,11 +26,10 @@ from sumhe.baseline.ekf import (
     kf_update,
     set_heading,
 )
-from sumhe.baseline.kinematics import FloatArray, Noise
+from sumhe.baseline.kinematics import FloatArray
 from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
-from sumhe.baseline.tuning import IMM_SOJOURN_S, tuned_noise
 from sumhe.config import Config
-from sumhe.estimator.settings import EstimatorSettings
+from sumhe.settings import EstimationSettings, NoiseSettings
 
 MU_MIN = 1e-4
 """Floor of a model's probability, so that it can come back."""
@@ -64,19 +63,22 @@ class Imm(RecursiveEstimator):
 
     def __init__(
         self,
-        settings: EstimatorSettings | None = None,
-        models: tuple[Noise, Noise] | None = None,
-        sojourn_s: tuple[float, float] = IMM_SOJOURN_S,
+        settings: EstimationSettings | None = None,
+        models: tuple[NoiseSettings, NoiseSettings] | None = None,
+        sojourn_s: tuple[float, float] | None = None,
     ) -> None:
-        self.models = models or (tuned_noise("imm-straight"), tuned_noise("imm-turn"))
+        settings = settings or EstimationSettings()
+        table = settings.estimator.imm
+        self.models = models or (table.straight, table.turn)
+        sojourn_s = table.sojourn_s if sojourn_s is None else sojourn_s
         if len(sojourn_s) != 2 or not all(math.isfinite(s) and s > 0 for s in sojourn_s):
             raise ValueError(f"sojourn_s: two positive times (s), got {sojourn_s!r}")
         self.sojourn_s = sojourn_s
-        super().__init__(settings or EstimatorSettings(), self.models[0])
+        super().__init__(settings, self.models[0])
 
     @classmethod
     def from_config(cls, config: Config) -> Imm:
-        return cls(config.estimator)
+        return cls(config.estimation)
 
     def stats(self) -> Mapping[str, float | int | str]:
         return {**super().stats(), "p_turn": float(self.mu[1])}

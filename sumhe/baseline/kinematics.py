@@ -1,15 +1,17 @@
-"""The motion and measurement models every recursive baseline shares, with their Jacobians (numpy).
+"""The motion and measurement models every recursive baseline shares, with their Jacobians (numpy), taken from
+the SU model of :mod:`sumhe.model.su`: the peers and the SU estimators run one model.
 
-State (the single-antenna SU model of paper 000 with the optional CAN sensor states of issue 7), in this order:
-east, north (m), azimuth phi (rad, clockwise from north), speed v (m/s), yaw rate omega (rad/s, anticlockwise
-positive), then the CAN yaw-rate bias b (rad/s; CAN yaw rate = omega + b) and the CAN speed scale k
+State (the single-antenna SU model ``su5`` of paper 000 with the optional CAN sensor states of issue 7), in its
+order: east, north (m), azimuth phi (rad, clockwise from north), speed v (m/s), yaw rate omega (rad/s,
+anticlockwise positive), then the CAN yaw-rate bias b (rad/s; CAN yaw rate = omega + b) and the CAN speed scale k
 (CAN speed = k v) when the :class:`Layout` carries them.
 
 Continuous model: ``east' = v sin phi``, ``north' = v cos phi``, ``phi' = -omega``; v, omega, b and k are random
-walks. One step of ``dt`` seconds uses the midpoint azimuth ``phi - omega dt / 2`` (exact on a straight line,
-second order on a circle); ``dt`` may be negative, which is how a fix older than the state (receiver latency) is
-compared with it. Every function takes a state of shape ``(n,)`` or a stack of states ``(n, M)`` (sigma points,
-particles) unless it says otherwise.
+walks. One step of ``dt`` seconds is su5's trapezoidal transition at constant speed and yaw rate,
+``T(x, x, dt)``: the midpoint azimuth ``phi - omega dt / 2`` (exact on a straight line, second order on a circle);
+its Jacobian is CasADi's (:func:`sumhe.model.compiled.kinematic_jacobian`); ``dt`` may be negative, which is how a
+fix older than the state (receiver latency) is compared with it. Every function takes a state of shape ``(n,)``
+or a stack of states ``(n, M)`` (sigma points, particles) unless it says otherwise.
 
 Measurements: a GNSS position (east, north), azimuth (GPS course over ground or HDT heading) and speed over
 ground (Doppler, the speed v) at ``lag`` seconds before the state's time, and the CAN rows ``k v`` (speed) and
@@ -19,18 +21,21 @@ ground (Doppler, the speed v) at ``lag`` seconds before the state's time, and th
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from statistics import NormalDist
 
 import numpy as np
 from numpy.typing import NDArray
 
-from sumhe.estimator.settings import EstimatorSettings
-from sumhe.model.su import wrap_angle
+from sumhe.model import compiled
+from sumhe.model.su import SU5_STATES, can_outputs, su_model, wrap_angle
+from sumhe.settings import EstimationSettings, NoiseSettings
 
 FloatArray = NDArray[np.float64]
 
-E, N, PHI, V, OMEGA = range(5)
+E, N, PHI, V, OMEGA = (SU5_STATES.index(s) for s in ("px", "py", "phi", "v", "omega"))
+_KINEMATICS = su_model("su5", discretisation="trapezoid")
+"""The transition of every step (states beyond the kinematic five are carried unchanged)."""
 POSITION = "position"
 AZIMUTH = "azimuth"
 GPS_SPEED = "gps_speed"
@@ -47,63 +52,23 @@ class Layout:
     scale: bool = True
 
     @classmethod
-    def from_settings(cls, settings: EstimatorSettings) -> Layout:
-        return cls(bias=settings.yaw_rate_bias, scale=settings.speed_scale)
+    def from_settings(cls, settings: EstimationSettings) -> Layout:
+        return cls(bias=settings.estimator.yaw_rate_bias, scale=settings.estimator.speed_scale)
 
     @property
     def n(self) -> int:
         """Number of states."""
-        return 5 + int(self.bias) + int(self.scale)
+        return su_model("su5", self.bias, self.scale).n_states
 
     @property
     def b(self) -> int | None:
         """Row of the yaw-rate bias, or None."""
-        return 5 if self.bias else None
+        return su_model("su5", self.bias, self.scale).i_bias
 
     @property
     def k(self) -> int | None:
         """Row of the speed scale, or None."""
-        return 5 + int(self.bias) if self.scale else None
-
-
-@dataclass(frozen=True, slots=True)
-class Noise:
-    """Noise levels of the models, SI units; ``*_rw`` are random-walk densities (unit per sqrt(s)).
-
-    Process: the position, azimuth, speed, yaw rate, bias and scale states each take white noise of the given
-    density (``Q = diag(density^2) dt``). Measurements: CAN speed and yaw rate sigmas (per CAN-rate update),
-    the standstill pseudo-measurement ``omega = 0`` (0 turns it off), the GNSS position sigma as a multiple of
-    the fix's own sigma, a floor on the course sigma. Gate: the chi-square probability of the innovation gate
-    (1 turns the gate off) and how long rejected fixes must agree before the filter re-acquires them.
-    Prior: sigmas of speed and yaw rate at the first fix.
-    """
-
-    pos_rw: float = 0.05
-    heading_rw: float = 0.002
-    speed_rw: float = 1.0
-    yaw_rate_rw: float = 0.3
-    bias_rw: float = 5e-5
-    scale_rw: float = 1e-5
-    can_speed_mps: float = 0.05
-    can_yaw_rate_rps: float = 0.003
-    standstill_rps: float = 0.001
-    gps_scale: float = 1.0
-    course_rad: float = 0.005
-    gate_prob: float = 0.9999
-    reacquire_s: float = 1.0
-    speed0_mps: float = 1.0
-    yaw_rate0_rps: float = 0.1
-
-    def __post_init__(self) -> None:
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"{f.name}: must be a finite number >= 0, got {value!r}")
-        for name in ("can_speed_mps", "can_yaw_rate_rps", "gps_scale"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"{name}: must be positive, got {getattr(self, name)!r}")
-        if not 0 < self.gate_prob <= 1:
-            raise ValueError(f"gate_prob: must be within (0, 1], got {self.gate_prob!r}")
+        return su_model("su5", self.bias, self.scale).i_scale
 
 
 def chi2_threshold(prob: float, dof: int) -> float:
@@ -118,70 +83,38 @@ def chi2_threshold(prob: float, dof: int) -> float:
 
 
 def step(x: FloatArray, dt: float) -> FloatArray:
-    """The state(s) ``dt`` seconds later (midpoint rule; extra states carried unchanged)."""
-    out = np.array(x, dtype=float, copy=True)
-    phi_mid = x[PHI] - 0.5 * dt * x[OMEGA]
-    out[E] = x[E] + dt * x[V] * np.sin(phi_mid)
-    out[N] = x[N] + dt * x[V] * np.cos(phi_mid)
-    out[PHI] = x[PHI] - dt * x[OMEGA]
-    return out
+    """The state(s) ``dt`` seconds later: ``T(x, x, dt)`` of su5 (extra states carried unchanged)."""
+    return np.array(_KINEMATICS.transition(x, x, dt), dtype=float)
 
 
 def step_jacobian(x: FloatArray, dt: float) -> FloatArray:
     """d step(x, dt) / dx for one state ``x`` of shape ``(n,)``."""
-    F = np.eye(len(x))
-    phi_mid = x[PHI] - 0.5 * dt * x[OMEGA]
-    s, c = math.sin(phi_mid), math.cos(phi_mid)
-    vdt = x[V] * dt
-    F[E, PHI], F[E, V], F[E, OMEGA] = vdt * c, dt * s, -0.5 * dt * vdt * c
-    F[N, PHI], F[N, V], F[N, OMEGA] = -vdt * s, dt * c, 0.5 * dt * vdt * s
-    F[PHI, OMEGA] = -dt
-    return F
+    return compiled.kinematic_jacobian(len(x))(x, dt)
 
 
-def process_noise(dt: float, noise: Noise, layout: Layout) -> FloatArray:
+def process_noise(dt: float, noise: NoiseSettings, layout: Layout) -> FloatArray:
     """Q of one step of ``dt`` seconds: independent random walks of every state (n x n)."""
     dens = [noise.pos_rw, noise.pos_rw, noise.heading_rw, noise.speed_rw, noise.yaw_rate_rw]
     dens += [noise.bias_rw] * int(layout.bias) + [noise.scale_rw] * int(layout.scale)
     return np.diag(np.square(dens) * abs(dt))
 
 
-def speed_scale(x: FloatArray, layout: Layout) -> FloatArray | float:
-    """k of the state(s), 1 without a scale state."""
-    return x[layout.k] if layout.k is not None else 1.0
-
-
-def yaw_rate_bias(x: FloatArray, layout: Layout) -> FloatArray | float:
-    """b of the state(s), 0 without a bias state."""
-    return x[layout.b] if layout.b is not None else 0.0
-
-
 def can_model(x: FloatArray, rows: tuple[str, ...], layout: Layout) -> FloatArray:
-    """The CAN rows (``speed``: k v, ``yaw_rate``: omega + b, ``standstill``: omega) of the state(s)."""
-    values = {
-        CAN_SPEED: lambda: speed_scale(x, layout) * x[V],
-        CAN_YAW_RATE: lambda: x[OMEGA] + yaw_rate_bias(x, layout),
-        STANDSTILL: lambda: x[OMEGA],
-    }
-    return np.array([values[r]() for r in rows], dtype=float)
+    """The CAN rows of the state(s): ``speed`` and ``yaw_rate`` as su5 measures them (k v, omega + b,
+    :func:`~sumhe.model.su.can_outputs`), ``standstill`` omega."""
+    speed, yaw_rate = can_outputs(x[V], x[OMEGA], x, layout.b, layout.k)
+    values = {CAN_SPEED: speed, CAN_YAW_RATE: yaw_rate, STANDSTILL: x[OMEGA]}
+    return np.array([values[r] for r in rows], dtype=float)
 
 
 def can_jacobian(x: FloatArray, rows: tuple[str, ...], layout: Layout) -> FloatArray:
     """d can_model / dx for one state (len(rows) x n)."""
-    H = np.zeros((len(rows), len(x)))
-    for i, r in enumerate(rows):
-        if r == CAN_SPEED:
-            H[i, V] = speed_scale(x, layout)
-            if layout.k is not None:
-                H[i, layout.k] = x[V]
-        else:
-            H[i, OMEGA] = 1.0
-            if r == CAN_YAW_RATE and layout.b is not None:
-                H[i, layout.b] = 1.0
-    return H
+    J = compiled.can_jacobian(layout.bias, layout.scale)(x)
+    unit = np.eye(len(x))[OMEGA]
+    return np.array([{CAN_SPEED: J[0], CAN_YAW_RATE: J[1], STANDSTILL: unit}[r] for r in rows])
 
 
-def can_sigmas(rows: tuple[str, ...], noise: Noise) -> FloatArray:
+def can_sigmas(rows: tuple[str, ...], noise: NoiseSettings) -> FloatArray:
     """Measurement sigmas of the CAN rows."""
     sigma = {CAN_SPEED: noise.can_speed_mps, CAN_YAW_RATE: noise.can_yaw_rate_rps, STANDSTILL: noise.standstill_rps}
     return np.array([sigma[r] for r in rows])

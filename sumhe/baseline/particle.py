@@ -3,7 +3,7 @@
 Each particle is a full state of :mod:`.kinematics`. CAN speed and yaw rate drive the particles as inputs
 (odometry, as the INS drives the particles in paper 004): per particle ``v = CAN speed / k`` and
 ``omega = CAN yaw rate - b`` (0 at standstill), then the midpoint step, then random-walk noise on position,
-azimuth, bias and scale with the densities of :class:`~sumhe.baseline.kinematics.Noise` (its speed, yaw-rate
+azimuth, bias and scale with the densities of :class:`~sumhe.baseline.kinematics.NoiseSettings` (its speed, yaw-rate
 and CAN measurement noises are not used). GNSS position and course weight the particles with Gaussian
 likelihoods; systematic resampling when the effective sample size falls below half the particles, with
 Liu-West kernel shrinkage of the static bias and scale (without it their particles collapse onto a few values).
@@ -17,12 +17,11 @@ import math
 import numpy as np
 
 from sumhe.baseline import kinematics as kin
-from sumhe.baseline.kinematics import OMEGA, PHI, FloatArray, Noise, V
+from sumhe.baseline.kinematics import OMEGA, PHI, FloatArray, V
 from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
-from sumhe.baseline.tuning import PF_PARTICLES, tuned_noise
 from sumhe.config import Config
-from sumhe.estimator.settings import EstimatorSettings
-from sumhe.model.su import wrap_angle
+from sumhe.model.su import can_motion, wrap_angle
+from sumhe.settings import EstimationSettings, NoiseSettings
 
 RESAMPLE_ESS = 0.5
 """Resample when the effective sample size is below this share of the particles."""
@@ -51,20 +50,23 @@ class ParticleFilter(RecursiveEstimator):
 
     def __init__(
         self,
-        settings: EstimatorSettings | None = None,
-        noise: Noise | None = None,
-        particles: int = PF_PARTICLES,
-        seed: int = 0,
+        settings: EstimationSettings | None = None,
+        noise: NoiseSettings | None = None,
+        particles: int | None = None,
+        seed: int | None = None,
     ) -> None:
+        settings = settings or EstimationSettings()
+        table = settings.estimator.pf
+        particles = table.particles if particles is None else particles
         if isinstance(particles, bool) or not isinstance(particles, int) or particles < 10:
             raise ValueError(f"particles: must be an integer >= 10, got {particles!r}")
         self.particles = particles
-        self.seed = seed
-        super().__init__(settings or EstimatorSettings(), noise or tuned_noise(self.name))
+        self.seed = table.seed if seed is None else seed
+        super().__init__(settings, noise or table.noise)
 
     @classmethod
     def from_config(cls, config: Config) -> ParticleFilter:
-        return cls(config.estimator)
+        return cls(config.estimation)
 
     def _reset_filter(self) -> None:
         self.rng = np.random.default_rng(self.seed)
@@ -89,11 +91,9 @@ class ParticleFilter(RecursiveEstimator):
     def _set_inputs(self, inputs: Inputs) -> None:
         """Speed and yaw rate of every particle from the CAN inputs and its own scale and bias."""
         speed = inputs.speed if inputs.speed is not None else 0.0
-        self.X[V] = speed / kin.speed_scale(self.X, self.layout)
-        if inputs.standstill or inputs.yaw_rate is None:
-            self.X[OMEGA] = 0.0
-        else:
-            self.X[OMEGA] = inputs.yaw_rate - kin.yaw_rate_bias(self.X, self.layout)
+        yaw_rate = inputs.yaw_rate if inputs.yaw_rate is not None else 0.0
+        self.X[V], omega = can_motion(speed, yaw_rate, self.X, self.layout.b, self.layout.k)
+        self.X[OMEGA] = 0.0 if inputs.standstill or inputs.yaw_rate is None else omega
 
     def _predict(self, dt: float, inputs: Inputs) -> None:
         self._set_inputs(inputs)

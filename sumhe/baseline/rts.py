@@ -27,12 +27,12 @@ import numpy as np
 
 from sumhe.baseline import kinematics as kin
 from sumhe.baseline.ekf import Ekf
-from sumhe.baseline.kinematics import OMEGA, PHI, E, FloatArray, N, Noise, V
+from sumhe.baseline.kinematics import OMEGA, PHI, E, FloatArray, N, V
 from sumhe.baseline.stream import Inputs
-from sumhe.config import Config
-from sumhe.estimator.base import LocalFix, StateEstimate
-from sumhe.estimator.settings import EstimatorSettings
+from sumhe.estimator.base import StateEstimate
+from sumhe.frontend.fixes import LocalFix
 from sumhe.messages import CanSample
+from sumhe.settings import EstimationSettings, NoiseSettings
 
 HISTORY_S = 300.0
 """Default length of the smoothing window (s): ~1 kB per CAN speed sample, ~15 MB at 50 Hz."""
@@ -58,16 +58,20 @@ class Rts(Ekf):
     name = "rts"
 
     def __init__(
-        self, settings: EstimatorSettings | None = None, noise: Noise | None = None, history_s: float = HISTORY_S
+        self,
+        settings: EstimationSettings | None = None,
+        noise: NoiseSettings | None = None,
+        history_s: float = HISTORY_S,
     ) -> None:
         if not history_s > 0:
             raise ValueError(f"history_s: must be a positive number of seconds (inf: all), got {history_s!r}")
         self.history_s = history_s
         super().__init__(settings, noise)
 
-    @classmethod
-    def from_config(cls, config: Config) -> Rts:
-        return cls(config.estimator)
+    @staticmethod
+    def tuned(settings: EstimationSettings) -> NoiseSettings:
+        """The noise of its table, ``[estimator.rts]``."""
+        return settings.estimator.rts
 
     def smoothed(self, epochs_only: bool = False) -> list[StateEstimate]:
         """The estimates ``push`` returned within the window (only those of GNSS epochs with ``epochs_only``),
@@ -152,13 +156,12 @@ class RtsBatch(Rts):
     name = "rts-batch"
 
     def __init__(
-        self, settings: EstimatorSettings | None = None, noise: Noise | None = None, history_s: float = math.inf
+        self,
+        settings: EstimationSettings | None = None,
+        noise: NoiseSettings | None = None,
+        history_s: float = math.inf,
     ) -> None:
         super().__init__(settings, noise, history_s)
-
-    @classmethod
-    def from_config(cls, config: Config) -> RtsBatch:
-        return cls(config.estimator)
 
     def push(self, sample: LocalFix | CanSample) -> list[StateEstimate]:
         """Feed one sample; nothing is returned before :meth:`finish`."""

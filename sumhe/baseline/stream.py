@@ -1,9 +1,11 @@
-"""The sample-stream side of every recursive baseline: :meth:`RecursiveEstimator.push` and its contract.
+"""The recursive baselines' side of the stream: :class:`RecursiveEstimator` on the front-end's epochs and ticks.
 
-The contract (module docstring of :mod:`sumhe.estimator.base`) is implemented once here; a filter supplies
-only the maths, as hooks on its own state:
+The stream (input checks, CAN buffer and delay, GNSS timing and missed epochs, each fix's measurements and sigmas)
+is the front-end's (:mod:`sumhe.frontend`, through :class:`~sumhe.estimator.base.StreamEstimator`); this module
+implements once what every recursive filter does with it, and a filter supplies only the maths, as hooks on its
+own state:
 
-* ``_start(x0, P0)``: a state and covariance at the first valid fix (layout of :mod:`.kinematics`);
+* ``_start(x0, P0)``: a state and covariance at the first usable fix (layout of :mod:`.kinematics`);
 * ``_predict(dt, inputs)``: move the state ``dt`` seconds on (``inputs``: the newest CAN data);
 * ``_can_update(inputs)``: use the CAN speed / yaw rate at a CAN speed sample (measurements, or just inputs);
 * ``_innovation(kind, z, R, lag)``: a GNSS measurement's innovation and its covariance, with a ``commit``
@@ -12,30 +14,22 @@ only the maths, as hooks on its own state:
 * ``_init_heading(phi, sigma)``: the first azimuth measurement sets the azimuth outright;
 * ``_mean()``: the state estimate now (layout of :mod:`.kinematics`, speed and yaw rate filled in).
 
-Timing: the filter's state lives at ``t_state``, the newest CAN speed sample (or fix, if newer); CAN samples
-are taken as measured ``settings.can_delay_s`` before their timestamp (the sensor delay, a calibration), and
-their estimates are reported at the timestamp. A fix older
-than the state (the receiver's latency: fix time = receive time - latency, and CAN data of the meantime came
-first) is compared with the state through the model run back by the lag. Each epoch's estimate is reported at
-the epoch's own time (the state moved there by the model), so an epoch's estimate may be up to the latency
-older than the CAN-rate estimate before it. GNSS silence is measured on the fix clock: the newest sample time
-minus the typical delay of fixes behind CAN data (median of the last fixes), compared with 1.5 nominal periods
-(from the last intervals between epochs, ``settings.step_s`` until two epochs were seen).
+Timing: the filter's state lives at ``t_state``, the newest CAN speed sample's measurement time (or fix, if
+newer); a CAN-rate estimate is reported at the sample's timestamp. A fix older than the state (the receiver's
+latency: CAN data of the meantime came first) is compared with the state through the model run back by the lag.
+Each epoch's estimate is reported at the epoch's own time (the state moved there by the model), so an epoch's
+estimate may be up to the latency older than the CAN-rate estimate before it.
 
-Bad input never raises: non-finite values, unknown sample types, CAN values beyond the vehicle limits, valid fixes
-without a usable position (taken as "no fix"), samples going back in time, fixes older than
-``MAX_FIX_LAG_S`` behind the state: each is counted (:meth:`stats`) and logged at the 1st, 10th, 100th ...
-occurrence. A numerical failure (non-finite state) or more than ``MAX_DATA_GAP_S`` without any sample restarts
-the filter from the next valid fix.
+Measurement noise: a fix's position sigmas (the front-end's) times ``gps_scale``; a course's sigma with the
+filter's model error ``course_rad`` added (``hypot``); a heading's and the speed over ground's as they are. A
+numerical failure (non-finite state) restarts the filter from the next usable fix.
 """
 
 from __future__ import annotations
 
 import math
-import time
-from abc import ABC, abstractmethod
-from collections import Counter, deque
-from collections.abc import Callable, Mapping
+from abc import abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import ClassVar, Literal
 
@@ -51,22 +45,16 @@ from sumhe.baseline.kinematics import (
     FloatArray,
     Layout,
     N,
-    Noise,
     V,
     chi2_threshold,
     step,
 )
-from sumhe.estimator.base import BadInputCounter, LocalFix, StateEstimate, bad_epoch_time
-from sumhe.estimator.grid import GPS_SPEED_RESOLUTION_MPS, gps_speed
-from sumhe.estimator.settings import EstimatorSettings
+from sumhe.estimator.base import StateEstimate, StreamEstimator
+from sumhe.frontend.fixes import LocalFix
+from sumhe.frontend.stream import CanTick, Epoch, FixMeasurement
 from sumhe.messages import CanSample, GpsStatus
+from sumhe.settings import EstimationSettings, NoiseSettings
 
-MAX_FIX_LAG_S = 1.0
-"""Fixes older than this behind the newest CAN data are dropped (counted ``late_fixes``)."""
-MAX_DATA_GAP_S = 10.0
-"""No sample at all for this long (a clock jump, a paused replay) restarts the filter from the next fix."""
-PERIOD_HISTORY = 32
-MAX_PERIOD_S = 5.0
 HEADING_UNKNOWN_RAD = math.pi / math.sqrt(3.0)
 """Prior sigma of the azimuth when the first fix has none (the sigma of a uniform angle)."""
 REACQUIRE_SPREAD_SIGMAS = 4.0
@@ -134,83 +122,69 @@ class _NumericFailure(Exception):
     """The state went non-finite; the filter restarts."""
 
 
-class RecursiveEstimator(BadInputCounter, ABC):
-    """Base of the recursive baselines: implements the :class:`~sumhe.estimator.base.Estimator` protocol.
+class RecursiveEstimator(StreamEstimator):
+    """Base of the recursive baselines (the module docstring). ``gated = False`` turns the innovation gate off (dead
+    reckoning takes every fix as it is)."""
 
-    ``gated = False`` turns the innovation gate off (dead reckoning takes every fix as it is);
-    ``uses_gps_speed = False`` leaves the fixes' speed over ground out even with ``settings.gps_speed``.
-    """
-
-    name: ClassVar[str] = ""
     gated: ClassVar[bool] = True
-    uses_gps_speed: ClassVar[bool] = True
 
-    def __init__(self, settings: EstimatorSettings, noise: Noise) -> None:
-        self.settings = settings
+    def __init__(self, settings: EstimationSettings, noise: NoiseSettings) -> None:
         self.noise = noise
         self.layout = Layout.from_settings(settings)
         prob = noise.gate_prob if self.gated else 1.0
         self._pos_gate = Gate(chi2_threshold(prob, 2), noise.reacquire_s)
         self._az_gate = Gate(chi2_threshold(prob, 1), noise.reacquire_s)
         self._sog_gate = Gate(chi2_threshold(prob, 1), noise.reacquire_s)
-        self._counts: Counter[str] = Counter()
-        self.reset()
+        super().__init__(settings)
+        self.reset_state()
 
-    # ---- the Estimator protocol -------------------------------------------------------------------------------
+    # ---- the StreamEstimator's methods ----------------------------------------------------------------------
 
-    def reset(self) -> None:
-        """Forget the state and the stream's timing; the next valid fix starts over (counters are kept)."""
+    def reset_state(self) -> None:
+        """Forget the state; the next usable fix starts over."""
         self._started = False
         self._heading_known = False
         self._t_state = math.nan
-        self._t_last = -math.inf
-        self._t_can = -math.inf
-        self._last_epoch: float | None = None
-        self._last_real_epoch: float | None = None
-        self._intervals: deque[float] = deque(maxlen=PERIOD_HISTORY)
-        self._delays: deque[float] = deque(maxlen=PERIOD_HISTORY)
-        self._speed: tuple[float, float] | None = None
-        self._yaw: tuple[float, float] | None = None
-        self._yaw_sum = 0.0
-        self._yaw_n = 0
+        self._t_speed = -math.inf
         self._status: GpsStatus = "outage"
-        self._push_t0 = time.perf_counter()
         self._pos_gate.clear()
         self._az_gate.clear()
         self._sog_gate.clear()
         self._reset_filter()
 
     def push(self, sample: LocalFix | CanSample) -> list[StateEstimate]:
-        """Feed one sample (time-ordered); returns the estimates it produced (see the module docstring)."""
-        self._push_t0 = time.perf_counter()
+        """Feed one sample; a numerical failure restarts the filter (and the stream) from the next usable fix."""
         try:
-            if isinstance(sample, LocalFix):
-                return self._push_fix(sample)
-            if isinstance(sample, CanSample):
-                return self._push_can(sample)
-            self._count("bad_samples", "not a LocalFix or CanSample: %s", type(sample).__name__)
-            return []
+            return super().push(sample)
         except (_NumericFailure, np.linalg.LinAlgError) as e:
-            self._count("numeric_failures", "numerical failure (%s); restarting from the next fix", e)
+            self.tally.count("numeric_failures", "numerical failure (%s); restarting from the next fix", e)
             self.reset()
             return []
 
-    def stats(self) -> Mapping[str, float | int | str]:
-        """Counters (epochs, fixes used/rejected, outage epochs, re-acquisitions, dropped samples) and timing."""
-        out: dict[str, float | int | str] = {"estimator": self.name, "period_s": self.period_s}
-        out.update(self._counts)
-        return out
+    def on_epoch(self, epoch: Epoch) -> StateEstimate:
+        t = epoch.t
+        if epoch.start:
+            assert epoch.fix is not None  # the front-end starts at a usable fix
+            self._begin(epoch.fix)
+            status: GpsStatus = "ok"
+        elif epoch.fix is not None:
+            self._advance(t, self._inputs(t))
+            status = self._fix_updates(epoch.fix, self._t_state - t)
+        else:
+            status = "outage"
+        self.tally.counts[STATUS_COUNTERS[status]] += 1
+        self._status = status
+        return self._report(t, status)
 
-    @property
-    def period_s(self) -> float:
-        """The nominal GNSS period (s): mean of the recent intervals between epochs within 50 % of their median
-        (the mean of consecutive intervals cancels the latency jitter; the median test leaves gaps out)."""
-        if not self._intervals:
-            return self.settings.step_s
-        d = np.asarray(self._intervals)
-        median = float(np.median(d))
-        regular = d[np.abs(d - median) <= 0.5 * median]
-        return float(np.mean(regular)) if regular.size else median
+    def on_can(self, tick: CanTick) -> StateEstimate | None:
+        if not tick.output or not self._started:
+            return None
+        inputs = self._inputs(tick.t)
+        self._advance(tick.t, inputs)
+        self._can_update(inputs)
+        self._t_speed = tick.t
+        self.tally.counts["can_updates"] += 1
+        return self._report(tick.stamp, self._status, epoch=False)
 
     # ---- hooks ------------------------------------------------------------------------------------------------
 
@@ -252,112 +226,16 @@ class RecursiveEstimator(BadInputCounter, ABC):
     def _window(self) -> int:
         return 0
 
-    # ---- stream handling --------------------------------------------------------------------------------------
-
-    def _push_can(self, sample: CanSample) -> list[StateEstimate]:
-        t, q, value = sample.t, sample.quantity, sample.value
-        if not (isinstance(t, int | float) and isinstance(value, int | float) and math.isfinite(t)):
-            self._count("bad_samples", "CAN %s sample with a non-finite time or value", q)
-            return []
-        if t < self._t_can:
-            self._count("dropped_backwards", "CAN %s sample %.3f s back in time dropped", q, self._t_can - t)
-            return []
-        if q not in ("speed", "yaw_rate"):
-            return []
-        limit = self.settings.max_speed_mps if q == "speed" else 2.0 * self.settings.max_yaw_rate_rps
-        if not (math.isfinite(value) and abs(value) <= limit):
-            self._count("bad_samples", "CAN %s = %r beyond the vehicle limits dropped", q, value)
-            return []
-        self._t_can = t
-        tm = t - self.settings.can_delay_s
-        self._check_gap(tm)
-        if q == "yaw_rate":
-            self._yaw = (tm, value)
-            self._yaw_sum += value
-            self._yaw_n += 1
-            return []
-        self._speed = (tm, value)
-        if not self._started:
-            return []
-        out = self._missed_epochs(tm - self._delay_s())
-        inputs = self._inputs(tm)
-        self._advance(tm, inputs)
-        self._can_update(inputs)
-        self._yaw_sum, self._yaw_n = 0.0, 0
-        self._counts["can_updates"] += 1
-        out.append(self._report(t, self._status, epoch=False))
-        return out
-
-    def _push_fix(self, fix: LocalFix) -> list[StateEstimate]:
-        t = fix.t
-        bad = bad_epoch_time(t, self._last_epoch)
-        if bad is not None:
-            self._count(bad[0], bad[1], *bad[2])
-            return []
-        if self._started and t < self._t_state - MAX_FIX_LAG_S:
-            self._count("late_fixes", "GNSS epoch %.2f s behind the CAN data dropped", self._t_state - t)
-            return []
-        usable = self._usable(fix)
-        if self._last_real_epoch is not None and t - self._last_real_epoch <= MAX_PERIOD_S:
-            self._intervals.append(t - self._last_real_epoch)
-        self._last_real_epoch = t
-        if self._t_last > t:
-            self._delays.append(self._t_last - t)
-        self._check_gap(t)
-        if not self._started:
-            self._last_epoch = t
-            if not usable:
-                return []
-            self._begin(fix)
-            self._counts["epochs"] += 1
-            self._counts["gps_ok"] += 1
-            self._status = "ok"
-            return [self._report(t, "ok")]
-        out = self._missed_epochs(t)
-        self._last_epoch = t
-        self._counts["epochs"] += 1
-        if usable:
-            self._advance(t, self._inputs(t))
-            status = self._fix_updates(fix, self._t_state - t)
-        else:
-            status = "outage"
-        self._counts[STATUS_COUNTERS[status]] += 1
-        self._status = status
-        out.append(self._report(t, status))
-        return out
-
-    def _check_gap(self, t: float) -> None:
-        if self._started and t - self._t_last > MAX_DATA_GAP_S:
-            gap = t - self._t_last
-            self._count("restarts", "no data for %.1f s: restarting from the next fix", gap)
-            self.reset()
-        self._t_last = max(self._t_last, t)
-
-    def _delay_s(self) -> float:
-        """Typical delay of fixes behind the CAN data (s)."""
-        return float(np.median(self._delays)) if self._delays else 0.0
-
-    def _missed_epochs(self, t_fix_clock: float) -> list[StateEstimate]:
-        """Outage epochs for the epochs GNSS missed up to ``t_fix_clock`` (silence > 1.5 periods)."""
-        out: list[StateEstimate] = []
-        period = self.period_s
-        while self._last_epoch is not None and t_fix_clock - self._last_epoch > 1.5 * period:
-            self._last_epoch += period
-            self._counts["epochs"] += 1
-            self._counts["outage_epochs"] += 1
-            self._counts["missed_epochs"] += 1
-            self._status = "outage"
-            out.append(self._report(self._last_epoch, "outage"))
-        return out
+    # ---- the filter on the stream -----------------------------------------------------------------------------
 
     def _inputs(self, t: float) -> Inputs:
-        gap = self.settings.can_max_gap_s
-        speed = self._speed[1] if self._speed is not None and t - self._speed[0] <= gap else None
-        if self._yaw_n:
-            yaw: float | None = self._yaw_sum / self._yaw_n
-        else:
-            yaw = self._yaw[1] if self._yaw is not None and t - self._yaw[0] <= gap else None
-        still = speed is not None and abs(speed) <= 0.5 * self.settings.can_speed_resolution_mps
+        """The CAN data at ``t``: the speed sample at or before it, the mean yaw rate since the previous speed
+        sample (else the sample at or before ``t``), within ``sensors.can.max_gap_s``."""
+        can, gap = self.frontend.can, self.settings.can.max_gap_s
+        speed = can["speed"].at(t, gap)
+        mean = can["yaw_rate"].mean(max(self._t_speed, t - gap), t)
+        yaw = mean[0] if mean is not None else can["yaw_rate"].at(t, gap)
+        still = speed is not None and abs(speed) <= 0.5 * self.settings.can.speed_quantum_mps
         return Inputs(speed, yaw, still)
 
     def _advance(self, t: float, inputs: Inputs) -> None:
@@ -365,75 +243,60 @@ class RecursiveEstimator(BadInputCounter, ABC):
             self._predict(t - self._t_state, inputs)
             self._t_state = t
 
-    def _begin(self, fix: LocalFix) -> None:
-        inputs = self._inputs(fix.t)
+    def _begin(self, fix: FixMeasurement) -> None:
+        t = fix.t
+        inputs = self._inputs(t)
         angle = self._fix_angle(fix)
         self._heading_known = angle is not None
         phi, sigma_phi = angle if angle is not None else (0.0, HEADING_UNKNOWN_RAD)
-        sigma = self._fix_sigma(fix)
         x0 = np.zeros(self.layout.n)
         x0[E], x0[N], x0[PHI] = fix.east_m, fix.north_m, phi
         x0[V] = inputs.speed if inputs.speed is not None else 0.0
         x0[OMEGA] = inputs.yaw_rate if inputs.yaw_rate is not None and not inputs.standstill else 0.0
-        sig = [sigma, sigma, sigma_phi, self.noise.speed0_mps, self.noise.yaw_rate0_rps]
+        scale = self.noise.gps_scale
+        sig = [scale * fix.sigma_east_m, scale * fix.sigma_north_m, sigma_phi]
+        sig += [self.noise.speed0_mps, self.noise.yaw_rate0_rps]
         if self.layout.b is not None:
-            sig.append(0.5 * self.settings.yaw_rate_bias_max_rps)
+            sig.append(0.5 * self.settings.can.yaw_rate_bias_max_rps)
         if self.layout.k is not None:
             x0[self.layout.k] = 1.0
-            sig.append(0.5 * self.settings.speed_scale_max)
-        self._t_state = fix.t
+            sig.append(0.5 * self.settings.can.speed_scale_max)
+        self._reset_filter()
+        self._pos_gate.clear()
+        self._az_gate.clear()
+        self._sog_gate.clear()
+        self._t_state = t
         self._start(x0, np.diag(np.square(sig)))
         self._started = True
 
-    def _fix_sigma(self, fix: LocalFix) -> float:
-        """The fix's 1-sigma position error (m) times ``gps_scale``: its own (GST, HDOP; at least the resolution
-        ``gps_resolution_m``), else by GGA quality, else the default."""
-        s = self.settings
-        if fix.sigma_m is not None:
-            sigma = max(fix.sigma_m, s.gps_resolution_m)
-        elif fix.quality == 4:
-            sigma = s.gps_sigma_rtk_m
-        elif fix.quality == 5:
-            sigma = s.gps_sigma_float_m
-        else:
-            sigma = s.gps_sigma_m
-        return self.noise.gps_scale * sigma
+    def _fix_angle(self, fix: FixMeasurement) -> tuple[float, float] | None:
+        """The azimuth a fix measures (rad) and its sigma: a heading's, or a course's with the filter's model
+        error ``course_rad``."""
+        if fix.azimuth_rad is None:
+            return None
+        if fix.heading:
+            return fix.azimuth_rad, fix.azimuth_sigma_rad
+        return fix.azimuth_rad, math.hypot(self.noise.course_rad, fix.azimuth_sigma_rad)
 
-    def _fix_angle(self, fix: LocalFix) -> tuple[float, float] | None:
-        """The azimuth a fix measures (rad) and its sigma: HDT heading, else course above the minimum speed."""
-        s = self.settings
-        if s.use_heading and fix.heading_rad is not None and math.isfinite(fix.heading_rad):
-            return fix.heading_rad, s.gps_heading_sigma_rad
-        speed = fix.speed_mps
-        if speed is None or not math.isfinite(speed):
-            speed = self._speed[1] if self._speed is not None else None
-        if (
-            fix.course_rad is not None
-            and math.isfinite(fix.course_rad)
-            and speed is not None
-            and speed >= s.course_min_speed_mps
-        ):
-            return fix.course_rad, math.hypot(self.noise.course_rad, s.gps_speed_sigma_mps / speed)
-        return None
-
-    def _fix_updates(self, fix: LocalFix, lag: float) -> GpsStatus:
-        sigma = self._fix_sigma(fix)
+    def _fix_updates(self, fix: FixMeasurement, lag: float) -> GpsStatus:
+        scale = self.noise.gps_scale
+        sigma_e, sigma_n = scale * fix.sigma_east_m, scale * fix.sigma_north_m
         z = np.array([fix.east_m, fix.north_m])
-        status = self._gated_update(POSITION, z, np.eye(2) * sigma**2, lag, self._pos_gate, fix.t, sigma)
+        R = np.diag([sigma_e**2, sigma_n**2])
+        t = fix.t
+        status = self._gated_update(POSITION, z, R, lag, self._pos_gate, t, max(sigma_e, sigma_n))
         if status == "rejected":
             return status
         self._angle_update(fix, lag)
-        s = self.settings
-        use = s.gps_speed and self.uses_gps_speed
-        speed = gps_speed(fix.speed_mps, self._speed[1] if self._speed is not None else None, s) if use else None
-        if speed is not None:
-            sigma_v = max(s.gps_speed_sigma_mps, GPS_SPEED_RESOLUTION_MPS)
+        if fix.speed_mps is not None:
+            sigma_v = fix.speed_sigma_mps
             R = np.array([[sigma_v**2]])
-            if self._gated_update(GPS_SPEED, np.array([speed]), R, lag, self._sog_gate, fix.t, sigma_v) == "rejected":
-                self._count("speed_rejected", "GNSS speed over ground rejected by the gate")
+            z = np.array([fix.speed_mps])
+            if self._gated_update(GPS_SPEED, z, R, lag, self._sog_gate, t, sigma_v) == "rejected":
+                self.tally.count("speed_rejected", "GNSS speed over ground rejected by the gate")
         return status
 
-    def _angle_update(self, fix: LocalFix, lag: float) -> None:
+    def _angle_update(self, fix: FixMeasurement, lag: float) -> None:
         angle = self._fix_angle(fix)
         if angle is None:
             return
@@ -444,7 +307,7 @@ class RecursiveEstimator(BadInputCounter, ABC):
             return
         R = np.array([[sigma_phi**2]])
         if self._gated_update(AZIMUTH, np.array([phi]), R, lag, self._az_gate, fix.t, sigma_phi) == "rejected":
-            self._count("azimuth_rejected", "GNSS course/heading rejected by the gate")
+            self.tally.count("azimuth_rejected", "GNSS course/heading rejected by the gate")
 
     def _gated_update(
         self, kind: str, z: FloatArray, R: FloatArray, lag: float, gate: Gate, t: float, sigma: float
@@ -455,7 +318,7 @@ class RecursiveEstimator(BadInputCounter, ABC):
         if decision == "rejected":
             return "rejected"
         if decision == "reacquire":
-            self._count(
+            self.tally.count(
                 "reacquired", "re-acquired GNSS %s after %.1f s of agreeing rejected fixes", kind, gate.reacquire_s
             )
             self._inflate(kind, pending.nu, R)
@@ -479,7 +342,7 @@ class RecursiveEstimator(BadInputCounter, ABC):
             gps=status,
             mode=self.name,
             window=self._window(),
-            solve_ms=1000.0 * (time.perf_counter() - self._push_t0),
+            solve_ms=self.elapsed_ms(),
         )
         self._on_report(estimate, epoch)
         return estimate

@@ -16,11 +16,9 @@ import numpy as np
 
 from sumhe.baseline import kinematics as kin
 from sumhe.baseline.ekf import GaussianFilter, can_rows
-from sumhe.baseline.kinematics import FloatArray, Noise
+from sumhe.baseline.kinematics import FloatArray
 from sumhe.baseline.stream import Inputs, Pending
-from sumhe.baseline.tuning import tuned_noise
-from sumhe.config import Config
-from sumhe.estimator.settings import EstimatorSettings
+from sumhe.settings import EstimationSettings, NoiseSettings
 
 ALPHA, BETA, KAPPA = 1.0, 2.0, 0.0
 JITTER = 1e-12
@@ -58,13 +56,14 @@ class Ukf(GaussianFilter):
 
     name = "ukf"
 
-    def __init__(self, settings: EstimatorSettings | None = None, noise: Noise | None = None) -> None:
-        super().__init__(settings or EstimatorSettings(), noise or tuned_noise(self.name))
+    def __init__(self, settings: EstimationSettings | None = None, noise: NoiseSettings | None = None) -> None:
+        super().__init__(settings, noise)
         self._wm, self._wc, self._spread = merwe_weights(self.layout.n)
 
-    @classmethod
-    def from_config(cls, config: Config) -> Ukf:
-        return cls(config.estimator)
+    @staticmethod
+    def tuned(settings: EstimationSettings) -> NoiseSettings:
+        """The noise of its table, ``[estimator.ukf]``."""
+        return settings.estimator.ukf
 
     def _predict(self, dt: float, inputs: Inputs) -> None:
         X = kin.step(sigma_points(self.x, self.P, self._spread), dt)

@@ -197,9 +197,19 @@ def gnss_records(nmea_log: Path) -> list[dict[str, Any]]:
     ]
 
 
-def demo(speed: float, estimator: str | None, out: Path | None, say: Callable[[str], None]) -> int:
-    """Run the demo and draw its figure into ``out`` (None: no figure); returns the exit code (0 when estimates
-    arrived)."""
+@dataclass(frozen=True)
+class DemoRun:
+    """What one demo run gives its figure: the estimates of sumhe and of dead reckoning (JSON-like records), the
+    receiver's own fixes, the truth and the outages (absolute start and end, s)."""
+
+    runs: dict[str, list[dict[str, Any]]]
+    fixes: list[dict[str, Any]]
+    truth: Truth
+    outages: list[tuple[float, float]]
+
+
+def demo(speed: float, estimator: str | None, say: Callable[[str], None]) -> DemoRun:
+    """Run the demo, saying its summary against the truth."""
     drive_dir = bundled_drive_dir()
     sim = load_settings(drive_dir / "scenario.toml")
     truth = load_truth(drive_dir / "truth.csv")
@@ -223,18 +233,5 @@ def demo(speed: float, estimator: str | None, out: Path | None, say: Callable[[s
             f"  {name:<24} {s.ok[0]:8.2f} / {s.ok[1]:6.2f} / {s.ok[2]:6.2f}      "
             f"{s.outage[0]:8.2f} / {s.outage[1]:6.2f} / {s.outage[2]:6.2f}"
         )
-    if out is not None:
-        from sumhe.plot import PlotError, plot_outages, track_from_records
-
-        runs = {"sumhe": records, "dead reckoning": dr}
-        tracks = [track_from_records(recs, name) for name, recs in runs.items() if recs]
-        fixes = track_from_records(gnss_records(drive_dir / "drive.nmea"), "raw GNSS")
-        outages = [(truth.t[0] + start, truth.t[0] + start + length) for start, length in sim.outages]
-        out.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            plot_outages(tracks, truth, outages, out, fixes, title="bundled drive (GPS outages shaded)")
-        except PlotError as e:
-            say(str(e))
-        else:
-            say(f"plot: {out}")
-    return 0 if records else 1
+    outages = [(truth.t[0] + start, truth.t[0] + start + length) for start, length in sim.outages]
+    return DemoRun({"sumhe": records, "dead reckoning": dr}, gnss_records(drive_dir / "drive.nmea"), truth, outages)

@@ -34,10 +34,11 @@ from sumhe.config import GpsSettings
 from sumhe.errors import SumheError
 from sumhe.estimator.batch import SuResult, estimate_batch, estimate_lp, model_for
 from sumhe.estimator.grid import build_grid
-from sumhe.estimator.settings import EstimatorSettings
 from sumhe.geo import LocalFrame
 from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample, GnssFix, Sample
+from sumhe.model.su import integrate_odometry
+from sumhe.settings import EstimationSettings, with_changes
 from sumhe.sim import SimSettings, simulate
 from sumhe.sim.drive import Drive
 
@@ -118,27 +119,27 @@ class Window:
     label: str
 
 
-def method_settings(method: str, base: EstimatorSettings) -> EstimatorSettings:
+def method_settings(method: str, base: EstimationSettings) -> EstimationSettings:
     """The estimator settings of an NLP method, derived from ``base``."""
     changes: dict[str, dict[str, object]] = {
         "nlp": {},
-        "nlp-nobias": {"yaw_rate_bias": False, "speed_scale": False},
-        "nlp-log": {"objective": "log"},
-        "nlp-caps": {"objective": "caps"},
-        "nlp-nocentre": {"centre": "none"},
-        "nlp-euler": {"discretisation": "euler"},
+        "nlp-nobias": {"estimator.yaw_rate_bias": False, "estimator.speed_scale": False},
+        "nlp-log": {"estimator.batch.objective": "log"},
+        "nlp-caps": {"estimator.batch.objective": "caps"},
+        "nlp-nocentre": {"estimator.batch.centre": "none"},
+        "nlp-euler": {"estimator.discretisation": "euler"},
         "paper": {
-            "objective": "log",
-            "centre": "none",
-            "derived_floors": False,
-            "r_cap_sigmas": PAPER_R_CAP_SIGMAS,
-            "yaw_rate_bias": False,
-            "speed_scale": False,
-            "discretisation": "euler",
-            "antenna_lever": False,
+            "estimator.batch.objective": "log",
+            "estimator.batch.centre": "none",
+            "estimator.batch.derived_floors": False,
+            "estimator.r_cap_sigmas": PAPER_R_CAP_SIGMAS,
+            "estimator.yaw_rate_bias": False,
+            "estimator.speed_scale": False,
+            "estimator.discretisation": "euler",
+            "vehicle.antenna_lever": False,
         },
     }
-    return dataclasses.replace(base, **changes[method])  # type: ignore[arg-type]
+    return with_changes(base, changes[method])
 
 
 def label_motion(speed: NDArray[np.float64], yaw_rate: NDArray[np.float64]) -> str:
@@ -152,7 +153,7 @@ def label_motion(speed: NDArray[np.float64], yaw_rate: NDArray[np.float64]) -> s
     return "straight"
 
 
-def make_windows(drive: Drive, ps: ProtocolSettings, est: EstimatorSettings) -> list[Window]:
+def make_windows(drive: Drive, ps: ProtocolSettings, est: EstimationSettings) -> list[Window]:
     """``ps.placements`` windows evenly spaced over the drive, outage fixes removed."""
     gps = GpsSettings()
     fixes = [stamp_fix(f, gps) for f in drive.fixes(1)]
@@ -169,7 +170,7 @@ def make_windows(drive: Drive, ps: ProtocolSettings, est: EstimatorSettings) -> 
         keep = [k for k in sel if not ps.before <= k - k0 < ps.before + ps.outage_epochs]
         epoch_t = np.array([fixes[k].t for k in sel])
         gnss: list[Sample] = [fixes[k] for k in keep] + [second[k] for k in keep if second]
-        lo, hi = np.searchsorted(can_t, [epoch_t[0] + est.can_delay_s - 0.04, epoch_t[-1] + est.can_delay_s + 0.04])
+        lo, hi = np.searchsorted(can_t, [epoch_t[0] + est.can.delay_s - 0.04, epoch_t[-1] + est.can.delay_s + 0.04])
         samples = sorted(gnss + can[lo:hi], key=lambda s: s.t)
         outage = np.zeros(ps.window, dtype=bool)
         outage[ps.before : ps.before + ps.outage_epochs] = True
@@ -179,7 +180,7 @@ def make_windows(drive: Drive, ps: ProtocolSettings, est: EstimatorSettings) -> 
 
 
 def dead_reckoning(
-    window: Window, est: EstimatorSettings, frame: LocalFrame
+    window: Window, est: EstimationSettings, frame: LocalFrame
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """East, north (m, in ``frame``) at the window's epochs: fixes where present; in the outage, CAN speed
     and yaw rate integrated from the last fix, azimuth from its course (else from the last two fixes)."""
@@ -190,13 +191,13 @@ def dead_reckoning(
     before = [f for f in fixes if f.t <= window.epoch_t[window.outage][0]]
     last, prev = before[-1], before[-2]
     p_last, p_prev = frame.to_enu([last.lat_deg, prev.lat_deg], [last.lon_deg, prev.lon_deg])[:, :2]
-    if last.course_rad is not None and (last.speed_mps or 0.0) >= est.course_min_speed_mps:
+    if last.course_rad is not None and (last.speed_mps or 0.0) >= est.gnss.course_min_speed_mps:
         phi = last.course_rad
     else:
         phi = math.atan2(p_last[0] - p_prev[0], p_last[1] - p_prev[1])
     can = [s for s in window.samples if isinstance(s, CanSample)]
     t0 = last.t
-    pos = _integrate(can, est.can_delay_s, t0, p_last, phi, window.epoch_t[window.outage])
+    pos = _integrate(can, est.can.delay_s, t0, p_last, phi, window.epoch_t[window.outage])
     east[window.outage], north[window.outage] = pos[:, 0], pos[:, 1]
     return east, north
 
@@ -213,14 +214,7 @@ def _integrate(
     wy = np.array([w for _, w in yaw])
     grid = np.union1d(np.arange(t0, times[-1] + 1e-9, 0.01), times)
     grid = grid[grid >= t0]
-    v = np.interp(grid, ts, vs)
-    w = np.interp(grid, ty, wy)
-    dt = np.diff(grid)
-    phi = phi0 - np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * dt)])
-    phi_mid = 0.5 * (phi[1:] + phi[:-1])
-    v_mid = 0.5 * (v[1:] + v[:-1])
-    east = p0[0] + np.concatenate([[0.0], np.cumsum(v_mid * np.sin(phi_mid) * dt)])
-    north = p0[1] + np.concatenate([[0.0], np.cumsum(v_mid * np.cos(phi_mid) * dt)])
+    east, north, _ = integrate_odometry(grid, np.interp(grid, ts, vs), np.interp(grid, ty, wy), p0[0], p0[1], phi0)
     return np.column_stack([np.interp(times, grid, east), np.interp(times, grid, north)])
 
 
@@ -232,7 +226,7 @@ def _errors(drive: Drive, window: Window, t: NDArray, east: NDArray, north: NDAr
     return float(de.max()), float(dn.max()), float(de.mean()), float(dn.mean())
 
 
-def run_method(method: str, drive: Drive, window: Window, base: EstimatorSettings) -> Run:
+def run_method(method: str, drive: Drive, window: Window, base: EstimationSettings) -> Run:
     """One method on one window; a solver error is a failed run with infinite error, never a crash."""
     t0 = time.perf_counter()
     ipopt_s, success = 0.0, True
@@ -251,17 +245,19 @@ def run_method(method: str, drive: Drive, window: Window, base: EstimatorSetting
     return Run(method, window.start, window.label, *errs, success, ipopt_s, time.perf_counter() - t0)
 
 
-def run_protocol(ps: ProtocolSettings, est: EstimatorSettings | None = None) -> list[Run]:
+def run_protocol(ps: ProtocolSettings, est: EstimationSettings | None = None) -> list[Run]:
     """Simulate the drive and run every method on every placement."""
-    est = est or EstimatorSettings()
+    est = est or EstimationSettings()
     sim = SimSettings(
         scenario=ps.scenario, seed=ps.seed, duration_s=ps.duration_s, gps_error=ps.gps_error, antennas=ps.antennas
     )
     drive = simulate(sim)
-    est = dataclasses.replace(
+    est = with_changes(
         est,
-        model="su7" if ps.antennas == 2 else est.model,
-        can_delay_s=sim.can_sensor_delay_s if ps.calibrated_can_delay else est.can_delay_s,
+        {
+            "estimator.model": "su7" if ps.antennas == 2 else est.estimator.model,
+            "can.delay_s": sim.can_sensor_delay_s if ps.calibrated_can_delay else est.can.delay_s,
+        },
     )
     windows = make_windows(drive, ps, est)
     runs = []

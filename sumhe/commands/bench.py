@@ -1,6 +1,7 @@
 """``sumhe bench [NAME]``: the benchmarks, one sub-benchmark each: ``peers`` (every estimator side by side,
-:mod:`sumhe.bench.peers`; what ``sumhe bench`` without a NAME runs), ``mhe`` (:mod:`sumhe.bench.mhe`) and
-``protocol`` (paper 000's protocol, the same as ``sumhe protocol``).
+:mod:`sumhe.bench.peers`; what ``sumhe bench`` without a NAME runs), ``mhe`` (:mod:`sumhe.bench.mhe`),
+``protocol`` (paper 000's protocol, the same as ``sumhe protocol``) and ``tune`` (the peers' noise tuning,
+:mod:`sumhe.bench.tune`).
 
 A benchmark prints figures (latency percentiles, errors, speed) and how it ran; it asserts nothing. BLAS is
 pinned to one thread by :func:`sumhe.cli.main` before numpy loads. Adding a benchmark is one line in
@@ -37,6 +38,11 @@ BENCHMARKS: dict[str, tuple[str, str, str]] = {
         "sumhe.commands.protocol:add_arguments",
         "sumhe.commands.protocol:run",
     ),
+    "tune": (
+        "the peers' noise tuning: grid search on training drives, evaluation on test drives",
+        "sumhe.bench.tune:add_arguments",
+        "sumhe.commands.bench:run_tune",
+    ),
 }
 """Sub-benchmarks: name -> (help, ``module:function`` adding its arguments, ``module:function`` running it)."""
 
@@ -67,7 +73,8 @@ def add_mhe_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_mhe(args: argparse.Namespace) -> int:
-    from sumhe.bench.mhe import MheBenchSettings, run_benchmark
+    from sumhe.bench.mhe import MheBenchSettings
+    from sumhe.bench.mhe_report import run_benchmark
 
     bs = MheBenchSettings.quick() if args.quick else MheBenchSettings()
     if args.solvers:
@@ -103,7 +110,7 @@ def _names(text: str) -> tuple[str, ...]:
 
 
 def _peers_settings(args: argparse.Namespace) -> Any:
-    from sumhe.bench.peers import PeersSettings
+    from sumhe.bench.drives import PeersSettings
     from sumhe.errors import ConfigError
     from sumhe.estimator.registry import estimator_names
 
@@ -171,7 +178,8 @@ def run_peers(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from sumhe.bench.peers import how_it_ran, main_table, markdown, run_bench, summarise
+    from sumhe.bench.peers import run_bench
+    from sumhe.bench.report import how_it_ran, main_table, markdown, summarise
     from sumhe.commands.candump import reference_config
     from sumhe.config import load_config
 
@@ -194,6 +202,12 @@ def run_peers(args: argparse.Namespace) -> int:
         (out / "peers.md").write_text(markdown(summary), encoding="utf-8")
         print(f"wrote {out / 'peers.json'} and {out / 'peers.md'}", file=sys.stderr)
     return 0
+
+
+def run_tune(args: argparse.Namespace) -> int:
+    from sumhe.bench.tune import run
+
+    return run(args, lambda line: print(line, flush=True))
 
 
 def add_live_arguments(parser: argparse.ArgumentParser) -> None:

@@ -5,6 +5,10 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from sumhe.bench.demo import DemoRun
 
 DEFAULT_OUT = Path("out") / "sumhe-demo.png"
 
@@ -23,4 +27,22 @@ def run(args: argparse.Namespace) -> int:
 
     if args.speed <= 0:
         raise SystemExit("error: --speed must be positive")
-    return demo(args.speed, args.estimator, None if args.no_plot else args.out, say=print)
+    result = demo(args.speed, args.estimator, say=print)
+    if not args.no_plot:
+        draw(result, args.out)
+    return 0 if result.runs["sumhe"] else 1
+
+
+def draw(result: DemoRun, out: Path) -> None:
+    """The demo's figure into ``out`` (its folder made); says why where it cannot be drawn."""
+    from sumhe.plot import PlotError, plot_outages, track_from_records
+
+    tracks = [track_from_records(recs, name) for name, recs in result.runs.items() if recs]
+    fixes = track_from_records(result.fixes, "raw GNSS")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        plot_outages(tracks, result.truth, result.outages, out, fixes, title="bundled drive (GPS outages shaded)")
+    except PlotError as e:
+        print(e)
+    else:
+        print(f"plot: {out}")

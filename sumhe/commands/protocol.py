@@ -3,8 +3,9 @@
 Simulates a drive (cm-level GNSS by default), cuts a 5 s outage with 10 epochs of GNSS before and after at
 ``--placements`` parts of it and prints, per placement and method, the max and mean errors (24) of the
 position, then a summary: median/p95/worst of the max errors, the share under 0.5 m, IPOPT times. The
-estimator settings come from ``--config`` (its ``[estimator]`` table) or the defaults. A benchmark, not a
-test: it takes about a second per placement and method (tens of seconds for ``paper``).
+estimator settings come from ``--config`` (its ``[estimator]``, ``[vehicle]`` and ``[sensors]`` tables) or the
+defaults. A benchmark, not a test: it takes about a second per placement and method (tens of seconds for
+``paper``).
 """
 
 from __future__ import annotations
@@ -57,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
         )
     except ValueError as e:
         raise ConfigError(f"protocol: {e}") from e
-    est = load_config(args.config).estimator
+    est = load_config(args.config).estimation
     log.info("protocol %s with estimator %s", ps, dataclasses.asdict(est))
     runs = run_protocol(ps, est)
     if args.json:

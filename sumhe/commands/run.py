@@ -31,7 +31,9 @@ async def serve(args: argparse.Namespace) -> None:
     name = args.estimator or config.estimator.name
     check_live(name)
     require_signals(config)
-    sources = {"can": CanBusSource.from_config(config), "gps": SerialNmeaSource(config.gps)}
+    sources: dict[str, CanBusSource | SerialNmeaSource] = {"can": CanBusSource.from_config(config)}
+    if config.gps.source == "nmea":  # with "can" the fixes come decoded from the CAN bus: no serial port
+        sources["gps"] = SerialNmeaSource(config.gps)
     estimator = make_estimator(name, config)
     stop = asyncio.Event()
     install_signal_handlers(stop)

@@ -1,10 +1,12 @@
 """``sumhe simulate --out DIR --seed N [...]`` writes a simulated drive; ``--errors DIR ...`` measures drives.
 
 A drive is ``DIR/drive.log`` (candump -L), ``DIR/drive.nmea`` (receive-time-prefixed NMEA; ``drive2.nmea`` for
-a second antenna), ``DIR/truth.csv`` and ``DIR/scenario.toml``; ``--settings DIR/scenario.toml`` regenerates
-it byte for byte (options given as well override the file). ``--outage 60+10`` is an outage of 10 s from 60 s.
-``--errors`` prints the sensor errors of existing drive directories against their truth, decoded with sumhe's
-own CAN and NMEA decoders.
+a second antenna), ``DIR/truth.csv`` and ``DIR/scenario.toml``, plus ``vehicle.dbc`` and ``config.toml`` for a
+production-like car; ``--settings DIR/scenario.toml`` regenerates it byte for byte (options given as well
+override the file). ``--profile realistic`` draws every real-car error from the seed (default ``kind``: today's
+drives). ``--outage 60+10`` is an outage of 10 s from 60 s. ``--errors`` prints the sensor errors of existing
+drive directories against their truth, decoded with sumhe's own CAN and NMEA decoders; ``--study-real LOG ...
+--gps-dbc FILE`` measures a real logger drive's sensors (:mod:`sumhe.sim.study`).
 """
 
 from __future__ import annotations
@@ -13,10 +15,11 @@ import argparse
 import dataclasses
 from pathlib import Path
 
-from sumhe.errors import ConfigError
-from sumhe.sim import SimSettings, load_settings, simulate, write_drive
+from sumhe.errors import ConfigError, SourceError
+from sumhe.sim import load_settings, simulate, write_drive
 from sumhe.sim.measure import format_table, measure_errors
-from sumhe.sim.settings import GPS_ERROR_MODELS, OUTAGE_STYLES, SCENARIO_NAMES
+from sumhe.sim.profiles import PROFILES, profile_settings
+from sumhe.sim.settings import GPS_ERROR_MODELS, OUTAGE_STYLES, SCENARIO_NAMES, SimSettings
 
 _OVERRIDES = {
     "seed": "seed",
@@ -51,7 +54,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     action = parser.add_mutually_exclusive_group(required=True)
     action.add_argument("--out", type=Path, metavar="DIR", help="write the drive's files into DIR")
     action.add_argument("--errors", type=Path, nargs="+", metavar="DIR", help="print the errors of drive directories")
+    action.add_argument(
+        "--study-real", type=Path, nargs="+", metavar="LOG", help="measure a real logger drive's sensors"
+    )
+    parser.add_argument("--gps-dbc", type=Path, metavar="FILE", help="--study-real: the logger's GNSS/IMU DBC")
+    parser.add_argument(
+        "--imu-yaw", default="gnss_imu.AngularRateX", metavar="MSG.SIG", help="--study-real: the yaw-rate signal"
+    )
     parser.add_argument("--settings", type=Path, metavar="FILE", help="start from a scenario.toml")
+    parser.add_argument(
+        "--profile", choices=tuple(PROFILES), help="kind (default: today's drives) or realistic (real-car errors)"
+    )
     parser.add_argument("--seed", type=int, metavar="N", help="random seed (default 0)")
     parser.add_argument("--duration", type=float, metavar="S", help="length of the drive in s (default 240)")
     parser.add_argument("--scenario", choices=SCENARIO_NAMES, help="route and driving style (default urban)")
@@ -72,8 +85,13 @@ def settings_from_args(args: argparse.Namespace) -> SimSettings:
     overrides = {field: getattr(args, dest) for dest, field in _OVERRIDES.items() if getattr(args, dest) is not None}
     if "outages" in overrides:
         overrides["outages"] = tuple(overrides["outages"])
+    if args.settings is not None and args.profile is not None:
+        raise ConfigError("simulate: --profile: give either --settings or --profile (a scenario.toml holds its draws)")
     try:
-        base = load_settings(args.settings) if args.settings is not None else SimSettings()
+        if args.settings is not None:
+            base = load_settings(args.settings)
+        else:
+            base = profile_settings(args.profile or "kind", overrides.get("seed", 0))
         return dataclasses.replace(base, **overrides)
     except ValueError as e:
         raise ConfigError(f"simulate: {e}") from e
@@ -82,6 +100,8 @@ def settings_from_args(args: argparse.Namespace) -> SimSettings:
 def run(args: argparse.Namespace) -> int:
     if args.errors:
         return _errors(args.errors)
+    if args.study_real:
+        return _study(args)
     settings = settings_from_args(args)
     drive = simulate(settings)
     try:
@@ -95,6 +115,19 @@ def run(args: argparse.Namespace) -> int:
         f"{int(epochs.sent.sum())} GPS epochs sent ({int((~epochs.valid).sum())} in outages); "
         f"{', '.join(p.name for p in paths)}"
     )
+    return 0
+
+
+def _study(args: argparse.Namespace) -> int:
+    from sumhe.sim.study import format_study, study_real
+
+    if args.gps_dbc is None:
+        raise ConfigError("simulate: --study-real needs --gps-dbc FILE (the logger's GNSS/IMU DBC)")
+    try:
+        rows = study_real(args.study_real, args.gps_dbc, args.imu_yaw)
+    except KeyError as e:
+        raise SourceError(f"simulate: --study-real: no {e} frames in the logs (is --gps-dbc the logger's?)") from e
+    print(format_study(rows, f"== {len(args.study_real)} log(s) from {args.study_real[0]}"))
     return 0
 
 

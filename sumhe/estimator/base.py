@@ -1,71 +1,53 @@
 """The one interface every estimator answers to (MHE, batch replays, EKF, UKF, particle filter, IMM).
 
 The service, the replay and the benchmark feed samples in time order and collect estimates; they never branch
-on which estimator runs. Positions are in the local east/north frame (a :class:`FixConverter` turns
-:class:`~sumhe.messages.GnssFix` into :class:`LocalFix` with the datum policy; a
+on which estimator runs. Positions are in the local east/north frame (a :class:`~sumhe.frontend.fixes.FixConverter`
+turns :class:`~sumhe.messages.GnssFix` into :class:`~sumhe.frontend.fixes.LocalFix` with the datum policy; a
 :class:`StateEstimate` becomes a geodetic :class:`~sumhe.messages.Estimate` with :func:`to_estimate`).
 
 Contract of :meth:`Estimator.push`:
 
-* a :class:`LocalFix` (valid or not) is a GNSS epoch: the estimator returns exactly one estimate for it, with
-  ``gps`` ``"ok"`` (fix used), ``"rejected"`` (fix failed the gate) or ``"outage"`` (no valid fix);
+* a :class:`~sumhe.frontend.fixes.LocalFix` (valid or not) is a GNSS epoch: the estimator returns exactly one
+  estimate for it, with ``gps`` ``"ok"`` (fix used), ``"rejected"`` (fix failed the gate) or ``"outage"`` (no
+  usable fix);
 * a :class:`~sumhe.messages.CanSample` updates the motion inputs; for each ``speed`` sample the estimator returns
-  one estimate at the sample's time (the newest state propagated with the newest CAN data), so the output runs at
-  CAN rate between GNSS epochs; when GNSS is silent for more than ``1.5`` nominal periods, the estimator itself
-  takes the missed epochs as outage epochs (returned as estimates with ``gps="outage"``);
+  one estimate (the newest state propagated with the newest CAN data), so the output runs at CAN rate between GNSS
+  epochs; when GNSS is silent for more than ``1.5`` nominal periods, the missed epochs are taken as outage epochs
+  (returned as estimates with ``gps="outage"``);
 * nothing is returned before the first valid fix ("no fix yet");
-* an estimator never raises for bad data in the stream: samples going back in time are dropped and counted.
+* an estimator never raises for bad data in the stream: it is dropped and counted.
 
-Offline smoothers (``su-batch``) also provide ``finish() -> list[StateEstimate]``, called once at the end of a
-recorded drive; the pipeline calls it where it exists (:meth:`sumhe.service.pipeline.Pipeline.finish`).
+The live estimators implement it once, in :class:`StreamEstimator`: its ``push`` runs the measurement front-end
+(:class:`~sumhe.frontend.stream.FrontEnd`: input checks, CAN buffer, GNSS timing and missed epochs, each fix's
+measurements and sigmas) and hands each estimator the front-end's events; an estimator implements only
+``reset_state``, ``on_epoch`` and ``on_can``. Offline smoothers (``su-batch``) also provide
+``finish() -> list[StateEstimate]``, called once at the end of a recorded drive; the pipeline calls it where it
+exists (:meth:`sumhe.service.pipeline.Pipeline.finish`).
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from collections import Counter
+import time
+from abc import ABC, abstractmethod
 from collections.abc import Mapping
-from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from dataclasses import dataclass
+from typing import ClassVar, Protocol, runtime_checkable
 
-from sumhe.config import DatumSettings
+from sumhe.frontend.fixes import LocalFix
+from sumhe.frontend.stream import CanTick, Epoch, FrontEnd, Tally
 from sumhe.geo import LocalFrame
-from sumhe.messages import CanSample, Estimate, GnssFix, GpsStatus
-
-HDOP_UERE_M = 1.5
-"""Receiver range error (m, 1 sigma) assumed when only HDOP describes a fix's accuracy."""
-MAX_FIX_SIGMA_M = 1000.0
-"""The largest 1-sigma accuracy (m) a usable fix may claim."""
-
-
-@dataclass(frozen=True, slots=True)
-class LocalFix:
-    """A GNSS epoch in the local frame. ``t`` is the time of the measurement on the service clock.
-
-    ``sigma_m`` is the receiver's 1-sigma horizontal accuracy (GST, else HDOP x UERE, else None).
-    ``course_rad``/``heading_rad`` clockwise from north.
-    """
-
-    t: float
-    valid: bool
-    east_m: float = math.nan
-    north_m: float = math.nan
-    up_m: float = 0.0
-    quality: int = 0
-    sigma_m: float | None = None
-    speed_mps: float | None = None
-    course_rad: float | None = None
-    heading_rad: float | None = None
-    fix: GnssFix | None = field(default=None, compare=False, repr=False)
-    frame: LocalFrame | None = field(default=None, compare=False, repr=False)
+from sumhe.messages import CanSample, Estimate, GpsStatus
+from sumhe.settings import EstimationSettings
 
 
 @dataclass(frozen=True, slots=True)
 class StateEstimate:
     """An estimator's answer in the local frame: east/north (m), azimuth (rad, clockwise from north),
-    speed (m/s), yaw rate (rad/s, anticlockwise). ``bound_*`` are half-widths of the set of positions
-    consistent with model and data, where the estimator knows them."""
+    speed (m/s), yaw rate (rad/s, anticlockwise); the GNSS status and the estimator's mode; ``bound_*`` the
+    half-widths of the set of positions consistent with model and data, where the estimator knows them; the window
+    length (steps) and the time of the push that made it (ms)."""
 
     t: float
     east_m: float
@@ -75,10 +57,10 @@ class StateEstimate:
     yaw_rate_rps: float
     gps: GpsStatus
     mode: str
-    window: int = 0
-    solve_ms: float = 0.0
     bound_east_m: float | None = None
     bound_north_m: float | None = None
+    window: int = 0
+    solve_ms: float = 0.0
 
 
 @runtime_checkable
@@ -97,88 +79,70 @@ class Estimator(Protocol):
         """Counters and figures for the status line (e.g. solves, failures, rejected fixes, window)."""
 
 
-def bad_epoch_time(t: object, last_epoch: float | None) -> tuple[str, str, tuple[float, ...]] | None:
-    """Why a GNSS epoch at ``t`` cannot be taken, as (counter, log message, message args), or None when it can:
-    a non-finite time, or a time not after the previous epoch's."""
-    if not (isinstance(t, int | float) and math.isfinite(t)):
-        return "bad_samples", "GNSS epoch with a non-finite time", ()
-    if last_epoch is not None and t <= last_epoch:
-        return "dropped_backwards", "GNSS epoch %.3f s back in time dropped", (last_epoch - t,)
-    return None
+class StreamEstimator(ABC):
+    """Base of the live estimators: :meth:`push` runs the front-end once for all and calls the three methods an
+    estimator implements (the module docstring).
 
+    * :meth:`reset_state`: forget the estimate (the front-end is reset by :meth:`reset`);
+    * :meth:`on_epoch`: one GNSS epoch (a usable fix or none; ``epoch.start``: begin here) -> its estimate, at
+      ``epoch.t``, with ``gps`` ``"ok"``, ``"rejected"`` or ``"outage"``;
+    * :meth:`on_can`: one CAN sample taken in -> an estimate at its time, or None (the MHE and the Kalman peers
+      answer each ``speed`` sample).
 
-def has_usable_position(fix: LocalFix) -> bool:
-    """A fix flagged valid whose position is finite and whose sigma, if given, is positive and at most
-    ``MAX_FIX_SIGMA_M`` (a larger one overflows a filter's variance and says the position is unknown anyway)."""
-    sigma_ok = fix.sigma_m is None or 0 < fix.sigma_m <= MAX_FIX_SIGMA_M
-    return fix.valid and math.isfinite(fix.east_m) and math.isfinite(fix.north_m) and sigma_ok
+    ``uses_gps_speed = False`` leaves the fixes' speed over ground out of the measurements. ``self.tally`` counts
+    what the estimator reports in ``stats()``.
+    """
 
+    name: ClassVar[str] = ""
+    uses_gps_speed: ClassVar[bool] = True
 
-class BadInputCounter:
-    """What the streaming estimators share about bad input: ``_count`` counts an event in ``_counts`` (their
-    ``stats()``) and logs it, on the estimator's module logger, at its 1st, 10th, 100th, ... occurrence;
-    ``_usable`` says whether a fix's position can be used, counting a valid fix without one (taken as no fix)."""
+    def __init__(self, settings: EstimationSettings) -> None:
+        self.settings = settings
+        self.tally = Tally(self.name, logging.getLogger(type(self).__module__))
+        self.frontend = FrontEnd(settings, self.tally, self.uses_gps_speed)
+        self._push_t0 = time.perf_counter()
 
-    name: str
-    _counts: Counter[str]
+    def reset(self) -> None:
+        """Forget the estimate and the stream (CAN data, GNSS timing); counters are kept."""
+        self.frontend.reset()
+        self.reset_state()
 
-    def _count(self, key: str, msg: str, *args: object) -> None:
-        self._counts[key] += 1
-        n = self._counts[key]
-        if n == 10 ** int(math.log10(n)):
-            logging.getLogger(type(self).__module__).warning("%s: " + msg + " (%d so far)", self.name, *args, n)
+    def push(self, sample: LocalFix | CanSample) -> list[StateEstimate]:
+        """Feed one sample (time-ordered); returns the estimates it produced. Never raises for bad data."""
+        self._push_t0 = time.perf_counter()
+        out = []
+        for event in self.frontend.push(sample):
+            estimate = self.on_epoch(event) if isinstance(event, Epoch) else self.on_can(event)
+            if estimate is not None:
+                out.append(estimate)
+        return out
 
-    def _usable(self, fix: LocalFix) -> bool:
-        if has_usable_position(fix) or not fix.valid:
-            return fix.valid
-        self._count("bad_fixes", "valid fix without a usable position or sigma taken as no fix")
-        return False
+    def stats(self) -> Mapping[str, float | int | str]:
+        """The estimator's name, the nominal GNSS period and every counter (front-end and estimator)."""
+        out: dict[str, float | int | str] = {"estimator": self.name, "period_s": self.frontend.period_s}
+        out.update(self.tally.counts)
+        return out
 
+    @property
+    def period_s(self) -> float:
+        """The nominal GNSS period (s) of the stream."""
+        return self.frontend.period_s
 
-def fix_sigma_m(fix: GnssFix) -> float | None:
-    """The receiver's own 1-sigma horizontal accuracy (m): GST lat/lon sigmas, else HDOP x UERE."""
-    if fix.sigma_lat_m is not None and fix.sigma_lon_m is not None:
-        return math.hypot(fix.sigma_lat_m, fix.sigma_lon_m) / math.sqrt(2.0)
-    if fix.hdop is not None:
-        return fix.hdop * HDOP_UERE_M
-    return None
+    def elapsed_ms(self) -> float:
+        """Time since the current ``push`` began (ms): the ``solve_ms`` of its estimates."""
+        return 1000.0 * (time.perf_counter() - self._push_t0)
 
+    @abstractmethod
+    def reset_state(self) -> None:
+        """Forget the estimate; the next epoch with ``start`` begins again."""
 
-class FixConverter:
-    """GnssFix (``t`` already its measurement time, see :mod:`sumhe.io.fixtime`) -> LocalFix in the local frame,
-    with the datum policy (first valid fix, or fixed)."""
+    @abstractmethod
+    def on_epoch(self, epoch: Epoch) -> StateEstimate:
+        """The estimate of one GNSS epoch."""
 
-    def __init__(self, datum: DatumSettings) -> None:
-        self.frame: LocalFrame | None = None
-        if datum.mode == "fixed":
-            assert datum.lat is not None and datum.lon is not None  # validated by DatumSettings
-            self.frame = LocalFrame(datum.lat, datum.lon, datum.alt)
-
-    def convert(self, fix: GnssFix) -> LocalFix:
-        """The fix in the local frame; the first valid fix sets the datum when none is fixed."""
-        t = fix.t
-        has_position = fix.valid and fix.lat_deg is not None and fix.lon_deg is not None
-        if not has_position:
-            return LocalFix(t=t, valid=False, quality=fix.quality, fix=fix)
-        assert fix.lat_deg is not None and fix.lon_deg is not None
-        alt = fix.alt_m if fix.alt_m is not None else 0.0
-        if self.frame is None:
-            self.frame = LocalFrame(fix.lat_deg, fix.lon_deg, alt)
-        east, north, up = self.frame.to_enu(fix.lat_deg, fix.lon_deg, alt)
-        return LocalFix(
-            t=t,
-            valid=True,
-            east_m=float(east),
-            north_m=float(north),
-            up_m=float(up),
-            quality=fix.quality,
-            sigma_m=fix_sigma_m(fix),
-            speed_mps=fix.speed_mps,
-            course_rad=fix.course_rad,
-            heading_rad=fix.heading_rad,
-            fix=fix,
-            frame=self.frame,
-        )
+    @abstractmethod
+    def on_can(self, tick: CanTick) -> StateEstimate | None:
+        """The estimate at a CAN sample, or None."""
 
 
 def to_estimate(state: StateEstimate, frame: LocalFrame, up_m: float = 0.0) -> Estimate:

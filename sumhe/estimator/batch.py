@@ -13,11 +13,11 @@ Pipeline for one window of samples (a time-ordered list of :class:`~sumhe.messag
    (:mod:`sumhe.estimator.lp`); if even the widened LP fails, the fixes interpolated in time.
    :func:`estimate_lp` returns the LP as an estimator of its own.
 3. Stage 1, the MAP of (q, r) over the feasible set S of (14) with the box prior (11) from the derived
-   floors and caps, by ``settings.objective``:
+   floors and caps, by ``settings.estimator.batch.objective``:
    ``"log"``: the paper's (15), ``sum ln q_i + sum (K_j/T) ln r_j`` (K_j: outputs of kind j present);
    ``"linear"``: ``sum q_i/qcap_i + sum (K_j/T) r_j/rcap_j`` (001's linearised MAP, normalised);
    ``"caps"``: no stage 1, q and r are their caps (a pure set-membership estimate; the centre always runs).
-4. Stage 2, the reported point (``settings.centre``). The objective depends on q and r only, so every
+4. Stage 2, the reported point (``settings.estimator.batch.centre``). The objective depends on q and r only, so every
    trajectory in S(q, r) is a MAP estimate; ``"lsq"`` reports the centre of S(q', r'), with q and r fixed
    at the stage-1 values widened by ``centre_margin`` (``q' = (1 + margin) q``), as the point minimising
    ``sum (w_ti / q'_i)^2 + sum (e_kj / r'_j)^2``: the constrained least-squares smoother whose weights are
@@ -48,7 +48,6 @@ from sumhe.estimator.bounds import NoiseBounds, noise_bounds, widen_caps
 from sumhe.estimator.grid import Grid, build_grid
 from sumhe.estimator.lp import LpSolution, interpolated_start, solve_lp
 from sumhe.estimator.problem import NlpSolution, SuNlp, build_nlp
-from sumhe.estimator.settings import EstimatorSettings
 from sumhe.geo import LocalFrame
 from sumhe.messages import Sample
 from sumhe.model.su import (
@@ -60,6 +59,7 @@ from sumhe.model.su import (
     state_residuals,
     su_model,
 )
+from sumhe.settings import EstimationSettings
 
 log = logging.getLogger(__name__)
 
@@ -115,38 +115,38 @@ class SuResult:
         return self.states[:, 1]
 
 
-def model_args(settings: EstimatorSettings) -> tuple[str, bool, bool, str, float, bool]:
+def model_args(settings: EstimationSettings) -> tuple[str, bool, bool, str, float, bool]:
     """The arguments of :func:`~sumhe.model.su.su_model` the settings select (``model``, ``yaw_rate_bias``,
     ``speed_scale``, ``discretisation``, the lever arm, ``gps_speed``): hashable, a cache key too."""
     return (
-        settings.model,
-        settings.yaw_rate_bias,
-        settings.speed_scale,
-        settings.discretisation,
+        settings.estimator.model,
+        settings.estimator.yaw_rate_bias,
+        settings.estimator.speed_scale,
+        settings.estimator.discretisation,
         lever_m(settings),
-        settings.gps_speed,
+        settings.gnss.use_speed,
     )
 
 
-def model_for(settings: EstimatorSettings) -> SuModel:
+def model_for(settings: EstimationSettings) -> SuModel:
     """The SU model the settings select (:func:`model_args`)."""
     return su_model(*model_args(settings))
 
 
-def lever_m(settings: EstimatorSettings) -> float:
+def lever_m(settings: EstimationSettings) -> float:
     """The antenna-2 lever arm of su7 (m): the antenna distance, or 0 for the paper's rigid translation."""
-    return settings.antenna_distance_m if settings.antenna_lever else 0.0
+    return settings.vehicle.antenna_distance_m if settings.vehicle.antenna_lever else 0.0
 
 
-def state_box(model: SuModel, n_steps: int, settings: EstimatorSettings) -> tuple[NDArray, NDArray]:
+def state_box(model: SuModel, n_steps: int, settings: EstimationSettings) -> tuple[NDArray, NDArray]:
     """Bounds (11) on every x_t (N x m): speed, yaw rate, CAN bias and scale limits; positions, phi free."""
     lo = np.full(model.n_states, -np.inf)
     hi = np.full(model.n_states, np.inf)
     limits = {
-        "v": (-settings.max_reverse_speed_mps, settings.max_speed_mps),
-        "omega": (-settings.max_yaw_rate_rps, settings.max_yaw_rate_rps),
-        BIAS_STATE: (-settings.yaw_rate_bias_max_rps, settings.yaw_rate_bias_max_rps),
-        SCALE_STATE: (1.0 - settings.speed_scale_max, 1.0 + settings.speed_scale_max),
+        "v": (-settings.vehicle.max_reverse_speed_mps, settings.vehicle.max_speed_mps),
+        "omega": (-settings.vehicle.max_yaw_rate_rps, settings.vehicle.max_yaw_rate_rps),
+        BIAS_STATE: (-settings.can.yaw_rate_bias_max_rps, settings.can.yaw_rate_bias_max_rps),
+        SCALE_STATE: (1.0 - settings.can.speed_scale_max, 1.0 + settings.can.speed_scale_max),
     }
     for name, (a, b) in limits.items():
         if name in model.states:
@@ -160,11 +160,9 @@ def start_states(lp: LpSolution, model: SuModel, origin: NDArray[np.float64]) ->
     x = np.zeros((N, model.n_states))
     n_pos = 2 * model.antennas
     x[:, :n_pos] = lp.p - np.tile(origin, model.antennas)
-    x[:, model.index("phi")] = lp.phi
-    x[:, model.index("v")] = lp.speed
-    x[:, model.index("omega")] = lp.yaw_rate
-    if SCALE_STATE in model.states:
-        x[:, model.index(SCALE_STATE)] = 1.0
+    x[:, model.i_phi], x[:, model.i_v], x[:, model.i_omega] = lp.phi, lp.speed, lp.yaw_rate
+    if model.i_scale is not None:
+        x[:, model.i_scale] = 1.0
     return x
 
 
@@ -186,7 +184,7 @@ def _start_noise(
 class _Window:
     """One window's NLP inputs; ``solve`` runs one stage (objective weights, fixed or free q and r)."""
 
-    def __init__(self, nlp: SuNlp, model: SuModel, grid: Grid, bounds: NoiseBounds, settings: EstimatorSettings):
+    def __init__(self, nlp: SuNlp, model: SuModel, grid: Grid, bounds: NoiseBounds, settings: EstimationSettings):
         self.nlp, self.model, self.grid, self.bounds, self.settings = nlp, model, grid, bounds, settings
         self.origin = np.mean(grid.y[grid.gps, :2], axis=0)
         self.y = _centred(grid, model, self.origin)
@@ -206,10 +204,20 @@ class _Window:
         """One IPOPT solve; ``q`` and ``r`` are (start, lower, upper)."""
         g, b, s = self.grid, self.bounds, self.settings
         p = self.nlp.params(
-            self.y, g.avail, b.r_scale, b.q_scale, g.h, self.kw, b.q_hi, b.r_hi, weights, c_ext, s.antenna_distance_m
+            self.y,
+            g.avail,
+            b.r_scale,
+            b.q_scale,
+            g.h,
+            self.kw,
+            b.q_hi,
+            b.r_hi,
+            weights,
+            c_ext,
+            s.vehicle.antenna_distance_m,
         )
         x0 = np.clip(x0, self.lbx, self.ubx)
-        sol = self.nlp.solve(x0, q[0], r[0], p, self.lbx, self.ubx, q[1:], r[1:], s.antenna_tolerance_m2)
+        sol = self.nlp.solve(x0, q[0], r[0], p, self.lbx, self.ubx, q[1:], r[1:], s.vehicle.antenna_tolerance_m2)
         self.ipopt_time += sol.time_s
         self.iterations += sol.iterations
         if not sol.success:
@@ -219,7 +227,7 @@ class _Window:
 
 def estimate_batch(
     samples: Sequence[Sample],
-    settings: EstimatorSettings | None = None,
+    settings: EstimationSettings | None = None,
     *,
     frame: LocalFrame | None = None,
     extent: bool = False,
@@ -231,11 +239,13 @@ def estimate_batch(
     exception but a result with ``success=False`` (and the LP start, or the interpolated fixes, as states).
     """
     t_start = time.perf_counter()
-    settings = settings or EstimatorSettings()
+    settings = settings or EstimationSettings()
     model = model_for(settings)
     grid = build_grid(samples, model, settings, frame)
     bounds = noise_bounds(model, grid, settings, lever_m(settings))
-    nlp = build_nlp(*model_args(settings), grid.n_steps, settings.ipopt_max_iter, settings.ipopt_tol)
+    nlp = build_nlp(
+        *model_args(settings), grid.n_steps, settings.estimator.batch.ipopt_max_iter, settings.estimator.batch.ipopt_tol
+    )
     win = _Window(nlp, model, grid, bounds, settings)
     try:
         lp = solve_lp(grid, model, bounds, settings, win.origin)
@@ -243,12 +253,12 @@ def estimate_batch(
         log.warning("%s; the NLP starts from the interpolated fixes", e)
         lp = interpolated_start(grid, model, settings)
     x0 = start_states(lp, model, win.origin)
-    for widenings in range(settings.max_widenings + 1):
+    for widenings in range(settings.estimator.batch.max_widenings + 1):
         stages = _stages(win, x0)
-        if stages.success or stages.status not in INFEASIBLE or widenings == settings.max_widenings:
+        if stages.success or stages.status not in INFEASIBLE or widenings == settings.estimator.batch.max_widenings:
             break
-        log.info("SU NLP %s: widening the caps of q and r by %g", stages.status, settings.widen_factor)
-        win.bounds = widen_caps(win.bounds, settings.widen_factor)
+        log.info("SU NLP %s: widening the caps of q and r by %g", stages.status, settings.estimator.widen_factor)
+        win.bounds = widen_caps(win.bounds, settings.estimator.widen_factor)
     x, q, r, q2, r2 = stages.x, stages.q, stages.r, stages.q_centre, stages.r_centre
     status, success = stages.status, stages.success
     box = _extent(win, x, q2, r2) if extent and success else None
@@ -297,17 +307,17 @@ def _stages(win: _Window, x0: NDArray[np.float64]) -> _Stages:
     A failed stage reports the last good point: stage 1's, else the start point."""
     s, b = win.settings, win.bounds
     x, status, success = x0, "Solve_Succeeded", True
-    if s.objective == "caps":
+    if s.estimator.batch.objective == "caps":
         q, r = b.q_hi, b.r_hi
         q2, r2 = q, r
     else:
         q0, r0 = _start_noise(win.model, win.grid, b, x0, win.y)
-        sol = win.solve(x0, (q0, b.q_lo, b.q_hi), (r0, b.r_lo, b.r_hi), WEIGHTS[s.objective])
+        sol = win.solve(x0, (q0, b.q_lo, b.q_hi), (r0, b.r_lo, b.r_hi), WEIGHTS[s.estimator.batch.objective])
         if not sol.success:
             return _Stages(x0, q0, r0, q0, r0, sol.status, False)
         x, q, r = sol.x, sol.q, sol.r
-        q2, r2 = q * (1.0 + s.centre_margin), r * (1.0 + s.centre_margin)
-    if s.centre == "lsq" or s.objective == "caps":
+        q2, r2 = q * (1.0 + s.estimator.batch.centre_margin), r * (1.0 + s.estimator.batch.centre_margin)
+    if s.estimator.batch.centre == "lsq" or s.estimator.batch.objective == "caps":
         sol = win.solve(x, (q2, q2, q2), (r2, r2, r2), CENTRE_WEIGHTS)
         status, success = sol.status, sol.success
         if sol.success:
@@ -329,14 +339,14 @@ def _extent(win: _Window, x: NDArray, q: NDArray, r: NDArray) -> tuple[float, fl
 
 def estimate_lp(
     samples: Sequence[Sample],
-    settings: EstimatorSettings | None = None,
+    settings: EstimationSettings | None = None,
     *,
     frame: LocalFrame | None = None,
 ) -> SuResult:
     """The linear SU estimate alone (000 (21)-(22) as 001's LP): positions from the LP, azimuth from its
     input phi-hat, speed and yaw rate from CAN; q and r only for the position states and outputs."""
     t_start = time.perf_counter()
-    settings = settings or EstimatorSettings()
+    settings = settings or EstimationSettings()
     model = model_for(settings)
     grid = build_grid(samples, model, settings, frame)
     bounds = noise_bounds(model, grid, settings, lever_m(settings))

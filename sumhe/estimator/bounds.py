@@ -31,9 +31,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from sumhe.estimator.grid import GPS_SPEED_RESOLUTION_MPS, Grid
-from sumhe.estimator.settings import EstimatorSettings
-from sumhe.model.su import GPS_SPEED_OUTPUT, SCALE_STATE, SuModel, state_residuals
+from sumhe.estimator.grid import Grid
+from sumhe.frontend.measurements import GPS_SPEED_RESOLUTION_MPS
+from sumhe.model.su import GPS_SPEED_OUTPUT, SuModel, integrate_odometry, state_residuals
+from sumhe.settings import EstimationSettings
 
 TOKEN_FLOOR = 1e-6
 
@@ -70,13 +71,13 @@ def _state_kind(name: str) -> str:
     return name
 
 
-def q_caps(model: SuModel, h: float, settings: EstimatorSettings) -> NDArray[np.float64]:
+def q_caps(model: SuModel, h: float, settings: EstimationSettings) -> NDArray[np.float64]:
     """Cap on the state noise of each dynamic state for a step of ``h`` s: vehicle limits."""
     caps = {
-        "position": 0.5 * h * h * settings.max_accel_mps2,
-        "phi": 0.5 * h * h * settings.max_yaw_accel_rps2,
-        "v": h * settings.max_accel_mps2,
-        "omega": h * settings.max_yaw_accel_rps2,
+        "position": 0.5 * h * h * settings.vehicle.max_accel_mps2,
+        "phi": 0.5 * h * h * settings.vehicle.max_yaw_accel_rps2,
+        "v": h * settings.vehicle.max_accel_mps2,
+        "omega": h * settings.vehicle.max_yaw_accel_rps2,
     }
     return np.array([caps[_state_kind(s)] for s in model.states[: model.n_dynamic]])
 
@@ -92,28 +93,23 @@ def can_trajectory(model: SuModel, grid: Grid, lever_m: float, substeps: int = 1
     v = fill_gaps(grid.can_speed, t)
     w = fill_gaps(grid.can_yaw_rate, t)
     tf = np.concatenate([np.linspace(a, b, substeps, endpoint=False) for a, b in itertools.pairwise(t)] + [t[-1:]])
-    vf, wf = np.interp(tf, t, v), np.interp(tf, t, w)
-    dt = np.diff(tf)
-    phi = np.concatenate([[0.0], -np.cumsum(0.5 * (wf[1:] + wf[:-1]) * dt)])
-    mid_phi, mid_v = 0.5 * (phi[1:] + phi[:-1]), 0.5 * (vf[1:] + vf[:-1])
-    east = np.concatenate([[0.0], np.cumsum(mid_v * np.sin(mid_phi) * dt)])
-    north = np.concatenate([[0.0], np.cumsum(mid_v * np.cos(mid_phi) * dt)])
+    east, north, phi = integrate_odometry(tf, np.interp(tf, t, v), np.interp(tf, t, w))
     k = np.arange(len(t)) * substeps
     x = np.zeros((len(t), model.n_states))
-    x[:, 0], x[:, 1] = east[k], north[k]
+    ie, i_n = model.position
+    x[:, ie], x[:, i_n] = east[k], north[k]
     if model.antennas == 2:
-        x[:, 2], x[:, 3] = east[k] - lever_m * np.sin(phi[k]), north[k] - lever_m * np.cos(phi[k])
-    i_phi = model.index("phi")
-    x[:, i_phi], x[:, i_phi + 1], x[:, i_phi + 2] = phi[k], v, w
-    if SCALE_STATE in model.states:
-        x[:, model.index(SCALE_STATE)] = 1.0
+        x[:, ie + 2], x[:, i_n + 2] = east[k] - lever_m * np.sin(phi[k]), north[k] - lever_m * np.cos(phi[k])
+    x[:, model.i_phi], x[:, model.i_v], x[:, model.i_omega] = phi[k], v, w
+    if model.i_scale is not None:
+        x[:, model.i_scale] = 1.0
     return x
 
 
-def resolution_floors(model: SuModel, h: float, settings: EstimatorSettings) -> NDArray[np.float64]:
+def resolution_floors(model: SuModel, h: float, settings: EstimationSettings) -> NDArray[np.float64]:
     """What one step of ``h`` s leaves unknown given the CAN resolution: half a resolution step of speed
     (of yaw rate) integrated over the step for positions (azimuth), and half a step for v (omega)."""
-    res_v, res_w = 0.5 * settings.can_speed_resolution_mps, 0.5 * settings.can_yaw_rate_resolution_rps
+    res_v, res_w = 0.5 * settings.can.speed_quantum_mps, 0.5 * settings.can.yaw_rate_quantum_rps
     floors = {"position": h * res_v, "phi": h * res_w, "v": res_v, "omega": res_w}
     return np.array([floors[_state_kind(s)] for s in model.states[: model.n_dynamic]])
 
@@ -127,18 +123,18 @@ def q_floors(
     return np.minimum(w.max(axis=0), cap)
 
 
-def r_floors(model: SuModel, settings: EstimatorSettings) -> NDArray[np.float64]:
+def r_floors(model: SuModel, settings: EstimationSettings) -> NDArray[np.float64]:
     """Per-output floor on the output noise: quantisation of the measured values."""
-    res = settings.gps_resolution_m
+    res = settings.gnss.resolution_m
     floors = [res] * (2 * model.antennas)
-    floors.append(2.0 * res / settings.antenna_distance_m if model.antennas == 2 else 1e-4)
+    floors.append(2.0 * res / settings.vehicle.antenna_distance_m if model.antennas == 2 else 1e-4)
     if GPS_SPEED_OUTPUT in model.outputs:
         floors.append(GPS_SPEED_RESOLUTION_MPS)
-    floors += [0.5 * settings.can_speed_resolution_mps, 0.5 * settings.can_yaw_rate_resolution_rps]
+    floors += [0.5 * settings.can.speed_quantum_mps, 0.5 * settings.can.yaw_rate_quantum_rps]
     return np.array(floors)
 
 
-def noise_bounds(model: SuModel, grid: Grid, settings: EstimatorSettings, lever_m: float = 0.0) -> NoiseBounds:
+def noise_bounds(model: SuModel, grid: Grid, settings: EstimationSettings, lever_m: float = 0.0) -> NoiseBounds:
     """The floors, caps and scales of q and r for this window (see the module docstring); ``lever_m`` is
     the su7 antenna-2 lever arm of the model (m)."""
     h = grid.h
@@ -152,7 +148,7 @@ def noise_bounds(model: SuModel, grid: Grid, settings: EstimatorSettings, lever_
         if ok.any():
             r_hi[j] = float(np.median(grid.allow[ok, j]))
             r_scale[ok, j] = grid.allow[ok, j] / r_hi[j]
-    if settings.derived_floors:
+    if settings.estimator.batch.derived_floors:
         q_lo = np.maximum(q_floors(model, grid, q_scale, q_hi, lever_m), resolution_floors(model, h_ref, settings))
         q_lo = np.minimum(q_lo, q_hi)
         r_lo = np.minimum(r_floors(model, settings), r_hi)

@@ -36,8 +36,8 @@ from numpy.typing import NDArray
 from sumhe.errors import SolverError
 from sumhe.estimator.bounds import NoiseBounds, fill_gaps
 from sumhe.estimator.grid import Grid
-from sumhe.estimator.settings import EstimatorSettings
-from sumhe.model.su import SCALE_STATE, SuModel
+from sumhe.model.su import SuModel
+from sumhe.settings import EstimationSettings
 
 log = logging.getLogger(__name__)
 
@@ -107,12 +107,12 @@ def can_inputs(grid: Grid) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     return speed, fill_gaps(grid.can_yaw_rate, grid.t)
 
 
-def interpolated_start(grid: Grid, model: SuModel, settings: EstimatorSettings) -> LpSolution:
+def interpolated_start(grid: Grid, model: SuModel, settings: EstimationSettings) -> LpSolution:
     """The fallback start point when the LP fails: fixes interpolated linearly in time (held at the ends),
     with the LP's azimuth, speed and yaw-rate inputs; ``status = "interpolated"``, q and r NaN."""
     n_pos = 2 * model.antennas
     speed, yaw_rate = can_inputs(grid)
-    phi = azimuth_inputs(grid, model, yaw_rate, settings.discretisation == "trapezoid")
+    phi = azimuth_inputs(grid, model, yaw_rate, settings.estimator.discretisation == "trapezoid")
     p = np.column_stack([fill_gaps(np.where(grid.avail[:, i], grid.y[:, i], np.nan), grid.t) for i in range(n_pos)])
     nan = np.full(n_pos, np.nan)
     return LpSolution(p, nan, nan, phi, speed, yaw_rate, "interpolated", 0, 0, 0.0)
@@ -124,10 +124,9 @@ def displacements(
     """``h u_{t-1}`` of (21) for every step (N-1 x antenna positions, m): the model's own transition of the
     positions driven by the inputs (azimuth phi-hat, CAN speed and yaw rate; bias 0, scale 1)."""
     x = np.zeros((len(phi), model.n_states))
-    i_phi = model.index("phi")
-    x[:, i_phi], x[:, i_phi + 1], x[:, i_phi + 2] = phi, speed, yaw_rate
-    if SCALE_STATE in model.states:
-        x[:, model.index(SCALE_STATE)] = 1.0
+    x[:, model.i_phi], x[:, model.i_v], x[:, model.i_omega] = phi, speed, yaw_rate
+    if model.i_scale is not None:
+        x[:, model.i_scale] = 1.0
     n_pos = 2 * model.antennas
     return np.array(model.transition(x[:-1].T, x[1:].T, h)[:n_pos]).T
 
@@ -179,7 +178,7 @@ def _lp_matrices(
 
 
 def solve_lp(
-    grid: Grid, model: SuModel, bounds: NoiseBounds, settings: EstimatorSettings, origin: NDArray[np.float64]
+    grid: Grid, model: SuModel, bounds: NoiseBounds, settings: EstimationSettings, origin: NDArray[np.float64]
 ) -> LpSolution:
     """Solve the linear SU program with OSQP, retrying with widened ``qbar``, ``rbar`` while infeasible.
 
@@ -189,7 +188,7 @@ def solve_lp(
     t_start = time.perf_counter()
     n_pos = 2 * model.antennas
     speed, yaw_rate = can_inputs(grid)
-    trapezoid = settings.discretisation == "trapezoid"
+    trapezoid = settings.estimator.discretisation == "trapezoid"
     phi = azimuth_inputs(grid, model, yaw_rate, trapezoid)
     move = displacements(model, grid.h, phi, speed, yaw_rate)
     shift = np.tile(origin, model.antennas)
@@ -205,7 +204,7 @@ def solve_lp(
     A, lo, hi, D, target = _lp_matrices(centred, bounds, n_pos, move)
     nz = A.shape[1]
     nx = nz - 2 * n_pos
-    eps = settings.lp_regularisation
+    eps = settings.estimator.batch.lp_regularisation
     P = sp.triu(eps * (D.T @ D), format="csc")
     c = np.zeros(nz)
     c[nx:] = 1.0
@@ -214,7 +213,7 @@ def solve_lp(
     A_all = sp.vstack([A, box], format="csc")
     qbar, rbar = bounds.q_hi[:n_pos].copy(), bounds.r_hi[:n_pos].copy()
     iterations = 0
-    for attempt in range(settings.max_widenings + 1):
+    for attempt in range(settings.estimator.batch.max_widenings + 1):
         solver = osqp.OSQP()
         solver.setup(
             P,
@@ -248,7 +247,11 @@ def solve_lp(
                 iterations=iterations,
                 time_s=time.perf_counter() - t_start,
             )
-        log.info("LP %s (attempt %d): widening qbar, rbar by %g", status.name, attempt + 1, settings.widen_factor)
-        qbar *= settings.widen_factor
-        rbar *= settings.widen_factor
-    raise SolverError(f"linear SU program failed ({status.name}) after {settings.max_widenings} widenings")
+        log.info(
+            "LP %s (attempt %d): widening qbar, rbar by %g", status.name, attempt + 1, settings.estimator.widen_factor
+        )
+        qbar *= settings.estimator.widen_factor
+        rbar *= settings.estimator.widen_factor
+    raise SolverError(
+        f"linear SU program failed ({status.name}) after {settings.estimator.batch.max_widenings} widenings"
+    )

@@ -15,7 +15,8 @@ new availability and new bounds (the moving-horizon estimator relies on this; se
 Objective: ``w_log * (sum ln q_i + sum Kw_j ln r_j)``  (paper (15))
 ``+ w_lin * (sum q_i / qn_i + sum Kw_j r_j / rn_j)``  (the normalised linear objective, 001 (15))
 ``+ w_lsq * (sum (w_ti / (q_i S_ti))^2 + sum A_kj (e_kj / (r_j C_kj))^2)``  (centre of the feasible set)
-``+ c_ext . p_{N-1}``  (extent of the newest position). Angle residuals are wrapped with atan2(sin, cos).
+``+ c_ext . p_{N-1}``  (extent of the newest position). Residuals by :func:`~sumhe.model.su.state_noise` and
+:func:`~sumhe.model.su.output_noise` (output angles wrapped, the azimuth state continuous).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import casadi as ca
 import numpy as np
 from numpy.typing import NDArray
 
-from sumhe.model.su import SuModel, antenna_distance_residual, su_model, wrap_angle
+from sumhe.model.su import SuModel, antenna_distance_residual, output_noise, state_noise, su_model
 
 log = logging.getLogger(__name__)
 
@@ -119,8 +120,7 @@ class SuNlp:
         m, md = self.model.n_states, self.model.n_dynamic
         xp, xn, h, s = ca.SX.sym("xp", m), ca.SX.sym("xn", m), ca.SX.sym("h"), ca.SX.sym("s", md)
         qq = ca.SX.sym("q", md)
-        res = xn[:md] - ca.vertcat(*self.model.transition(xp, xn, h, ca)[:md])
-        res = ca.vertcat(*[wrap_angle(res[i], ca) if i in self.model.angle_states else res[i] for i in range(md)])
+        res = ca.vertcat(*state_noise(self.model, xp, xn, h, ca))
         bound = qq * s
         step = ca.Function(
             "state_step", [xp, xn, h, qq, s], [ca.vertcat(res - bound, res + bound), ca.sumsqr(res / bound)]
@@ -132,8 +132,7 @@ class SuNlp:
         """``A (y_k - h(x_k)) -/+ r C_k`` for every step (2n rows each) and the squared normalised residuals."""
         m, n = self.model.n_states, self.model.n_outputs
         x, y, a, c, rr = ca.SX.sym("x", m), ca.SX.sym("y", n), ca.SX.sym("a", n), ca.SX.sym("c", n), ca.SX.sym("r", n)
-        e = y - ca.vertcat(*self.model.output(x, ca))
-        e = a * ca.vertcat(*[wrap_angle(e[j], ca) if j in self.model.angle_outputs else e[j] for j in range(n)])
+        e = a * ca.vertcat(*output_noise(self.model, x, y, ca))
         bound = rr * c
         out = ca.Function("output", [x, y, a, rr, c], [ca.vertcat(e - bound, e + bound), ca.sumsqr(e / bound)])
         rows, lsq = out.map(self.n_steps)(X, Y, A, ca.repmat(r, 1, self.n_steps), C)

@@ -17,6 +17,7 @@ from typing import Any
 from sumhe.config import Config
 from sumhe.errors import ConfigError
 from sumhe.estimator.base import Estimator
+from sumhe.io.quanta import with_signal_quanta
 
 log = logging.getLogger(__name__)
 
@@ -74,7 +75,8 @@ def estimator_class(name: str) -> Any:
 
 
 def make_estimator(name: str, config: Config) -> Estimator:
-    """Build the estimator ``name`` from the config (its ``[estimator]`` settings)."""
-    estimator: Estimator = estimator_class(name).from_config(config)
+    """Build the estimator ``name`` from the config (``[estimator]``, ``[vehicle]``, ``[sensors]``; the CAN
+    resolutions not set there from the DBC signals mapped, :func:`~sumhe.io.quanta.with_signal_quanta`)."""
+    estimator: Estimator = estimator_class(name).from_config(with_signal_quanta(config))
     log.debug("estimator %s built from %s", name, config.source)
     return estimator

@@ -1,9 +1,9 @@
 """``su-batch``: the batch SU estimate of a whole recorded drive, for offline replays.
 
 It buffers the stream and, at the end (:meth:`SuBatch.finish`), smooths it in overlapping windows of
-``batch_window_s`` seconds (each solved by :func:`~sumhe.estimator.batch.estimate_batch`). A window ends only where
-GNSS is present (paper 000, sec. 3.2: data must be present at both ends of a window), so a boundary never falls
-inside an outage; each window keeps the estimates of its middle, away from the ends by ``batch_overlap_s``/2,
+``estimator.batch.window_s`` seconds (each solved by :func:`~sumhe.estimator.batch.estimate_batch`). A window ends
+only where GNSS is present (paper 000, sec. 3.2: data must be present at both ends of a window), so a boundary never
+falls inside an outage; each window keeps the estimates of its middle, away from the ends by ``overlap_s``/2,
 where the smoother has data on both sides. It returns one estimate per step of the grid (GNSS epochs and the
 outage steps between them). During the drive :meth:`push` returns nothing: it is not a live estimator.
 """
@@ -18,11 +18,12 @@ import numpy as np
 
 from sumhe.config import Config
 from sumhe.errors import EstimatorInputError
-from sumhe.estimator.base import LocalFix, StateEstimate
+from sumhe.estimator.base import StateEstimate
 from sumhe.estimator.batch import SuResult, estimate_batch
-from sumhe.estimator.settings import EstimatorSettings
+from sumhe.frontend.fixes import LocalFix
 from sumhe.geo import LocalFrame
 from sumhe.messages import CanSample, GnssFix, Sample
+from sumhe.settings import EstimationSettings
 
 log = logging.getLogger(__name__)
 
@@ -49,13 +50,13 @@ class SuBatch:
 
     name = "su-batch"
 
-    def __init__(self, settings: EstimatorSettings) -> None:
+    def __init__(self, settings: EstimationSettings) -> None:
         self.settings = settings
         self.reset()
 
     @classmethod
     def from_config(cls, config: Config) -> SuBatch:
-        return cls(config.estimator)
+        return cls(config.estimation)
 
     def reset(self) -> None:
         self._samples: list[Sample] = []
@@ -84,7 +85,9 @@ class SuBatch:
         t_end = self._samples[-1].t
         out: list[StateEstimate] = []
         last_t = -math.inf
-        for i, (start, end) in enumerate(window_bounds(t_gps, t_end, s.batch_window_s, s.batch_overlap_s)):
+        for i, (start, end) in enumerate(
+            window_bounds(t_gps, t_end, s.estimator.batch.window_s, s.estimator.batch.overlap_s)
+        ):
             chunk = [x for x in self._samples if start <= x.t <= end]
             try:
                 result = estimate_batch(chunk, s, frame=self._frame)
@@ -94,7 +97,7 @@ class SuBatch:
             self._windows += 1
             self._failed += not result.success
             self._solve_s += result.solve_time_s
-            keep_from = last_t if i == 0 else max(last_t, start + s.batch_overlap_s / 2)
+            keep_from = last_t if i == 0 else max(last_t, start + s.estimator.batch.overlap_s / 2)
             for est in _estimates(result):
                 if est.t > keep_from:
                     out.append(est)

@@ -1,9 +1,15 @@
-"""CAN frames to SI samples: the DBC, the configured signal mapping, end-to-end checks, and log files.
+"""CAN frames to SI samples: the DBCs, the configured signal mapping, end-to-end checks, and log files.
 
 Pure decoding, no bus I/O: the live source (:mod:`sumhe.io.can_source`), the log replay and the ``candump``
-command share :class:`CanDecoder`. The decoder is built once from the DBC and ``can.signals``: each quantity's
-unit factor to SI is resolved at construction from the DBC's unit string (or the spec's ``unit`` override),
-times the spec's ``scale``; frames whose id is not in use are dropped by one dict lookup before any decoding.
+command share :class:`CanDecoder`. The decoder is built once from the DBCs, ``can.signals`` and (with
+``gps.source = "can"``) ``gps.signals``: each quantity's unit factor to SI is resolved at construction from the
+DBC's unit string (or the spec's ``unit`` override), times the spec's ``scale``; frames whose id (on their bus
+channel) is not in use are dropped by one dict lookup before any decoding.
+
+Multiplexed messages (e.g. OBD-II mode 01 replies, multiplexed by PID): the multiplexer is decoded first; a
+frame whose multiplexer selects none of the mapped signals (another PID, or one the DBC does not know) carries
+nothing for us and is counted as ``other_mux``, not as an error. GNSS quantities go to a
+:class:`~sumhe.io.can_gnss.GnssAssembler`, which makes one :class:`~sumhe.messages.GnssFix` per epoch.
 
 End-to-end protection: the messages named in ``can.e2e`` (default none; the reference DBC protects
 ESP_YAW_RATE and ESP_VEHICLE_SPEED, as its comments say) carry a CRC-8/SAE-J1850 in byte 0 over the other bytes
@@ -14,12 +20,17 @@ scheme is named in configuration, not guessed from DBC comments, because DBCs de
 
 from __future__ import annotations
 
+import copy
 import gzip
+import heapq
+import importlib.util
+import itertools
 import logging
 import math
 import re
 import time
-from collections.abc import Iterable, Iterator, Mapping
+from collections import deque
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from os import PathLike
 from pathlib import Path
@@ -31,8 +42,9 @@ from cantools.database.can import Database, Message
 
 from sumhe.config import Config, SignalSpec
 from sumhe.errors import ConfigError, SourceError
+from sumhe.io.can_gnss import GnssAssembler
 from sumhe.io.checksum import is_intact, rolling_counter
-from sumhe.messages import CAN_QUANTITIES, CanSample
+from sumhe.messages import CAN_QUANTITIES, GNSS_QUANTITIES, CanSample, GnssFix, Sample
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +92,10 @@ _UNITS: dict[str, dict[str, float]] = {
     },
     "angle": {"rad": 1.0, "deg": _DEG, "°": _DEG, "degree": _DEG, "degrees": _DEG},
     "acceleration": {"m/s^2": 1.0, "m/s2": 1.0, "m/s²": 1.0, "m/s/s": 1.0, "mps2": 1.0, "g": 9.80665},
+    "latitude/longitude (deg)": {"deg": 1.0, "°": 1.0, "degree": 1.0, "degrees": 1.0, "rad": 1.0 / _DEG},
+    "length": {"m": 1.0, "cm": 0.01, "mm": 0.001, "km": 1000.0, "ft": 0.3048},
+    "time": {"s": 1.0, "sec": 1.0, "second": 1.0, "seconds": 1.0, "ms": 0.001},
+    "count": {"": 1.0},
 }
 _KIND_OF: dict[str, str] = {
     "speed": "speed",
@@ -91,20 +107,28 @@ _KIND_OF: dict[str, str] = {
     "steering_angle": "angle",
     "lat_accel": "acceleration",
     "lon_accel": "acceleration",
+    "lat": "latitude/longitude (deg)",
+    "lon": "latitude/longitude (deg)",
+    "alt": "length",
+    "accuracy": "length",
+    "course": "angle",
+    "heading": "angle",
+    "time": "time",
+    "sats": "count",
 }
-assert set(_KIND_OF) == set(CAN_QUANTITIES)
+"""The kind of unit of each quantity (the GNSS ``speed`` shares the CAN one's)."""
+assert set(_KIND_OF) == set(CAN_QUANTITIES) | set(GNSS_QUANTITIES)
 
 _WARN_INTERVAL_S = 10.0
 
 
 def si_factor(unit: str | None, quantity: str) -> float | None:
-    """Factor from a DBC unit string to the SI unit of ``quantity``; None if unknown or missing.
+    """Factor from a DBC unit string to the SI unit of ``quantity`` (degrees for ``lat``/``lon``, as
+    :class:`~sumhe.messages.GnssFix` holds them); None if unknown or missing (a count needs no unit).
 
     Case and spaces are ignored: ``"km/h"``, ``"KPH"`` and ``"Km / h"`` are all 1/3.6.
     """
-    if not unit:
-        return None
-    return _UNITS[_KIND_OF[quantity]].get(unit.strip().lower().replace(" ", ""))
+    return _UNITS[_KIND_OF[quantity]].get((unit or "").strip().lower().replace(" ", ""))
 
 
 def load_dbc(path: str | PathLike[str], strict: bool = True) -> Database:
@@ -158,7 +182,9 @@ class Throttle:
 @dataclass
 class DecodeStats:
     """Counters of one decoder. ``frames`` counts every frame seen (timestamps of the first and last in
-    ``first_t``/``last_t``, s); ``decoded`` those that gave samples."""
+    ``first_t``/``last_t``, s; frames per bus channel in ``channels``); ``decoded`` those that gave samples;
+    ``other_mux`` frames of a message in use whose multiplexer selected none of the mapped signals (another or an
+    unknown PID: not an error); ``invalid`` values their ``valid`` flag signal marked invalid."""
 
     frames: int = 0
     first_t: float = 0.0
@@ -174,144 +200,280 @@ class DecodeStats:
     fd_frames: int = 0
     """CAN FD frames on ids of classic messages (or unused ids): ignored."""
     remote_frames: int = 0
+    other_mux: int = 0
+    invalid: int = 0
     per_message: dict[str, int] = field(default_factory=dict)
+    per_quantity: dict[str, int] = field(default_factory=dict)
+    channels: dict[str, int] = field(default_factory=dict)
+    """Frame counts by bus channel (as text, "" for frames without one; the first :data:`MAX_CHANNELS` channels)."""
     unused_ids: dict[int, int] = field(default_factory=dict)
     """Frame counts of unused ids by :func:`frame_key` (the first :data:`MAX_UNUSED_IDS` distinct ids)."""
 
 
 MAX_UNUSED_IDS = 512
+MAX_CHANNELS = 64
+
+_Condition = tuple[tuple[str, frozenset[int]], ...]
+"""The multiplexer values a signal needs: (multiplexer signal, raw values selecting it) for each level."""
+
+
+@dataclass(frozen=True, slots=True)
+class _Field:
+    """One mapped quantity of a message: its signal, factor to SI (times the spec's scale), flag signal, whether
+    it is a GNSS quantity (for the :class:`GnssAssembler`) and the multiplexer values that carry it."""
+
+    name: str
+    """``can.signals.<quantity>`` or ``gps.signals.<quantity>``."""
+    quantity: str
+    signal: str
+    factor: float
+    valid: str | None
+    gnss: bool
+    needs: _Condition
 
 
 @dataclass(slots=True)
 class _Route:
-    """How to turn the frames of one message in use into samples."""
+    """How to turn the frames of one message in use (on one channel, or on all) into samples."""
 
     name: str
     message: Message
     length: int
-    fields: tuple[tuple[str, str, float], ...]
-    """(quantity, signal, factor to SI including the spec's scale)."""
+    fields: tuple[_Field, ...]
     e2e: bool
+    mux: Message | None
+    """The message's multiplexer signals alone (decoded first: a frame carrying no mapped signal goes no further);
+    None when the message is not multiplexed."""
+    top: str | None
+    """The name of the top multiplexer signal (None when the message is not multiplexed)."""
+    mux_ids: frozenset[int]
+    """The values of the top multiplexer the DBC knows."""
+    gnss: bool
+    """Whether the message carries GNSS quantities."""
     last_counter: int | None = None
 
 
-class CanDecoder:
-    """Decodes the frames of the mapped messages into SI :class:`CanSample` s (see the module docstring).
+@dataclass(frozen=True, slots=True)
+class _Mapped:
+    """One quantity of the configuration: where it is set, its spec and target (CAN sample or GNSS fix)."""
 
-    With ``every_message=True`` every message of the DBC is in use (for :meth:`decode_signals`, ``candump --all``)
-    and ``signals`` may be empty.
+    source: str
+    quantity: str
+    spec: SignalSpec
+    gnss: bool
+
+    @property
+    def name(self) -> str:
+        return f"{'gps' if self.gnss else 'can'}.signals.{self.quantity}"
+
+    @property
+    def key(self) -> str:
+        """The key as config errors name it."""
+        return f"{self.source}: {self.name}"
+
+
+class CanDecoder:
+    """Decodes the frames of the mapped messages into SI :class:`CanSample` s and, with a GNSS mapping, into
+    :class:`GnssFix` es (:mod:`sumhe.io.can_gnss`); see the module docstring.
+
+    ``dbs`` is one database or several (a message name is looked up in all of them). A spec with a ``channel``
+    takes only the frames of that bus channel (``str(msg.channel)``); a spec without one the frames of every
+    channel, unless a spec names that channel for the same id. With ``every_message=True`` every message of the
+    databases is in use (for :meth:`decode_signals`, ``candump --all``) and ``signals`` may be empty.
     """
 
     def __init__(
         self,
-        db: Database,
+        dbs: Database | Sequence[Database],
         signals: Mapping[str, SignalSpec],
         e2e: Iterable[str] = (),
         source: str = "<config>",
         every_message: bool = False,
+        gnss: Mapping[str, SignalSpec] | None = None,
+        gnss_span_s: float = 0.1,
     ) -> None:
-        """Resolve the mapping against ``db``; ConfigError naming ``can.signals.<quantity>`` or ``can.e2e``."""
-        if not signals and not every_message:
+        """Resolve the mapping against ``dbs``; ConfigError naming ``can.signals.<quantity>``,
+        ``gps.signals.<quantity>`` (and their ``.valid``) or ``can.e2e``."""
+        self.dbs: tuple[Database, ...] = (dbs,) if isinstance(dbs, Database) else tuple(dbs)
+        gnss = gnss or {}
+        if not signals and not gnss and not every_message:
             raise ConfigError(f"{source}: can.signals: no quantity mapped (e.g. speed = 'MESSAGE.SIGNAL')")
         protected = set(e2e)
         for name in sorted(protected):
-            if _message(db, name, f"{source}: can.e2e").length < 2:
+            if _message(self.dbs, name, f"{source}: can.e2e").length < 2:
                 raise ConfigError(f"{source}: can.e2e: {name} is shorter than CRC byte + counter byte")
-        fields: dict[str, list[tuple[str, str, float]]] = {}
-        messages: dict[str, Message] = {m.name: m for m in db.messages} if every_message else {}
-        for quantity, spec in signals.items():
-            key = f"{source}: can.signals.{quantity}"
-            if quantity not in _KIND_OF:
-                raise ConfigError(f"{key}: unknown quantity (known: {', '.join(CAN_QUANTITIES)})")
-            message = _message(db, spec.message, key)
-            try:
-                signal = message.get_signal_by_name(spec.signal)
-            except KeyError as e:
-                known = ", ".join(s.name for s in message.signals)
-                raise ConfigError(f"{key}: no signal {spec.signal!r} in message {spec.message} ({known})") from e
-            unit = spec.unit if spec.unit is not None else signal.unit
-            factor = si_factor(unit, quantity)
-            if factor is None:
-                kind = _KIND_OF[quantity]
-                known = ", ".join(_UNITS[kind])
-                what = f"unit {unit!r}" if unit else "no unit"
-                raise ConfigError(
-                    f"{key}: {spec.name} has {what}, not a {kind} unit; set unit = '...' (one of: {known})"
-                )
-            messages[spec.message] = message
-            fields.setdefault(spec.message, []).append((quantity, spec.signal, factor * spec.scale))
-        self.db = db
-        self.stats = DecodeStats(per_message={name: 0 for name in messages})
-        self._routes: dict[int, _Route] = {
-            frame_key(m.frame_id, m.is_extended_frame): _Route(
-                name, m, m.length, tuple(fields.get(name, ())), e2e=name in protected
-            )
-            for name, m in messages.items()
-        }
+        mapped = [_Mapped(source, q, spec, False) for q, spec in signals.items()]
+        mapped += [_Mapped(source, q, spec, True) for q, spec in gnss.items()]
+        self._mapped = mapped
+        groups: dict[tuple[str | None, str], list[_Field]] = {}
+        messages: dict[str, Message] = {}
+        for m in mapped:
+            message = _message(self.dbs, m.spec.message, m.key)
+            messages[message.name] = message
+            groups.setdefault((m.spec.channel, message.name), []).append(_field(message, m))
+        self.stats = DecodeStats(per_message={name: 0 for name in messages}, per_quantity={m.name: 0 for m in mapped})
+        self._routes: dict[tuple[str | None, int], _Route] = {}
+        for (channel, name), fields in groups.items():
+            if channel is not None:  # the channel's route also takes the fields mapped on every channel
+                fields = fields + groups.get((None, name), [])
+            self._add_route(channel, messages[name], fields, name in protected, source)
+        if every_message:
+            for message in (msg for db in self.dbs for msg in db.messages):
+                if (None, frame_key(message.frame_id, message.is_extended_frame)) not in self._routes:
+                    self.stats.per_message.setdefault(message.name, 0)
+                    self._add_route(None, message, [], message.name in protected, source)
+        self._by_channel = any(channel is not None for channel, _ in self._routes)
+        self.gnss: GnssAssembler | None = None
+        if gnss:
+            if not {"lat", "lon"} <= set(gnss):
+                raise ConfigError(f"{source}: gps.signals: lat and lon are needed")
+            self.gnss = GnssAssembler({spec.message for spec in gnss.values()}, gnss["lat"].message, gnss_span_s)
         self._throttle = Throttle()
 
     @classmethod
     def from_config(cls, config: Config, every_message: bool = False) -> CanDecoder:
-        """Load ``can.dbc`` (honouring ``can.dbc_strict``) and resolve ``can.signals`` and ``can.e2e``."""
-        db = load_dbc(config.dbc_path, config.can.dbc_strict)
-        return cls(db, config.can.signals, config.can.e2e, config.source, every_message)
+        """Load ``can.dbc`` (honouring ``can.dbc_strict``) and resolve ``can.signals``, ``can.e2e`` and, with
+        ``gps.source = "can"``, ``gps.signals``."""
+        dbs = [load_dbc(path, config.can.dbc_strict) for path in config.dbc_paths]
+        gnss = config.gps.signals if config.gps.source == "can" else None
+        return cls(dbs, config.can.signals, config.can.e2e, config.source, every_message, gnss, config.gps.epoch_span_s)
+
+    def _add_route(self, channel: str | None, message: Message, fields: list[_Field], e2e: bool, source: str) -> None:
+        key = (channel, frame_key(message.frame_id, message.is_extended_frame))
+        other = self._routes.get(key)
+        if other is not None:
+            where = f" on channel {channel}" if channel is not None else ""
+            raise ConfigError(
+                f"{source}: can.signals: {other.name} and {message.name} share the id 0x{message.frame_id:X}{where}; "
+                "name each quantity's bus with channel = ..."
+            )
+        muxes = [s for s in message.signals if s.is_multiplexer]
+        mux = None
+        if muxes:
+            bare = [copy.copy(s) for s in muxes]
+            for s in bare:
+                s.is_multiplexer, s.multiplexer_ids, s.multiplexer_signal = False, None, None
+            mux = Message(
+                frame_id=message.frame_id, name=message.name, length=message.length, signals=bare, strict=False
+            )
+        top = next((s.name for s in muxes if s.multiplexer_signal is None), None)
+        known = {i for s in message.signals if s.multiplexer_signal == top for i in s.multiplexer_ids or ()}
+        gnss = any(f.gnss for f in fields)
+        self._routes[key] = _Route(
+            message.name, message, message.length, tuple(fields), e2e, mux, top, frozenset(known), gnss
+        )
 
     def can_filters(self) -> list[dict[str, int | bool]]:
         """python-can filters passing exactly the ids in use (for kernel or hardware filtering)."""
+        ids = {(r.message.frame_id, bool(r.message.is_extended_frame)) for r in self._routes.values()}
         return [
-            {
-                "can_id": r.message.frame_id,
-                "can_mask": 0x1FFFFFFF if r.message.is_extended_frame else 0x7FF,
-                "extended": bool(r.message.is_extended_frame),
-            }
-            for r in self._routes.values()
+            {"can_id": frame_id, "can_mask": 0x1FFFFFFF if extended else 0x7FF, "extended": extended}
+            for frame_id, extended in sorted(ids)
         ]
 
     def message_names(self) -> dict[str, str]:
-        """Quantity -> name of the message that carries it."""
-        return {q: r.name for r in self._routes.values() for q, _, _ in r.fields}
+        """CAN quantity -> name of the message that carries it."""
+        return {m.quantity: m.spec.message for m in self._mapped if not m.gnss}
 
-    def decode(self, msg: can.Message) -> list[CanSample]:
-        """SI samples of one frame at ``t = msg.timestamp``; [] for frames not in use, bad or stale."""
-        checked = self._values(msg)
-        if checked is None:
-            return []
-        route, values = checked
+    def channels(self) -> dict[str, str]:
+        """The bus channels the mapping names: ``can.signals.<quantity>`` (or ``gps.``) -> channel."""
+        return {m.name: m.spec.channel for m in self._mapped if m.spec.channel is not None}
+
+    def decode(self, msg: can.Message) -> list[Sample]:
+        """SI samples of one frame at ``t = msg.timestamp``, and the GNSS fixes of the epochs it completes or
+        closes; [] for frames not in use, bad or stale."""
         t = msg.timestamp
-        out = []
-        for quantity, signal, factor in route.fields:
-            raw = values.get(signal)
+        route = self._route(msg)
+        out: list[Sample] = self.gnss.tick(t) if self.gnss is not None else []
+        if route is None:
+            return out
+        data = self._data(route, msg)
+        if data is None:
+            return out
+        fields = route.fields
+        if route.mux is not None:
+            selected = self._mux_values(route, data)
+            fields = tuple(f for f in fields if all(selected.get(s) in ids for s, ids in f.needs))
+            if not fields:
+                self.stats.other_mux += 1
+                return out
+        values = self._decode(route, data)
+        if values is None:
+            return out
+        gnss: dict[str, float | None] = {}
+        per_quantity = self.stats.per_quantity
+        used = False
+        for f in fields:
+            raw = values.get(f.signal)
             if raw is None:  # a multiplexed signal absent from this frame
                 continue
-            value = float(raw) * factor
+            if f.valid is not None and not values.get(f.valid):
+                self.stats.invalid += 1
+                if f.gnss:
+                    gnss[f.quantity] = None
+                continue
+            value = float(raw) * f.factor
             if not math.isfinite(value):
                 self.stats.decode_errors += 1
-                self._warn("%s.%s: non-finite value %r", route.name, signal, raw)
+                self._warn("%s.%s: non-finite value %r", route.name, f.signal, raw)
                 continue
-            out.append(CanSample(t, quantity, value))
-        if out:
-            self.stats.decoded += 1
+            per_quantity[f.name] += 1
+            used = True
+            if f.gnss:
+                gnss[f.quantity] = value
+            else:
+                out.append(CanSample(t, f.quantity, value))
+        if route.gnss and self.gnss is not None:
+            out.extend(self.gnss.add(t, route.name, gnss))
+        self.stats.decoded += used
         return out
+
+    def flush(self) -> list[GnssFix]:
+        """The end of the input: the fix of the GNSS epoch still open, if any."""
+        return self.gnss.flush() if self.gnss is not None else []
 
     def decode_signals(self, msg: can.Message) -> tuple[str, dict[str, float]] | None:
         """Every signal of one frame in use, in DBC units (value tables not applied): (message name, values).
 
-        None for frames not in use, bad or stale.
+        None for frames not in use, bad or stale, and for a multiplexer value the DBC does not know.
         """
-        checked = self._values(msg)
-        if checked is None:
+        route = self._route(msg)
+        data = self._data(route, msg) if route is not None else None
+        if route is None or data is None:
             return None
-        route, values = checked
+        if route.mux is not None and self._mux_values(route, data).get(route.top) not in route.mux_ids:
+            self.stats.other_mux += 1
+            return None
+        values = self._decode(route, data)
+        if values is None:
+            return None
         self.stats.decoded += 1
         return route.name, {name: float(v) for name, v in values.items()}
 
-    def _values(self, msg: can.Message) -> tuple[_Route, Mapping[str, Any]] | None:
-        """Count the frame, drop it if not in use, short, failing its E2E check or undecodable, else decode it."""
+    def silent(self) -> list[str]:
+        """One line per mapped quantity that has given no value yet, naming its key (and the channels the frames
+        came on, when it names one): a mapping to check, said once at the end of a log (nothing before any frame)."""
+        if not self.stats.frames:
+            return []
+        out = []
+        seen = ", ".join(sorted(c or "(none)" for c in self.stats.channels)) or "none"
+        for m in self._mapped:
+            if self.stats.per_quantity.get(m.name):
+                continue
+            where = f" on channel {m.spec.channel} (frames came on channels: {seen})" if m.spec.channel else ""
+            out.append(f"{m.key}: no value from {m.spec.name}{where}")
+        return out
+
+    def _route(self, msg: can.Message) -> _Route | None:
+        """Count the frame; its route, or None for error, remote and unused frames."""
         stats = self.stats
         stats.frames += 1
         if stats.frames == 1:
             stats.first_t = msg.timestamp
         stats.last_t = msg.timestamp
+        channel = "" if msg.channel is None else str(msg.channel)
+        if channel in stats.channels or len(stats.channels) < MAX_CHANNELS:
+            stats.channels[channel] = stats.channels.get(channel, 0) + 1
         if msg.is_error_frame:
             stats.error_frames += 1
             return None
@@ -319,7 +481,9 @@ class CanDecoder:
             stats.remote_frames += 1
             return None
         key = frame_key(msg.arbitration_id, msg.is_extended_id)
-        route = self._routes.get(key)
+        route = self._routes.get((channel, key)) if self._by_channel else None
+        if route is None:
+            route = self._routes.get((None, key))
         if msg.is_fd and (route is None or not route.message.is_fd):
             stats.fd_frames += 1
             return None
@@ -330,17 +494,28 @@ class CanDecoder:
                 ids[key] = ids.get(key, 0) + 1
             return None
         stats.per_message[route.name] += 1
+        return route
+
+    def _data(self, route: _Route, msg: can.Message) -> bytes | None:
+        """The payload, or None (counted) when it is short or fails its E2E check."""
         data = bytes(msg.data)
         if len(data) < route.length:
-            stats.decode_errors += 1
+            self.stats.decode_errors += 1
             self._warn("%s: short payload (%d of %d bytes)", route.name, len(data), route.length)
             return None
         if route.e2e and not self._check_e2e(route, data):
             return None
+        return data
+
+    def _mux_values(self, route: _Route, data: bytes) -> Mapping[str, Any]:
+        assert route.mux is not None
+        return route.mux.decode(data, decode_choices=False, scaling=False)
+
+    def _decode(self, route: _Route, data: bytes) -> Mapping[str, Any] | None:
         try:
-            return route, route.message.decode(data, decode_choices=False)
+            return route.message.decode(data, decode_choices=False)
         except Exception as e:  # one bad frame must never stop the stream
-            stats.decode_errors += 1
+            self.stats.decode_errors += 1
             self._warn("%s: cannot decode %s: %s", route.name, data.hex(), e)
             return None
 
@@ -377,21 +552,65 @@ class CanDecoder:
             )
 
 
-def _message(db: Database, name: str, key: str) -> Message:
+def _message(dbs: Sequence[Database], name: str, key: str) -> Message:
+    """The message ``name`` of the one database that has it; ConfigError naming ``key`` if none or several do."""
+    found = []
+    for db in dbs:
+        try:
+            found.append(db.get_message_by_name(name))
+        except KeyError:
+            continue
+    if len(found) == 1:
+        return found[0]
+    if found:
+        raise ConfigError(f"{key}: message {name!r} is in {len(found)} of the databases (can.dbc): rename one")
+    known = ", ".join(sorted(m.name for db in dbs for m in db.messages))
+    raise ConfigError(f"{key}: no message {name!r} in the DBC (known: {known})")
+
+
+def _field(message: Message, mapped: _Mapped) -> _Field:
+    """Resolve one mapped quantity against its message: the signal, its unit factor, the flag signal, the
+    multiplexer values that carry it; ConfigError naming the key."""
+    spec, key, quantity = mapped.spec, mapped.key, mapped.quantity
+    known_quantities = GNSS_QUANTITIES if mapped.gnss else CAN_QUANTITIES
+    if quantity not in known_quantities:
+        raise ConfigError(f"{key}: unknown quantity (known: {', '.join(known_quantities)})")
     try:
-        return db.get_message_by_name(name)
+        signal = message.get_signal_by_name(spec.signal)
     except KeyError as e:
-        known = ", ".join(sorted(m.name for m in db.messages))
-        raise ConfigError(f"{key}: no message {name!r} in the DBC (known: {known})") from e
+        known = ", ".join(s.name for s in message.signals)
+        raise ConfigError(f"{key}: no signal {spec.signal!r} in message {spec.message} ({known})") from e
+    if spec.valid is not None and spec.valid not in {s.name for s in message.signals}:
+        known = ", ".join(s.name for s in message.signals)
+        raise ConfigError(f"{key}.valid: no signal {spec.valid!r} in message {spec.message} ({known})")
+    unit = spec.unit if spec.unit is not None else signal.unit
+    factor = si_factor(unit, quantity)
+    if factor is None:
+        kind = _KIND_OF[quantity]
+        known = ", ".join(_UNITS[kind])
+        what = f"unit {unit!r}" if unit else "no unit"
+        raise ConfigError(f"{key}: {spec.name} has {what}, not a {kind} unit; set unit = '...' (one of: {known})")
+    needs = []
+    s = signal
+    while s.multiplexer_signal is not None:
+        needs.append((s.multiplexer_signal, frozenset(s.multiplexer_ids or ())))
+        s = message.get_signal_by_name(s.multiplexer_signal)
+    return _Field(mapped.name, quantity, spec.signal, factor * spec.scale, spec.valid, mapped.gnss, tuple(needs))
 
 
 @dataclass
 class LogStats:
-    """Counters of one log read: frames yielded, malformed lines skipped, and the error that ended it early."""
+    """Counters of a log read (one file or several): files, frames yielded, malformed lines skipped, the errors
+    that ended files early, and the first frame's timestamp (s; NaN until known)."""
 
+    files: int = 0
     frames: int = 0
     malformed: int = 0
     error: str = ""
+    first_t: float = math.nan
+
+    def add_error(self, path: Path, error: str) -> None:
+        self.error = "; ".join(filter(None, (self.error, f"{path.name}: {error}")))
 
 
 _CANDUMP_LINE = re.compile(
@@ -400,20 +619,26 @@ _CANDUMP_LINE = re.compile(
 )
 """One ``candump -L`` line, as :class:`can.CanutilsLogReader` parses it (CAN FD ``##`` and remote ``#R`` too)."""
 
+MF4_EXTRA = "pip install 'sumhe[mf4]'"
+"""How to install what MF4 logs need (asammdf, which python-can's MF4 reader uses)."""
+
 
 def read_log(path: str | PathLike[str], stats: LogStats | None = None) -> Iterator[can.Message]:
-    """Frames of a CAN log in any format python-can reads (by suffix: candump -L ``.log``, ``.asc``, ``.blf``,
-    ``.trc``, ``.csv``, each optionally ``.gz``).
+    """Frames of a CAN log in any format python-can reads (by suffix, any case: candump -L ``.log``, ``.asc``,
+    ``.blf``, ``.trc``, ``.csv``, each optionally ``.gz``; ASAM MDF 4 ``.mf4`` with the ``mf4`` extra).
 
-    Raises SourceError at once for a missing, unreadable or unknown-format file. In candump logs a malformed line
-    is counted in ``stats.malformed`` and skipped; in other formats a read error ends the file early (counted,
-    logged, ``stats.error`` set), since their readers cannot resume.
+    Raises SourceError at once for a missing, unreadable or unknown-format file, and for an MF4 file without
+    asammdf installed. In candump logs a malformed line is counted in ``stats.malformed`` and skipped; in other
+    formats a read error ends the file early (counted, logged, ``stats.error`` set), since their readers cannot
+    resume.
     """
     p = Path(path)
     stats = stats if stats is not None else LogStats()
     if not p.is_file():
         raise SourceError(f"{p}: CAN log not found")
     name = p.name.lower()
+    if name.endswith(".mf4") and importlib.util.find_spec("asammdf") is None:
+        raise SourceError(f"{p}: reading MF4 logs needs the asammdf package: {MF4_EXTRA}")
     try:
         if name.endswith((".log", ".log.gz")):
             opener = gzip.open if name.endswith(".gz") else open
@@ -422,11 +647,18 @@ def read_log(path: str | PathLike[str], stats: LogStats | None = None) -> Iterat
             reader: can.io.generic.MessageReader = can.CanutilsLogReader(_valid_candump_lines(text, p, stats))
         else:
             reader = can.LogReader(p)
-    except ValueError as e:
-        raise SourceError(f"{p}: unsupported CAN log format ({e})") from e
-    except Exception as e:  # OSError, or a reader rejecting the file header (BLFParseError, ...)
-        raise SourceError(f"{p}: cannot read CAN log: {e}") from e
+    except Exception as e:  # OSError, or a reader rejecting the file (BLFParseError, MdfException, ValueError, ...)
+        if isinstance(e, ValueError) and _suffix(p) not in can.io.player.MESSAGE_READERS:
+            raise SourceError(f"{p}: unsupported CAN log format ({e})") from e
+        raise SourceError(f"{p}: cannot read CAN log: {type(e).__name__}: {e}") from e
+    stats.files += 1
     return _frames(reader, p, stats)
+
+
+def _suffix(path: Path) -> str:
+    """The suffix that names a log's format (``.asc`` of ``drive.asc.gz``), lower case."""
+    suffixes = [x.lower() for x in path.suffixes]
+    return suffixes[-2] if len(suffixes) > 1 and suffixes[-1] == ".gz" else (suffixes[-1] if suffixes else "")
 
 
 def _valid_candump_lines(text: TextIO, path: Path, stats: LogStats) -> Iterator[str]:
@@ -446,11 +678,65 @@ def _valid_candump_lines(text: TextIO, path: Path, stats: LogStats) -> Iterator[
 
 def _frames(reader: can.io.generic.MessageReader, path: Path, stats: LogStats) -> Iterator[can.Message]:
     with reader:
+        frames = 0
         try:
             for msg in reader:
+                frames += 1
                 stats.frames += 1
                 yield msg
         except Exception as e:  # a corrupt file must end the read, never the program
             stats.malformed += 1
-            stats.error = f"{type(e).__name__}: {e}"
-            log.warning("%s: stopped reading after %d frames: %s", path, stats.frames, stats.error)
+            stats.add_error(path, f"{type(e).__name__}: {e}")
+            log.warning("%s: stopped reading after %d frames: %s: %s", path, frames, type(e).__name__, e)
+
+
+def first_timestamp(path: str | PathLike[str]) -> float | None:
+    """The timestamp (s) of the first frame of a CAN log, None if it has none; SourceError as :func:`read_log`."""
+    frames = read_log(path, LogStats())
+    try:
+        return next((float(msg.timestamp) for msg in frames), None)
+    finally:
+        frames.close()  # type: ignore[attr-defined]
+
+
+def read_logs(paths: Sequence[str | PathLike[str]], stats: LogStats | None = None) -> Iterator[can.Message]:
+    """The frames of one drive's CAN logs (one file or several, in any order), as one stream in time order.
+
+    The files are ordered by their first timestamps (read now: SourceError at once for a missing or unreadable
+    file, and ``stats.first_t`` set) and merged by timestamp; a file is opened when the stream reaches its first
+    frame, so consecutive files are read one after the other and files of parallel buses side by side. A file
+    without frames is left out (with a warning when there are others).
+    """
+    stats = stats if stats is not None else LogStats()
+    heads = []
+    for i, path in enumerate(paths):
+        first = first_timestamp(path)
+        if first is None:
+            if len(paths) > 1:
+                log.warning("%s: no CAN frames", path)
+            continue
+        heads.append((first, i, Path(path)))
+    heads.sort()
+    if heads:
+        stats.first_t = heads[0][0]
+    return _merged(deque(heads), stats)
+
+
+def _merged(pending: deque[tuple[float, int, Path]], stats: LogStats) -> Iterator[can.Message]:
+    active: list[tuple[float, int, can.Message, Iterator[can.Message]]] = []
+    order = itertools.count()
+    while pending or active:
+        while pending and (not active or pending[0][0] <= active[0][0]):
+            frames = read_log(pending.popleft()[2], stats)
+            msg = next(frames, None)
+            if msg is not None:
+                heapq.heappush(active, (msg.timestamp, next(order), msg, frames))
+        if not active:
+            continue
+        _, _, msg, frames = active[0]
+        yield msg
+        nxt = next(frames, None)
+        if nxt is None:
+            heapq.heappop(active)
+        else:
+            heapq.heapreplace(active, (nxt.timestamp, next(order), nxt, frames))

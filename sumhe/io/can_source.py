@@ -1,10 +1,11 @@
 """Live CAN input on any python-can interface, as :class:`~sumhe.io.source.ThreadedSource` s.
 
 :class:`CanFrameSource` yields raw :class:`can.Message` s (for ``sumhe record``); :class:`CanBusSource` yields
-SI :class:`~sumhe.messages.CanSample` s through a :class:`~sumhe.io.can.CanDecoder`, with kernel/hardware
-filters for the ids in use. The reader thread calls ``bus.recv`` itself (python-can's ``Notifier`` thread would
-just die on a bus error): a :class:`can.CanOperationError` (socketcan: the link went down) or a bus-off error
-frame closes the bus, and the base class reopens it with capped back-off.
+SI :class:`~sumhe.messages.CanSample` s (and, with ``gps.source = "can"``, :class:`~sumhe.messages.GnssFix` es)
+through a :class:`~sumhe.io.can.CanDecoder`, with kernel/hardware filters for the ids in use. The reader thread
+calls ``bus.recv`` itself (python-can's ``Notifier`` thread would just die on a bus error): a
+:class:`can.CanOperationError` (socketcan: the link went down) or a bus-off error frame closes the bus, and the
+base class reopens it with capped back-off.
 
 Open failures (:func:`explain_open_error`, :func:`is_permanent`). Retried, with the reason and the fix in the log:
 the link is down (``ENETDOWN``), the device is busy or not ready (python-can's ``CanInitializationError``,
@@ -40,7 +41,7 @@ from sumhe.config import CanSettings, Config
 from sumhe.errors import ConfigError, SourceError
 from sumhe.io.can import CanDecoder
 from sumhe.io.source import ThreadedSource
-from sumhe.messages import CanSample
+from sumhe.messages import Sample
 
 log = logging.getLogger(__name__)
 
@@ -260,8 +261,9 @@ class CanFrameSource(_CanSource[can.Message]):
         return [msg]
 
 
-class CanBusSource(_CanSource[CanSample]):
-    """Decoded SI samples of the configured bus; only the ids in use pass the bus filters."""
+class CanBusSource(_CanSource[Sample]):
+    """Decoded SI samples (and GNSS fixes decoded from CAN) of the configured bus; only the ids in use pass the bus
+    filters."""
 
     def __init__(
         self,
@@ -275,10 +277,19 @@ class CanBusSource(_CanSource[CanSample]):
 
     @classmethod
     def from_config(cls, config: Config, clock: Callable[[], float] = time.time) -> CanBusSource:
-        """Load the DBC and mapping of ``config`` (ConfigError on any mistake) and prepare the source."""
-        return cls(config.can, CanDecoder.from_config(config), config.blame("can.interface"), clock)
+        """Load the DBCs and mapping of ``config`` (ConfigError on any mistake) and prepare the source. The live
+        bus is one channel: a mapping that names another (as for a logger's multi-bus files) is a ConfigError."""
+        decoder = CanDecoder.from_config(config)
+        for name, channel in decoder.channels().items():
+            if channel != config.can.channel:
+                raise config.error(
+                    f"{name}.channel",
+                    f"{channel!r}, but the live bus is can.channel = {config.can.channel!r} (channels tell apart "
+                    "the buses of recorded logs; drop it for a live bus)",
+                )
+        return cls(config.can, decoder, config.blame("can.interface"), clock)
 
-    def _convert(self, msg: can.Message) -> list[CanSample]:
+    def _convert(self, msg: can.Message) -> list[Sample]:
         return self.decoder.decode(msg)
 
     def counters(self) -> dict[str, object]:

@@ -1,8 +1,12 @@
-"""Replay of recorded drives: a CAN log and an NMEA log merged into one time-ordered stream.
+"""Replay of recorded drives: CAN logs and NMEA logs merged into one time-ordered stream.
 
-The stream is the same type the live sources produce (an async iterator of :data:`sumhe.messages.Sample`), so
-downstream code cannot tell a replay from a car. Pacing is as fast as possible (``speed=0``), real time (``1``)
-or any factor, like ``can.MessageSync``; the NMEA clock may be shifted against the CAN clock by ``offset_s``.
+A drive is one or several CAN log files (candump, MF4, ...: consecutive files of one logger, or files of parallel
+buses; :func:`~sumhe.io.can.read_logs`) and, with ``gps.source = "nmea"``, one or several NMEA logs; with
+``gps.source = "can"`` the fixes come from the CAN frames (:mod:`sumhe.io.can_gnss`). Files the config names (the
+DBCs) are looked for beside the logs too. The stream is the same type the live sources produce (an async iterator
+of :data:`sumhe.messages.Sample`), so downstream code cannot tell a replay from a car. Pacing is as fast as
+possible (``speed=0``), real time (``1``) or any factor, like ``can.MessageSync``; the NMEA clock may be shifted
+against the CAN clock by ``offset_s``.
 """
 
 from __future__ import annotations
@@ -10,19 +14,49 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import heapq
-from collections.abc import AsyncIterator, Iterable, Iterator
+import itertools
+import math
+from collections.abc import AsyncIterator, Iterable, Iterator, Sequence
+from os import PathLike
 from pathlib import Path
 
 from sumhe.config import Config
-from sumhe.io.can import CanDecoder, read_log
+from sumhe.errors import SourceError
+from sumhe.io.can import CanDecoder, LogStats, read_logs
 from sumhe.io.fixtime import stamp_fix
 from sumhe.io.nmea import iter_fixes
 from sumhe.messages import GnssFix, Sample
+
+REORDER_MARGIN_S = 0.1
+"""Added to the longest a fix decoded from CAN can come after later-stamped samples (:func:`reorder_hold_s`)."""
 
 
 def merge_by_time(*streams: Iterable[Sample]) -> Iterator[Sample]:
     """Merge time-ordered streams into one, ordered by ``t`` (stable: ties keep stream order)."""
     return heapq.merge(*streams, key=lambda s: s.t)
+
+
+def time_ordered(samples: Iterable[Sample], hold_s: float) -> Iterator[Sample]:
+    """``samples`` in time order, given that none comes more than ``hold_s`` (s) after a later-stamped one: each
+    is held until a sample ``hold_s`` newer has arrived (stable for equal times)."""
+    held: list[tuple[float, int, Sample]] = []
+    order = itertools.count()
+    newest = -math.inf
+    for s in samples:
+        heapq.heappush(held, (s.t, next(order), s))
+        newest = max(newest, s.t)
+        while held[0][0] < newest - hold_s:
+            yield heapq.heappop(held)[2]
+    while held:
+        yield heapq.heappop(held)[2]
+
+
+def reorder_hold_s(config: Config) -> float:
+    """How much later (s) a fix decoded from CAN may come than samples stamped after it: the epoch's span, the
+    receiver latency or (``gps.time = "utc"``) the largest clock offset its stamp may move it back by, a margin."""
+    gps = config.gps
+    back = max(gps.latency_s, gps.max_clock_offset_s if gps.time == "utc" else 0.0)
+    return gps.epoch_span_s + back + REORDER_MARGIN_S
 
 
 def shift_fixes(fixes: Iterable[GnssFix], offset_s: float) -> Iterator[GnssFix]:
@@ -34,20 +68,77 @@ def shift_fixes(fixes: Iterable[GnssFix], offset_s: float) -> Iterator[GnssFix]:
         yield dataclasses.replace(fix, t=fix.t + offset_s)
 
 
-def log_samples(config: Config, can_log: Path | None, nmea_log: Path | None, offset_s: float = 0.0) -> Iterator[Sample]:
-    """All decoded samples of a recorded drive, time-ordered (either log may be absent).
+Paths = str | PathLike[str] | Sequence[str | PathLike[str]] | None
+"""One log file, several, or none."""
 
-    The NMEA receive times are moved by ``offset_s`` onto the CAN clock, then each fix is stamped with its
-    measurement time (:func:`~sumhe.io.fixtime.stamp_fix`) before merging, so the stream is in measurement order.
+
+def paths_of(logs: Paths) -> list[Path]:
+    """``logs`` as a list of paths."""
+    if logs is None:
+        return []
+    if isinstance(logs, str | PathLike):
+        return [Path(logs)]
+    return [Path(p) for p in logs]
+
+
+def beside_logs(config: Config, logs: Iterable[Path]) -> Config:
+    """``config`` with the folders of ``logs`` added to :attr:`~sumhe.config.Config.log_dirs` (where files the
+    config names, such as a logger's DBC, are looked for too)."""
+    dirs = dict.fromkeys(p.resolve().parent for p in logs)
+    return dataclasses.replace(config, log_dirs=tuple(dict.fromkeys((*config.log_dirs, *dirs))))
+
+
+class RecordedDrive:
+    """One recorded drive, decoded: :meth:`samples` is its time-ordered stream of samples.
+
+    Reading starts here: SourceError at once for a missing or unreadable log (or an MF4 log without asammdf),
+    ConfigError for a mapping the DBCs do not hold. ``config`` is the given one with the logs' folders added to
+    :attr:`~sumhe.config.Config.log_dirs`; ``decoder`` (None without CAN logs) and ``log_stats`` hold the counters
+    of the CAN side, ``first_t`` the timestamp of the drive's first CAN frame (s; NaN without CAN logs).
     """
-    streams: list[Iterable[Sample]] = []
-    if can_log is not None:
-        decoder = CanDecoder.from_config(config)
-        streams.append(s for msg in read_log(can_log) for s in decoder.decode(msg))
-    if nmea_log is not None:
-        fixes = shift_fixes(iter_fixes(nmea_log), offset_s)
-        streams.append(stamp_fix(fix, config.gps) for fix in fixes)
-    return merge_by_time(*streams)
+
+    def __init__(self, config: Config, can_logs: Paths = None, nmea_logs: Paths = None, offset_s: float = 0.0) -> None:
+        self.can_logs = paths_of(can_logs)
+        self.nmea_logs = paths_of(nmea_logs)
+        self.config = beside_logs(config, (*self.can_logs, *self.nmea_logs))
+        self.offset_s = offset_s
+        for p in self.nmea_logs:
+            if not p.is_file():
+                raise SourceError(f"{p}: NMEA log not found")
+        self.log_stats = LogStats()
+        self._frames = read_logs(self.can_logs, self.log_stats) if self.can_logs else iter(())
+        self.decoder = CanDecoder.from_config(self.config) if self.can_logs else None
+
+    @property
+    def first_t(self) -> float:
+        return self.log_stats.first_t
+
+    def samples(self) -> Iterator[Sample]:
+        """Every decoded sample of the drive in time order; fixes stamped with their measurement time
+        (:func:`~sumhe.io.fixtime.stamp_fix`; NMEA receive times moved by ``offset_s`` first)."""
+        gps = self.config.gps
+        streams: list[Iterable[Sample]] = []
+        if self.decoder is not None:
+            can_samples = self._can_samples(self.decoder)
+            streams.append(time_ordered(can_samples, reorder_hold_s(self.config)) if self.decoder.gnss else can_samples)
+        if self.nmea_logs:
+            fixes = merge_by_time(*(iter_fixes(p) for p in self.nmea_logs))
+            streams.append(stamp_fix(fix, gps) for fix in shift_fixes(fixes, self.offset_s))  # type: ignore[arg-type]
+        return merge_by_time(*streams)
+
+    def _can_samples(self, decoder: CanDecoder) -> Iterator[Sample]:
+        gps = self.config.gps
+        for msg in self._frames:
+            for s in decoder.decode(msg):
+                yield stamp_fix(s, gps) if isinstance(s, GnssFix) else s
+        for fix in decoder.flush():
+            yield stamp_fix(fix, gps)
+
+
+def log_samples(config: Config, can_log: Paths, nmea_log: Paths, offset_s: float = 0.0) -> Iterator[Sample]:
+    """All decoded samples of a recorded drive, time-ordered (either kind of log may be absent; see
+    :class:`RecordedDrive`)."""
+    return RecordedDrive(config, can_log, nmea_log, offset_s).samples()
 
 
 class PacedReplay:

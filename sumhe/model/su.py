@@ -138,6 +138,14 @@ def can_outputs(v: Any, omega: Any, x: Any, bias_index: int | None, scale_index:
     return [speed, yaw_rate]
 
 
+def can_motion(speed: Any, yaw_rate: Any, x: Any, bias_index: int | None, scale_index: int | None) -> list[Any]:
+    """The speed (m/s) and yaw rate (rad/s) of a vehicle whose CAN reads ``speed`` and ``yaw_rate``: the inverse of
+    :func:`can_outputs` at the CAN states of ``x``, ``speed / k`` and ``yaw_rate - b``."""
+    v = speed / x[scale_index] if scale_index is not None else speed
+    omega = yaw_rate - x[bias_index] if bias_index is not None else yaw_rate
+    return [v, omega]
+
+
 def su7_output(
     x: Any, ns: Any = np, bias_index: int | None = None, scale_index: int | None = None, gps_speed: bool = False
 ) -> list[Any]:
@@ -195,26 +203,106 @@ class SuModel:
         """Index of a state by name; ValueError for a state this model does not have."""
         return self.states.index(state)
 
+    def _optional(self, state: str) -> int | None:
+        return self.states.index(state) if state in self.states else None
+
+    @property
+    def i_phi(self) -> int:
+        """The azimuth state."""
+        return self.states.index("phi")
+
+    @property
+    def i_v(self) -> int:
+        """The speed state."""
+        return self.states.index("v")
+
+    @property
+    def i_omega(self) -> int:
+        """The yaw-rate state."""
+        return self.states.index("omega")
+
+    @property
+    def i_bias(self) -> int | None:
+        """The CAN yaw-rate bias state, None without it."""
+        return self._optional(BIAS_STATE)
+
+    @property
+    def i_scale(self) -> int | None:
+        """The CAN speed-scale state, None without it."""
+        return self._optional(SCALE_STATE)
+
+    @property
+    def j_azimuth(self) -> int:
+        """The azimuth output (course/heading; su7: the antennas' xi)."""
+        return self.angle_outputs[0]
+
+    @property
+    def j_gps_speed(self) -> int | None:
+        """The GNSS speed-over-ground output, None without it."""
+        return self.outputs.index(GPS_SPEED_OUTPUT) if GPS_SPEED_OUTPUT in self.outputs else None
+
+    @property
+    def j_can_speed(self) -> int:
+        """The CAN speed output."""
+        return self.outputs.index("can_speed")
+
+    @property
+    def j_can_yaw_rate(self) -> int:
+        """The CAN yaw-rate output."""
+        return self.outputs.index("can_yaw_rate")
+
+    @property
+    def j_position(self) -> tuple[int, int]:
+        """The (east, north) outputs of the (first) antenna's position."""
+        return self.gps_outputs[0], self.gps_outputs[1]
+
+
+def state_noise(model: SuModel, xp: Any, xn: Any, h: Any, ns: Any = np) -> list[Any]:
+    """The state noise ``w = x_t - T(x_{t-1}, x_t, h)`` of the dynamic states (one per state).
+
+    The one angle rule of the package: the azimuth *state* is continuous along a trajectory (never wrapped), so its
+    noise is not wrapped either (a wrapped state noise would let the azimuth jump by 2 pi from step to step, away
+    from its bounds); *measured* angles lie in [0, 2 pi) and their residuals are wrapped (:func:`output_noise`).
+    Works on numpy (one state, or states as columns) and CasADi alike (``ns``)."""
+    pred = model.transition(xp, xn, h, ns)
+    return [xn[i] - pred[i] for i in range(model.n_dynamic)]
+
+
+def output_noise(model: SuModel, x: Any, y: Any, ns: Any = np) -> list[Any]:
+    """The output noise ``e = y - h(x)`` (one per output), angle outputs wrapped (see :func:`state_noise`)."""
+    out = model.output(x, ns)
+    e = [y[j] - out[j] for j in range(model.n_outputs)]
+    return [wrap_angle(e[j], ns) if j in model.angle_outputs else e[j] for j in range(model.n_outputs)]
+
 
 def state_residuals(model: SuModel, x: Any, h: Any) -> Any:
-    """State noise ``w_t = x_t - g(x_{t-1})`` (N-1 x n_dynamic) of a trajectory ``x`` (N x m, numpy) with
-    steps ``h`` (N-1,), s; angles wrapped."""
-    md = model.n_dynamic
-    w = x[1:, :md] - np.array(model.transition(x[:-1].T, x[1:].T, h)[:md]).T
-    for i in model.angle_states:
-        w[:, i] = wrap_angle(w[:, i])
-    return w
+    """:func:`state_noise` of a trajectory ``x`` (N x m, numpy) with steps ``h`` (N-1,), s: (N-1 x n_dynamic)."""
+    return np.array(state_noise(model, x[:-1].T, x[1:].T, h)).T
 
 
 def output_residuals(model: SuModel, x: Any, y: Any) -> Any:
-    """Output noise ``e_k = y_k - h(x_k)`` (N x n) of a trajectory ``x`` (N x m, numpy) against outputs ``y``
-    (N x n) at every step (mask the missing ones); angles wrapped."""
-    e = y - np.array(model.output(x.T)).T
-    for j in model.angle_outputs:
-        e[:, j] = wrap_angle(e[:, j])
-    return e
+    """:func:`output_noise` of a trajectory ``x`` (N x m, numpy) against outputs ``y`` (N x n) at every step
+    (mask the missing ones): (N x n)."""
+    return np.array(output_noise(model, x.T, y.T)).T
 
 
+def integrate_odometry(
+    t: Any, v: Any, w: Any, east0: float = 0.0, north0: float = 0.0, phi0: float = 0.0
+) -> tuple[Any, Any, Any]:
+    """Dead reckoning: east, north (m) and azimuth (rad) at the times ``t`` (s) of a vehicle whose speed ``v``
+    (m/s) and yaw rate ``w`` (rad/s, anticlockwise) at those times are linear in between, from ``(east0, north0,
+    phi0)`` at ``t[0]``: the azimuth by the trapezoid rule, each interval driven at its mean speed along its mid
+    azimuth (second order; exact on a straight line). The one CAN integration of the package: a fine ``t`` makes
+    it the reference the noise floors and the dead-reckoning floor are measured with."""
+    dt = np.diff(t)
+    phi = phi0 - np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * dt)])
+    mid_phi, mid_v = 0.5 * (phi[1:] + phi[:-1]), 0.5 * (v[1:] + v[:-1])
+    east = east0 + np.concatenate([[0.0], np.cumsum(mid_v * np.sin(mid_phi) * dt)])
+    north = north0 + np.concatenate([[0.0], np.cumsum(mid_v * np.cos(mid_phi) * dt)])
+    return east, north, phi
+
+
+@functools.lru_cache(maxsize=64)
 def su_model(
     name: str,
     yaw_rate_bias: bool = False,
@@ -226,7 +314,8 @@ def su_model(
     """The model ``"su7"`` (paper (19)-(20)) or ``"su5"`` (single antenna), with optional CAN-error states,
     discretised by ``"euler"`` (the paper's (19)) or ``"trapezoid"`` (:func:`trapezoid`); ``lever_m`` is
     the antenna-2 lever arm of :func:`su7_step` (0: the paper's rigid translation); ``gps_speed`` adds the
-    receiver's speed over ground as an output (:data:`GPS_SPEED_OUTPUT`, a GNSS output before the CAN ones)."""
+    receiver's speed over ground as an output (:data:`GPS_SPEED_OUTPUT`, a GNSS output before the CAN ones).
+    Built once per argument set (the models are immutable)."""
     if name not in ("su7", "su5"):
         raise ValueError(f"model: unknown SU model {name!r} (su5, su7)")
     if discretisation not in ("euler", "trapezoid"):
@@ -244,8 +333,8 @@ def su_model(
 
     speed_out = (GPS_SPEED_OUTPUT,) * gps_speed
 
-    i_phi = states.index("phi")
-    transition = trapezoid(step, i_phi, i_phi + 1, i_phi + 2) if discretisation == "trapezoid" else euler(step)
+    i_phi, i_v, i_omega = states.index("phi"), states.index("v"), states.index("omega")
+    transition = trapezoid(step, i_phi, i_v, i_omega) if discretisation == "trapezoid" else euler(step)
 
     if name == "su7":
         return SuModel(

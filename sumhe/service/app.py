@@ -148,7 +148,8 @@ class Service:
         self.clock_rate = clock_rate
         self.pipeline = Pipeline(config, estimator, rules, wall_clock=clock)
         self.stats = ServiceStats()
-        self.reorder = Reorder(config.gps.latency_s + REORDER_MARGIN_S if hold_s is None else hold_s)
+        epoch_s = config.gps.epoch_span_s if config.gps.source == "can" else 0.0  # a CAN GNSS epoch may come late
+        self.reorder = Reorder(config.gps.latency_s + epoch_s + REORDER_MARGIN_S if hold_s is None else hold_s)
         self._udp = UdpSink(config.output, config.blame)
         status_udp = config.output.status_udp
         self._status_udp = (
@@ -195,8 +196,8 @@ class Service:
         reads = []
         for name in self.sources:
             if name == "can":
-                quantities = ", ".join(c.can.signals)
-                reads.append(f"can {c.can.interface} {c.can.channel} ({quantities}; DBC {c.can.dbc})")
+                quantities = ", ".join([*c.can.signals, *(f"gps {q}" for q in c.gps.signals)])  # gps: source "can"
+                reads.append(f"can {c.can.interface} {c.can.channel} ({quantities}; DBC {', '.join(c.can.dbc_files)})")
             elif name == "gps":
                 reads.append(f"gps {c.gps.port} at {c.gps.baudrate} Bd")
             else:

@@ -26,7 +26,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from sumhe.config import Config
-from sumhe.estimator.base import Estimator, FixConverter, LocalFix, to_estimate
+from sumhe.estimator.base import Estimator, to_estimate
+from sumhe.frontend.fixes import FixConverter, LocalFix
 from sumhe.messages import CanSample, Estimate, GnssFix, Sample
 
 log = logging.getLogger(__name__)

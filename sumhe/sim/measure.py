@@ -3,7 +3,9 @@
 This is what ``sumhe simulate --errors DIR`` prints: CAN speed and yaw rate minus the truth at the frame's
 timestamp (so timing, delay, scale, bias, noise and quantisation all show), GPS position minus the truth at the
 time of fix, the fix latency (receive time - time of fix), GPS speed and HDT heading errors, CAN timing jitter.
-It works on any directory with ``truth.csv``, ``drive.log`` and ``drive.nmea`` (``drive2.nmea`` if present).
+It works on any directory with ``truth.csv``, ``drive.log`` and ``drive.nmea`` (``drive2.nmea`` if present);
+with a ``scenario.toml`` it decodes the drive's own CAN layout (production-like, OBD) and adds the GNSS error
+against where the antenna truly was at the fix's tag + the clock offset (lever arm and sideslip applied).
 """
 
 from __future__ import annotations
@@ -16,13 +18,15 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from sumhe.config import SignalSpec
 from sumhe.errors import SourceError
 from sumhe.geo import LocalFrame
-from sumhe.io.can import REFERENCE_E2E, REFERENCE_SIGNALS, CanDecoder, read_log
+from sumhe.io.can import CanDecoder, read_log
 from sumhe.io.nmea import iter_fixes
 from sumhe.messages import GnssFix
-from sumhe.sim.can_frames import reference_db
+from sumhe.sim.drive import is_real_car
+from sumhe.sim.gps import clock_offset_s
+from sumhe.sim.production import e2e_messages, signal_specs, vehicle_db
+from sumhe.sim.settings import SimSettings, load_settings
 from sumhe.sim.truth import Truth, load_truth
 
 MOVING_MPS = 1.0
@@ -59,21 +63,25 @@ def measure_errors(drive_dir: str | Path) -> list[ErrorRow]:
     d = Path(drive_dir)
     try:
         truth = load_truth(d / "truth.csv")
+        scenario = d / "scenario.toml"
+        settings = load_settings(scenario) if scenario.is_file() else SimSettings()
     except ValueError as e:
         raise SourceError(str(e)) from e
-    rows = _can_rows(truth, d / "drive.log")
-    rows += _gps_rows(truth, d / "drive.nmea", antenna=1)
+    rows = _can_rows(truth, d / "drive.log", settings)
+    rows += _gps_rows(truth, d / "drive.nmea", antenna=1, settings=settings)
     if (d / "drive2.nmea").is_file():
-        rows += _gps_rows(truth, d / "drive2.nmea", antenna=2)
+        rows += _gps_rows(truth, d / "drive2.nmea", antenna=2, settings=settings)
     return rows
 
 
-def _can_rows(truth: Truth, path: Path) -> list[ErrorRow]:
-    signals = {q: SignalSpec(*name.split(".")) for q, name in REFERENCE_SIGNALS.items()}
-    decoder = CanDecoder(reference_db(), signals, REFERENCE_E2E, source=str(path))
+def _can_rows(truth: Truth, path: Path, settings: SimSettings) -> list[ErrorRow]:
+    signals = signal_specs(settings)
+    db = vehicle_db(settings)
+    decoder = CanDecoder(db, signals, e2e_messages(settings), source=str(path))
     series: dict[str, list[tuple[float, float]]] = {}
     yaw_frames = []
-    yaw_id = reference_db().get_message_by_name("ESP_YAW_RATE").frame_id
+    yaw_message = db.get_message_by_name(signals["yaw_rate"].message)
+    yaw_id = yaw_message.frame_id
     for msg in read_log(path):
         if msg.arbitration_id == yaw_id:
             yaw_frames.append(msg.timestamp)
@@ -84,7 +92,7 @@ def _can_rows(truth: Truth, path: Path) -> list[ErrorRow]:
     at_speed, at_yaw = truth.at(speed_t), truth.at(yaw_t)
     moving = at_speed.speed > MOVING_MPS
     period = np.diff(yaw_frames)
-    cycle = reference_db().get_message_by_name("ESP_YAW_RATE").cycle_time / 1000.0
+    cycle = yaw_message.cycle_time / 1000.0
     return [
         error_row("CAN speed - true speed", "m/s", speed - at_speed.speed),
         error_row("CAN speed / true scale - true speed", "m/s", speed / at_speed.speed_scale - at_speed.speed),
@@ -95,11 +103,11 @@ def _can_rows(truth: Truth, path: Path) -> list[ErrorRow]:
             "deg/s",
             np.degrees(yaw - at_yaw.yaw_rate_bias - at_yaw.yaw_rate),
         ),
-        error_row("CAN ESP_YAW_RATE period - cycle", "ms", 1000.0 * (period - cycle)),
+        error_row(f"CAN {yaw_message.name} period - cycle", "ms", 1000.0 * (period - cycle)),
     ]
 
 
-def _gps_rows(truth: Truth, path: Path, antenna: int) -> list[ErrorRow]:
+def _gps_rows(truth: Truth, path: Path, antenna: int, settings: SimSettings) -> list[ErrorRow]:
     fixes = list(iter_fixes(path))
     valid = [f for f in fixes if f.valid and f.time_utc is not None]
     label = f"GPS{antenna}"
@@ -126,10 +134,30 @@ def _gps_rows(truth: Truth, path: Path, antenna: int) -> list[ErrorRow]:
             _angle_deg(_values(valid, "course_rad") - at.azimuth)[moving],
         ),
     ]
+    if antenna == 1 and is_real_car(settings):
+        true_t = t_fix + clock_offset_s(settings, t_fix - settings.start_unix_s)
+        at_true = truth.at(true_t)
+        ant = frame.to_enu(at_true.lat, at_true.lon, frame.alt0_m)[:, :2] + lever_arm(truth, true_t, settings)
+        err_ant = measured[:, :2] - ant
+        rows.append(
+            error_row(f"{label} error vs true antenna at tag + offset", "m", np.hypot(err_ant[:, 0], err_ant[:, 1]))
+        )
     heading = _values(valid, "heading_rad")
     if np.isfinite(heading).any():
         rows.append(error_row(f"{label} HDT heading - true azimuth", "deg", _angle_deg(heading - at.azimuth)))
     return rows
+
+
+def lever_arm(truth: Truth, t: ArrayLike, settings: SimSettings) -> NDArray[np.float64]:
+    """(n, 2) east/north (m) from the reference point to antenna 1 at times ``t`` (Unix s, the CAN clock): the
+    lever arm turned by the body heading (azimuth minus the sideslip of :class:`~sumhe.sim.vehicle.Body`)."""
+    at = truth.at(t)
+    slip = math.radians(settings.thrust_angle_deg) + math.radians(settings.sideslip_deg_per_mps2) * (
+        at.speed * at.yaw_rate
+    )
+    psi = at.azimuth - slip
+    fwd, left = settings.antenna_forward_m, settings.antenna_left_m
+    return np.column_stack([fwd * np.sin(psi) - left * np.cos(psi), fwd * np.cos(psi) + left * np.sin(psi)])
 
 
 def _fix_time(fix: GnssFix) -> float:

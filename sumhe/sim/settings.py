@@ -25,6 +25,12 @@ else:  # pragma: no cover - exercised on Python 3.10 only
 SCENARIO_NAMES = ("urban", "highway", "offroad")
 GPS_ERROR_MODELS = ("uniform", "gaussian", "walk", "rtk")
 OUTAGE_STYLES = ("silence", "nofix")
+CAN_LAYOUTS = ("reference", "production")
+"""``reference``: dbc/sumhe_ref.dbc as it is; ``production``: dbc/sumhe_prod.dbc with the drive's quanta."""
+SPEED_SOURCES = ("broadcast", "obd")
+"""Where the speed comes from: a cyclic chassis message, or OBD-II mode 01 PID 0x0D polled by a logger."""
+OBD_ROUNDINGS = ("round", "floor")
+TALKERS = ("GP", "GN")
 DEFAULT_GPS_ERROR_M = {"uniform": 1.0, "gaussian": 1.0, "walk": 1.0, "rtk": 0.03}
 """Scale of each error model: the half-width of the uniform box (uniform, rtk) or the 1-sigma per axis."""
 START_UNIX_S = 1780300800.0
@@ -46,6 +52,28 @@ class SimSettings:
 
     CAN: speed reported as truth * ``speed_scale`` + noise, yaw rate as truth + bias + noise, both taken
     ``can_sensor_delay_s`` before the frame goes out; host timestamps with USB-adapter jitter and bursts.
+
+    Real-car errors (all off by default, which is the ``kind`` profile; :mod:`sumhe.sim.profiles` draws them for
+    the ``realistic`` one; docs/simulator.md gives each one's range and evidence):
+
+    - GNSS clock: a fix tagged t (UTC) lies where the car is at t + ``gps_time_offset_s`` on the CAN/host clock
+      (the offset at mid-drive; it drifts by ``gps_clock_drift_ppm``); its NMEA arrives ``gps_latency_s`` +
+      U(0, ``gps_latency_jitter_s``) after that instant. ``gps_drop_rate`` of the epochs are never sent.
+    - GNSS errors: heavy-tailed outliers (``gps_outliers_per_min`` jumps of mean size ``gps_outlier_m``,
+      0.1-1.5 s long) on top of the error model and multipath; with ``gps_velocity_sigma_mps`` > 0 the speed and
+      course come from the antenna's velocity plus a Gauss-Markov error (``gps_velocity_tau_s``) instead of
+      white speed noise. ``gps_nmea_hdop`` / ``gps_nmea_gst`` false: no HDOP field, no GST sentence.
+    - Geometry: antenna 1 sits ``antenna_forward_m`` ahead of and ``antenna_left_m`` left of the rear-axle
+      reference point (the truth); the body's heading is the direction of motion minus the sideslip
+      ``thrust_angle_deg + sideslip_deg_per_mps2 * lateral acceleration`` (nose into the turn), so the yaw-rate
+      sensor sees the path's yaw rate plus the sideslip's rate, and HDT the body's heading.
+    - CAN: yaw rate = ``yaw_rate_scale`` * body yaw rate + bias + noise. ``can_layout = "production"`` speaks
+      dbc/sumhe_prod.dbc with a ``yaw_rate_quantum_dps`` / ``speed_quantum_kmh`` resolution (the drive carries its
+      own ``vehicle.dbc``); ``speed_source = "obd"`` replaces the broadcast speed by OBD-II PID 0x0D polled at
+      ``obd_rate_hz`` (whole km/h, ``obd_rounding``, ``obd_delay_s`` old) and takes the yaw rate from an
+      aftermarket IMU module on can1 (``imu_sign`` -1: mounted upside down). ``can_poll_max_s`` > 0: the host
+      reads the USB adapter at random intervals up to that, so frames arrive in bursts; ``can_ecu_jitter_s`` is
+      the senders' task jitter.
     """
 
     scenario: str = "urban"
@@ -82,11 +110,50 @@ class SimSettings:
     can_burst_per_min: float = 2.0
     can_burst_max_s: float = 0.05
     can_drop_rate: float = 0.0
+    profile: str = "kind"
+    gps_time_offset_s: float = 0.0
+    gps_clock_drift_ppm: float = 0.0
+    gps_drop_rate: float = 0.0
+    gps_outliers_per_min: float = 0.0
+    gps_outlier_m: float = 3.0
+    gps_velocity_sigma_mps: float = 0.0
+    gps_velocity_tau_s: float = 1.0
+    gps_nmea_hdop: bool = True
+    gps_nmea_gst: bool = True
+    gps_talker: str = "GP"
+    antenna_forward_m: float = 0.0
+    antenna_left_m: float = 0.0
+    thrust_angle_deg: float = 0.0
+    sideslip_deg_per_mps2: float = 0.0
+    yaw_rate_scale: float = 1.0
+    can_layout: str = "reference"
+    speed_source: str = "broadcast"
+    yaw_rate_quantum_dps: float = 0.244
+    speed_quantum_kmh: float = 0.01
+    obd_rate_hz: float = 2.0
+    obd_delay_s: float = 0.1
+    obd_rounding: str = "round"
+    imu_sign: int = 1
+    can_poll_max_s: float = 0.0
+    can_ecu_jitter_s: float = 0.0001
 
     def __post_init__(self) -> None:
         _choice(self, "scenario", SCENARIO_NAMES)
         _choice(self, "gps_error", GPS_ERROR_MODELS)
         _choice(self, "outage_style", OUTAGE_STYLES)
+        _choice(self, "can_layout", CAN_LAYOUTS)
+        _choice(self, "speed_source", SPEED_SOURCES)
+        _choice(self, "obd_rounding", OBD_ROUNDINGS)
+        _choice(self, "gps_talker", TALKERS)
+        if not isinstance(self.profile, str) or not self.profile.isidentifier():
+            raise ValueError(f"profile: must be a name, got {self.profile!r}")
+        if self.imu_sign not in (1, -1) or isinstance(self.imu_sign, bool):
+            raise ValueError(f"imu_sign: must be 1 or -1, got {self.imu_sign!r}")
+        for name in ("gps_nmea_hdop", "gps_nmea_gst"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name}: must be true or false, got {getattr(self, name)!r}")
+        if self.speed_source == "obd" and self.can_layout != "production":
+            raise ValueError("speed_source: 'obd' needs can_layout = 'production' (the IMU module is in its DBC)")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"seed: must be an integer >= 0, got {self.seed!r}")
         if isinstance(self.antennas, bool) or self.antennas not in (1, 2):
@@ -119,6 +186,24 @@ class SimSettings:
         _within(self, "can_burst_per_min", 0.0, 600.0)
         _within(self, "can_burst_max_s", 0.0, 1.0)
         _within(self, "can_drop_rate", 0.0, 0.9)
+        _within(self, "gps_time_offset_s", -1.0, 1.0)
+        _within(self, "gps_clock_drift_ppm", -1000.0, 1000.0)
+        _within(self, "gps_drop_rate", 0.0, 0.5)
+        _within(self, "gps_outliers_per_min", 0.0, 60.0)
+        _within(self, "gps_outlier_m", 0.0, 100.0)
+        _within(self, "gps_velocity_sigma_mps", 0.0, 5.0)
+        _within(self, "gps_velocity_tau_s", 0.01, 60.0)
+        _within(self, "antenna_forward_m", -5.0, 5.0)
+        _within(self, "antenna_left_m", -2.0, 2.0)
+        _within(self, "thrust_angle_deg", -5.0, 5.0)
+        _within(self, "sideslip_deg_per_mps2", -2.0, 2.0)
+        _within(self, "yaw_rate_scale", 0.5, 1.5)
+        _within(self, "yaw_rate_quantum_dps", 0.001, 1.0)
+        _within(self, "speed_quantum_kmh", 0.001, 1.0)
+        _within(self, "obd_rate_hz", 0.1, 20.0)
+        _within(self, "obd_delay_s", 0.0, 2.0)
+        _within(self, "can_poll_max_s", 0.0, 0.1)
+        _within(self, "can_ecu_jitter_s", 0.0, 0.01)
         if self.gps_error_m is not None:
             _within(self, "gps_error_m", 0.001, 100.0)
         if self.speed_scale is not None:
@@ -145,6 +230,10 @@ class SimSettings:
 
 _FLOAT_FIELDS = tuple(f.name for f in dataclasses.fields(SimSettings) if f.type in ("float", "float | None"))
 """Fields normalised from int to float, so equal settings always write the same scenario.toml."""
+_NAMES = [f.name for f in dataclasses.fields(SimSettings)]
+REAL_CAR_FIELDS = tuple(_NAMES[_NAMES.index("profile") :])
+"""The real-car error fields: written to scenario.toml only where they differ from the default (off), so a
+``kind`` drive's scenario.toml is what it was before they existed."""
 
 
 def _is_number(value: Any) -> bool:
@@ -183,15 +272,25 @@ def load_settings(path: str | Path) -> SimSettings:
         raise ValueError(f"{path}: {e}") from e
 
 
-def settings_to_toml(settings: SimSettings, applied: Mapping[str, float | str]) -> str:
-    """``scenario.toml``: the ``[sim]`` table (None fields omitted) and the drawn ``[applied]`` values."""
+def settings_to_toml(
+    settings: SimSettings,
+    applied: Mapping[str, float | str],
+    calibration: Mapping[str, float] | None = None,
+) -> str:
+    """``scenario.toml``: the ``[sim]`` table (None fields and real-car fields at their default omitted), the
+    drawn ``[applied]`` values and, when given, the ``[calibration]`` truth in ``sumhe calibrate``'s terms."""
     lines = ["# sumhe simulated drive: `sumhe simulate --settings scenario.toml --out DIR` regenerates it.", "[sim]"]
+    default = SimSettings()
     for f in dataclasses.fields(settings):
         value = getattr(settings, f.name)
-        if value is not None:
-            lines.append(f"{f.name} = {_toml_value(value)}")
+        if value is None or (f.name in REAL_CAR_FIELDS and value == getattr(default, f.name)):
+            continue
+        lines.append(f"{f.name} = {_toml_value(value)}")
     lines += ["", "[applied]"]
     lines += [f"{key} = {_toml_value(value)}" for key, value in applied.items()]
+    if calibration:
+        lines += ["", "[calibration]"]
+        lines += [f"{key} = {_toml_value(value)}" for key, value in calibration.items()]
     return "\n".join(lines) + "\n"
 
 

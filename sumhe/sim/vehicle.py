@@ -143,3 +143,51 @@ class Trajectory:
             steering=steering,
             steering_rate=WHEELBASE_M * slope * v / (1.0 + (kappa * WHEELBASE_M) ** 2),
         )
+
+
+SLIP_STEP_S = 0.01
+"""Half-step of the central difference that gives the sideslip's rate of change."""
+
+
+@dataclass(frozen=True, eq=False)
+class Body:
+    """The car body over a trajectory: its heading differs from the direction of motion of the reference point
+    by the sideslip ``thrust_rad + slip_rad_per_mps2 * lateral acceleration`` (positive = nose to the left of the
+    motion, into a left turn), as a real rear axle's tyres slip under lateral load and a misaligned axle crabs.
+
+    A yaw-rate sensor sees the body's rate: the path's yaw rate plus the sideslip's rate. With both parameters
+    zero the body is the kinematic bicycle exactly (heading = azimuth).
+    """
+
+    trajectory: Trajectory
+    thrust_rad: float = 0.0
+    slip_rad_per_mps2: float = 0.0
+
+    def sideslip(self, m: Motion) -> FloatArray:
+        """Direction of motion minus body heading (rad, azimuth sense) at the states ``m``."""
+        return self.thrust_rad + self.slip_rad_per_mps2 * m.lat_accel
+
+    def heading(self, m: Motion) -> FloatArray:
+        """Body heading (rad, clockwise from north, unwrapped) at the states ``m``."""
+        return m.azimuth - self.sideslip(m)
+
+    def yaw_rate(self, m: Motion) -> FloatArray:
+        """Body yaw rate (rad/s, anticlockwise positive) at the states ``m``: path yaw rate + d(sideslip)/dt."""
+        if self.slip_rad_per_mps2 == 0.0:
+            return m.yaw_rate
+        ahead = self.trajectory.at(m.t + SLIP_STEP_S)
+        behind = self.trajectory.at(m.t - SLIP_STEP_S)
+        return m.yaw_rate + (self.sideslip(ahead) - self.sideslip(behind)) / (2.0 * SLIP_STEP_S)
+
+    def point(self, m: Motion, forward_m: float, left_m: float) -> tuple[FloatArray, ...]:
+        """East, north (m) and velocity east, north (m/s) of the body point ``forward_m`` ahead of and ``left_m``
+        left of the reference point: position + R(heading) offset; velocity + body yaw rate x offset."""
+        psi = self.heading(m)
+        fwd = (np.sin(psi), np.cos(psi))
+        left = (-np.cos(psi), np.sin(psi))
+        omega = self.yaw_rate(m)
+        east = m.east + forward_m * fwd[0] + left_m * left[0]
+        north = m.north + forward_m * fwd[1] + left_m * left[1]
+        v_east = m.speed * np.sin(m.azimuth) + omega * (forward_m * left[0] - left_m * fwd[0])
+        v_north = m.speed * np.cos(m.azimuth) + omega * (forward_m * left[1] - left_m * fwd[1])
+        return east, north, v_east, v_north

@@ -1,16 +1,17 @@
-"""Tuned noise levels of the baselines, and the search and evaluation on simulated drives that produced them.
+"""``sumhe bench tune``: the search and evaluation on simulated drives that tuned the peers' noise levels.
 
-The constants at the top are the estimators' defaults. They come from ``python -m sumhe.baseline.tuning search``
-(a coordinate-wise grid search on *training* drives, seeds 100-105: never the test seeds 1-99) minimising
+The tuned values are the defaults of the peers' tables (:mod:`sumhe.settings.peers`). They come from
+``sumhe bench tune search NAME`` (a coordinate-wise grid search on *training* drives, seeds 100-105: never the test
+seeds 1-99) minimising
 
     J = mean over drives of the mean position error at outage epochs
       + mean over drives of the mean position error at epochs with a fix used,
 
-and ``python -m sumhe.baseline.tuning evaluate`` reports the accuracy on *test* drives. Each drive is a
-simulated drive (:mod:`sumhe.sim`, GPS error model ``walk``) with a 10 s and a 30 s outage placed at random
-(from the seed); the fixes go through :class:`~sumhe.estimator.base.FixConverter` with the datum of the drive
-and the receiver latency measured from the NMEA (median receive time - time of fix), and every sample is pushed
-as the service would. See ``docs/baselines.md`` for the procedure and the results.
+and ``sumhe bench tune evaluate`` reports the accuracy on *test* drives. Each drive is a simulated drive
+(:mod:`sumhe.sim`, GPS error model ``walk``) with a 10 s and a 30 s outage placed at random (from the seed); the
+fixes go through :class:`~sumhe.frontend.fixes.FixConverter` with the datum of the drive and are stamped with their
+UTC time of fix, and every sample is pushed as the service would. See ``docs/baselines.md`` for the procedure and
+the results.
 """
 
 from __future__ import annotations
@@ -20,72 +21,29 @@ import dataclasses
 import heapq
 import logging
 import math
-import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-from sumhe.baseline.kinematics import Noise
-
-if TYPE_CHECKING:
-    from sumhe.baseline.stream import RecursiveEstimator
-    from sumhe.estimator.base import LocalFix, StateEstimate
-    from sumhe.estimator.settings import EstimatorSettings
-    from sumhe.messages import CanSample
-    from sumhe.sim import Drive
+from sumhe.baseline.dead_reckoning import DeadReckoning
+from sumhe.baseline.ekf import Ekf
+from sumhe.baseline.imm import Imm
+from sumhe.baseline.particle import ParticleFilter
+from sumhe.baseline.rts import Rts
+from sumhe.baseline.stream import RecursiveEstimator
+from sumhe.baseline.ukf import Ukf
+from sumhe.config import DatumSettings, GpsSettings
+from sumhe.estimator.base import StateEstimate
+from sumhe.frontend.fixes import FixConverter, LocalFix
+from sumhe.io.fixtime import stamp_fix
+from sumhe.messages import CanSample
+from sumhe.settings import CanModel, EstimationSettings, NoiseSettings
+from sumhe.sim import Drive, SimSettings, simulate
 
 log = logging.getLogger(__name__)
-
-TUNED_NOISE: dict[str, Noise] = {
-    "ekf": Noise(
-        pos_rw=0.00078125,
-        heading_rw=0.000125,
-        speed_rw=0.5,
-        yaw_rate_rw=0.009375,
-        bias_rw=2.5e-05,
-        gps_scale=2.0,
-    ),
-    "pf": Noise(
-        pos_rw=0.000390625,
-        heading_rw=7.8125e-06,
-        bias_rw=5e-05,
-        scale_rw=0.00032,
-        gps_scale=2.0,
-    ),
-    "imm-straight": Noise(
-        pos_rw=0.00078125,
-        heading_rw=0.000125,
-        speed_rw=0.5,
-        yaw_rate_rw=0.0046875,
-        bias_rw=2.5e-05,
-        gps_scale=2.0,
-    ),
-    "imm-turn": Noise(
-        pos_rw=0.003125,
-        heading_rw=0.000125,
-        speed_rw=0.5,
-        yaw_rate_rw=0.0375,
-        bias_rw=2.5e-05,
-        gps_scale=2.0,
-    ),
-}
-"""Tuned :class:`Noise` of each estimator (``rts`` runs the EKF's); the IMM's two models are ``imm-straight``
-and ``imm-turn``."""
-IMM_SOJOURN_S = (10.0, 0.75)
-"""Mean time (s) the IMM stays in the straight and in the turning model."""
-PF_PARTICLES = 500
-
-
-def tuned_noise(name: str) -> Noise:
-    """The tuned noise levels of estimator ``name``; an estimator not tuned (``rts``) takes the EKF's."""
-    for key in (name, "ekf"):
-        if key in TUNED_NOISE:
-            return TUNED_NOISE[key]
-    return Noise()
-
 
 # ---- drives -----------------------------------------------------------------------------------------------------
 
@@ -116,11 +74,6 @@ def make_case(seed: int, duration_s: float = 150.0, gps_error: str = "walk") -> 
     Fixes are stamped with their UTC time of fix and merged in measurement order, as a replay does
     (:func:`sumhe.io.replay.log_samples`).
     """
-    from sumhe.config import DatumSettings, GpsSettings
-    from sumhe.estimator.base import FixConverter
-    from sumhe.io.fixtime import stamp_fix
-    from sumhe.sim import SimSettings, simulate
-
     rng = np.random.default_rng(seed)
     short = rng.uniform(WARM_UP_S + 5.0, 0.4 * duration_s - 10.0)
     long = rng.uniform(0.45 * duration_s, duration_s - 35.0)
@@ -138,11 +91,9 @@ def make_case(seed: int, duration_s: float = 150.0, gps_error: str = "walk") -> 
     return Case(drive, list(heapq.merge(local, can, key=lambda sample: sample.t)))
 
 
-def case_settings(case: Case) -> EstimatorSettings:
+def case_settings(case: Case) -> EstimationSettings:
     """The estimator settings for a case: defaults with the CAN sensor delay calibrated (as the protocol does)."""
-    from sumhe.estimator.settings import EstimatorSettings
-
-    return EstimatorSettings(can_delay_s=case.drive.settings.can_sensor_delay_s)
+    return EstimationSettings(can=CanModel(delay_s=case.drive.settings.can_sensor_delay_s))
 
 
 # ---- running and scoring ----------------------------------------------------------------------------------------
@@ -168,8 +119,6 @@ class Run:
 
 def run_case(estimator: RecursiveEstimator, case: Case) -> Run:
     """Push every sample of ``case``; an estimate is a CAN-rate one when a CAN sample returned it at its time."""
-    from sumhe.estimator.base import LocalFix
-
     estimates: list[StateEstimate] = []
     is_epoch: list[bool] = []
     push_ms = np.empty(len(case.samples))
@@ -244,18 +193,22 @@ IMM_TURN_START = 4.0
 """... and this multiple of all three when the search starts."""
 
 
-def start_values(name: str) -> dict[str, Any]:
-    """Where the search of ``name`` starts: the current defaults (for the IMM, its two models and sojourn times)."""
+def start_values(name: str, settings: EstimationSettings | None = None) -> dict[str, Any]:
+    """Where the search of ``name`` starts: the current defaults of its table (for the IMM, its two models and
+    sojourn times; the turning model :data:`IMM_TURN_START` times louder than the straight one when it is not)."""
+    table = (settings or EstimationSettings()).estimator
     if name == "imm":
-        straight = tuned_noise("imm-straight")
-        louder = {f: IMM_TURN_START * getattr(straight, f) for f in IMM_TURN_FIELDS}
+        straight, turn = table.imm.straight, table.imm.turn
+        if turn == straight:
+            turn = dataclasses.replace(straight, **{f: IMM_TURN_START * getattr(straight, f) for f in IMM_TURN_FIELDS})
         return {
             "straight": straight,
-            "turn": TUNED_NOISE.get("imm-turn", dataclasses.replace(straight, **louder)),
-            "sojourn_straight_s": IMM_SOJOURN_S[0],
-            "sojourn_turn_s": IMM_SOJOURN_S[1],
+            "turn": turn,
+            "sojourn_straight_s": table.imm.sojourn_straight_s,
+            "sojourn_turn_s": table.imm.sojourn_turn_s,
         }
-    return {"noise": Noise() if name == "dead-reckoning" else tuned_noise(name)}
+    noise = {"dead-reckoning": NoiseSettings(), "pf": table.pf.noise, "ukf": table.ukf, "rts": table.rts}
+    return {"noise": noise.get(name, table.ekf)}
 
 
 def with_value(values: dict[str, Any], param: str, value: float) -> dict[str, Any]:
@@ -280,17 +233,10 @@ def get_value(values: dict[str, Any], param: str) -> float:
     return float(getattr(values["noise"], param))
 
 
-def build(name: str, settings: EstimatorSettings, values: dict[str, Any] | None = None) -> RecursiveEstimator:
+def build(name: str, settings: EstimationSettings, values: dict[str, Any] | None = None) -> RecursiveEstimator:
     """Estimator ``name`` with the given settings and search values (the tuned defaults when None)."""
-    from sumhe.baseline.dead_reckoning import DeadReckoning
-    from sumhe.baseline.ekf import Ekf
-    from sumhe.baseline.imm import Imm
-    from sumhe.baseline.particle import ParticleFilter
-    from sumhe.baseline.rts import Rts
-    from sumhe.baseline.ukf import Ukf
-
     if values is None:
-        values = start_values(name)
+        values = start_values(name, settings)
     if name == "imm":
         models = (values["straight"], values["turn"])
         if any(getattr(models[1], f) < getattr(models[0], f) for f in IMM_TURN_FIELDS) or (
@@ -381,10 +327,9 @@ def _seeds(text: str) -> list[int]:
     return out
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m sumhe.baseline.tuning {search,evaluate} ...``."""
-    parser = argparse.ArgumentParser(prog="python -m sumhe.baseline.tuning", description=__doc__.split("\n")[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``sumhe bench tune {search,evaluate} ...``."""
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{search,evaluate}")
     p_search = sub.add_parser("search", help="grid-search one estimator's noise on training drives")
     p_search.add_argument("estimator", choices=sorted(SEARCH_PARAMETERS))
     p_search.add_argument("--sweeps", type=int, default=2)
@@ -394,15 +339,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         p.add_argument("--seeds", default=f"{seeds.start}-{seeds.stop - 1}", help="e.g. 100-105 or 1,2,7")
         p.add_argument("--duration", type=float, default=150.0, help="drive length (s)")
         p.add_argument("--gps-error", default="walk", help="GPS error model of the simulator")
-    args = parser.parse_args(argv)
+        p.set_defaults(_parser=p)
+
+
+def run(args: argparse.Namespace, write: Callable[[str], None]) -> int:
+    """Search (printing the table to put under ``[estimator.NAME]``) or evaluate; ``write`` prints a line."""
     seeds = _seeds(args.seeds)
     if args.command == "search" and set(seeds) & set(range(1, 100)):
-        parser.error("the search must not see the test seeds 1-99")
+        args._parser.error("the search must not see the test seeds 1-99")
     cases = [make_case(s, args.duration, args.gps_error) for s in seeds]
-
-    def write(line: str) -> None:
-        print(line, flush=True)
-
     if args.command == "search":
         values = search(args.estimator, cases, args.sweeps, write)
         for key, value in values.items():
@@ -410,7 +355,3 @@ def main(argv: Sequence[str] | None = None) -> int:
     else:
         evaluate(args.estimators.split(","), cases, write)
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -4,20 +4,20 @@ The window is a time-ordered list of steps (one per GNSS epoch, outage epochs in
 new step is appended, :func:`plan_window` decides what to drop; :meth:`Window.apply` does it.
 
 Policy (paper 001 sec. 6: the data must be present at both ends of a window, so its length varies while GNSS is
-missing; ``docs/mhe.md``):
+missing; ``docs/mhe.md``), with the numbers of ``[estimator.mhe]`` (:class:`~sumhe.settings.MheSettings`):
 
 * normally the window holds the newest ``steps`` (N) steps and slides by one step per epoch;
-* while GNSS is out, and until ``after`` (N_A) GNSS epochs have come back, the window keeps at least ``before``
-  (N_B) GNSS epochs from before the newest outage: it stops sliding and grows instead (while the outage is shorter
-  than N - N_B steps the N newest steps already hold them, and nothing changes);
+* while GNSS is out, and until ``steps_after`` (N_A) GNSS epochs have come back, the window keeps at least
+  ``steps_before`` (N_B) GNSS epochs from before the newest outage: it stops sliding and grows instead (while the
+  outage is shorter than N - N_B steps the N newest steps already hold them, and nothing changes);
 * at most ``max_steps`` (N_max) steps: beyond, steps without GNSS older than the newest N are removed, which
   merges two steps into one of the summed length (the state noise bounds scale with the step length; the
   estimator keeps what the removed step's CAN data added as an offset of the merged transition), two equal
   steps first (so steps are 1, 2, 4, ... periods long), the shortest merged step first and the oldest first among
   equals, so the outage is coarsened behind its newest N steps, which stay at the GNSS period; a merged step is
   at most ``max_merge`` nominal periods long. Only when no step can be merged are the oldest steps dropped;
-* when the window may shrink again it drops ``1 + shrink`` of its oldest steps per epoch (it shrinks back
-  progressively, by ``shrink`` steps per epoch, not in one jump).
+* when the window may shrink again it drops ``1 + shrink_steps`` of its oldest steps per epoch (it shrinks back
+  progressively, by ``shrink_steps`` per epoch, not in one jump).
 """
 
 from __future__ import annotations
@@ -27,48 +27,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from sumhe.estimator.settings import EstimatorSettings
+from sumhe.settings import MheSettings
 
 MERGE_TOL = 1e-6
 EQUAL_STEPS = 0.25
 """Two steps whose lengths differ by less than this fraction of the shorter are of equal length."""
-
-
-@dataclass(frozen=True, slots=True)
-class WindowPolicy:
-    """N = ``steps``, N_B = ``before``, N_A = ``after``, N_max = ``max_steps`` (all in steps); ``shrink``: extra
-    steps dropped per epoch while shrinking; ``max_merge``: the longest merged step, in nominal periods."""
-
-    steps: int = 50
-    before: int = 20
-    after: int = 10
-    max_steps: int = 300
-    shrink: int = 2
-    max_merge: int = 4
-
-    def __post_init__(self) -> None:
-        if self.steps < 2:
-            raise ValueError(f"steps: need at least 2, got {self.steps!r}")
-        if not 0 <= self.before < self.steps:
-            raise ValueError(f"before: must be within [0, steps), got {self.before!r}")
-        if self.after < 0 or self.shrink < 0:
-            raise ValueError("after, shrink: must be >= 0")
-        if self.max_steps < self.steps:
-            raise ValueError(f"max_steps: must be >= steps ({self.steps}), got {self.max_steps!r}")
-        if self.max_merge < 1:
-            raise ValueError(f"max_merge: must be >= 1, got {self.max_merge!r}")
-
-    @classmethod
-    def from_settings(cls, s: EstimatorSettings) -> WindowPolicy:
-        """The policy of the ``mhe_*`` settings."""
-        return cls(
-            steps=s.mhe_steps,
-            before=s.mhe_steps_before,
-            after=s.mhe_steps_after,
-            max_steps=s.mhe_max_steps,
-            shrink=s.mhe_shrink_steps,
-            max_merge=s.mhe_max_merge,
-        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -80,22 +43,22 @@ class Plan:
     merge: tuple[int, ...] = ()
 
 
-def outage_anchor(gps: NDArray[np.bool_], policy: WindowPolicy) -> int | None:
+def outage_anchor(gps: NDArray[np.bool_], policy: MheSettings) -> int | None:
     """Index of the oldest step the newest outage needs kept (its N_B-th GNSS epoch before it; 0 if fewer are
     left), or None when there is no outage in the window or GNSS has been back for N_A epochs."""
     missing = np.flatnonzero(~gps)
     if len(missing) == 0:
         return None
     end = int(missing[-1])
-    if len(gps) - 1 - end >= policy.after:
+    if len(gps) - 1 - end >= policy.steps_after:
         return None
     gps_before = np.flatnonzero(gps[:end])
     start = int(gps_before[-1]) + 1 if len(gps_before) else 0
-    if policy.before == 0:
+    if policy.steps_before == 0:
         return start
-    if len(gps_before) < policy.before:
+    if len(gps_before) < policy.steps_before:
         return 0
-    return int(gps_before[-policy.before])
+    return int(gps_before[-policy.steps_before])
 
 
 def _merge_choice(gps: NDArray[np.bool_], t: NDArray[np.float64], cap: float, fine: int) -> int | None:
@@ -117,7 +80,7 @@ def _merge_choice(gps: NDArray[np.bool_], t: NDArray[np.float64], cap: float, fi
     return int(candidates[order[0]]) + 1
 
 
-def plan_window(gps: NDArray[np.bool_], t: NDArray[np.float64], period: float, policy: WindowPolicy) -> Plan:
+def plan_window(gps: NDArray[np.bool_], t: NDArray[np.float64], period: float, policy: MheSettings) -> Plan:
     """The plan for a window whose steps are at times ``t`` (s) and have GNSS where ``gps`` (newest last).
 
     ``period`` is the nominal step (s). See the module docstring for the rules.
@@ -127,7 +90,7 @@ def plan_window(gps: NDArray[np.bool_], t: NDArray[np.float64], period: float, p
     anchor = outage_anchor(gps, policy)
     if anchor is not None:
         keep_from = min(keep_from, anchor)
-    drop = min(keep_from, 1 + policy.shrink)
+    drop = min(keep_from, 1 + policy.shrink_steps)
     if n - drop <= policy.max_steps:
         return Plan(drop=drop)
     gps_kept, t_kept = gps[drop:].copy(), t[drop:].copy()

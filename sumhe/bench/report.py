@@ -1,0 +1,263 @@
+"""The report of ``sumhe bench`` (``peers``): every run's figures summarised per estimator, as plain data (JSON)
+and as Markdown tables (the README's table)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sumhe.bench import metrics
+from sumhe.bench.peers import MEMORY_METHOD, BenchReport, DriveInfo, RunResult
+
+MOTION_ORDER = ("straight", "bend", "sharp", "stop")
+
+
+# ---- summary -------------------------------------------------------------------------------------------------------
+
+
+def _errors(values: Sequence[NDArray[np.float64]], unit: str = "m", scale: float = 1.0) -> dict[str, float]:
+    pooled = np.concatenate(values) * scale if values else np.zeros(0)
+    mean, p95, mx = metrics.mean_p95_max(pooled)
+    return {"n": int(pooled.size), f"mean_{unit}": mean, f"p95_{unit}": p95, f"max_{unit}": mx}
+
+
+def _length_key(length_s: float) -> str:
+    return f"{length_s:g}"
+
+
+def summarise_estimator(name: str, results: Sequence[RunResult], drives_: Sequence[DriveInfo]) -> dict[str, Any]:
+    """One estimator's figures over all its runs (plain data; NaN where nothing was measured). ``kind`` is
+    ``live`` (answers as it goes), ``offline`` (answers only in ``finish()``) or ``failed`` (every run failed)."""
+    outages = {d.name: d.outages for d in drives_}
+    ok = [r for r in results if r.ok]
+    by_length: dict[str, list[NDArray[np.float64]]] = {}
+    by_motion: dict[str, list[NDArray[np.float64]]] = {}
+    for r in ok:
+        for outage, errs in zip(outages[r.drive], r.outage_errors, strict=True):
+            by_length.setdefault(_length_key(outage.length_s), []).append(errs)
+            by_motion.setdefault(outage.motion, []).append(errs)
+    lengths = sorted({_length_key(o.length_s) for d in drives_ for o in d.outages}, key=float)
+    empty = metrics.latency_histogram([])
+    hists = {
+        "sample": sum((r.sample_hist for r in ok), empty),
+        "epoch": sum((r.epoch_hist for r in ok), empty),
+    }
+    live = sum(r.live_estimates for r in ok)
+    offline = sum(r.finish_estimates for r in ok)
+    return {
+        "kind": "failed" if not ok else ("offline" if live == 0 and offline > 0 else "live"),
+        "runs": len(results),
+        "failed_runs": len(results) - len(ok),
+        "estimates": live + offline,
+        "nonfinite_estimates": sum(r.nonfinite for r in ok),
+        "outage": {"all": _errors([e for r in ok for e in r.outage_errors])}
+        | {L: _errors(by_length.get(L, [])) for L in lengths},
+        "outage_by_motion": {m: _errors(by_motion[m]) for m in MOTION_ORDER if m in by_motion},
+        "with_gps": _errors([r.gps_errors for r in ok]),
+        "heading_deg": _errors([r.heading_errors for r in ok], "deg", math.degrees(1.0)),
+        "latency_ms": {
+            kind: {
+                "n": int(hist.sum()),
+                "p50": metrics.histogram_percentile(hist, 50.0),
+                "p99": metrics.histogram_percentile(hist, 99.0),
+            }
+            for kind, hist in hists.items()
+        },
+        "finish_s": sum(r.finish_s for r in ok),
+        "build_s": max((r.build_s for r in ok), default=math.nan),
+        "throughput_x": metrics.throughput(sum(r.span_s for r in ok), sum(r.push_s + r.finish_s for r in ok)),
+        "peak_memory_mb": max((r.peak_mb for r in ok), default=math.nan),
+    }
+
+
+def summarise(report: BenchReport, command: str = "sumhe bench") -> dict[str, Any]:
+    """The whole report as plain data, ready for JSON (NaN written as null): how it ran, the drives and outages,
+    per estimator its figures, per placement each estimator's mean and max error, and the failed runs."""
+    names = list(dict.fromkeys(r.estimator for r in report.results))
+    placements = []
+    for d in report.drives:
+        runs = {r.estimator: r for r in report.results if r.drive == d.name and r.ok}
+        for i, o in enumerate(d.outages):
+            stats = {n: metrics.mean_p95_max(r.outage_errors[i]) for n, r in runs.items()}
+            placements.append(
+                {
+                    "drive": d.name,
+                    "start_s": round(o.start_s - d.t0, 2),
+                    "length_s": o.length_s,
+                    "motion": o.motion,
+                    "mean_m": {n: s[0] for n, s in stats.items()},
+                    "max_m": {n: s[2] for n, s in stats.items()},
+                }
+            )
+    data = {
+        "benchmark": "peers",
+        "command": command,
+        "environment": report.environment,
+        "memory": MEMORY_METHOD,
+        "settings": dataclasses.asdict(report.settings),
+        "wall_s": report.wall_s,
+        "drives": [
+            {
+                "name": d.name,
+                "kind": d.kind,
+                "span_s": d.span_s,
+                "outages": [
+                    {
+                        "start_s": round(o.start_s - d.t0, 2),
+                        "length_s": o.length_s,
+                        "motion": o.motion,
+                        "gps_back_s": round(o.scored_span[1] - d.t0, 2),
+                    }
+                    for o in d.outages
+                ],
+            }
+            for d in report.drives
+        ],
+        "estimators": {
+            n: summarise_estimator(n, [r for r in report.results if r.estimator == n], report.drives) for n in names
+        },
+        "placements": placements,
+        "failures": [
+            {"estimator": r.estimator, "drive": r.drive, "error": r.error} for r in report.results if not r.ok
+        ],
+    }
+    return _json_ready(data)  # type: ignore[no-any-return]
+
+
+def _json_ready(value: Any) -> Any:
+    """NaN and infinities -> None (JSON has neither); tuples -> lists; numpy scalars -> Python numbers."""
+    if isinstance(value, Mapping):
+        return {str(k): _json_ready(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_ready(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+# ---- Markdown ------------------------------------------------------------------------------------------------------
+
+
+def _num(value: float | None, digits: int = 2) -> str:
+    if value is None:
+        return "–"
+    if digits < 0:  # significant figures (latencies span microseconds to seconds)
+        return f"{value:.{-digits}g}"
+    return f"{value:.{digits}f}"
+
+
+def _cell(stats: Mapping[str, Any], keys: Sequence[str], digits: int = 2) -> str:
+    if not stats or not stats.get("n"):
+        return "–"
+    return " / ".join(_num(stats.get(k), digits) for k in keys)
+
+
+def _scaled(stats: Mapping[str, Any], scale: float) -> dict[str, Any]:
+    return {k: v * scale if isinstance(v, float) and k != "n" else v for k, v in stats.items()}
+
+
+def how_it_ran(summary: Mapping[str, Any]) -> list[str]:
+    """Lines saying what ran where: drives, outages, estimators, versions, CPU, threads, wall time."""
+    env = summary["environment"]
+    drives_ = summary["drives"]
+    counts: dict[str, int] = {}
+    for d in drives_:
+        for o in d["outages"]:
+            key = _length_key(o["length_s"])
+            counts[key] = counts.get(key, 0) + 1
+    per_length = ", ".join(f"{n} of {L} s" for L, n in sorted(counts.items(), key=lambda kv: float(kv[0])))
+    span = sum(d["span_s"] for d in drives_)
+    return [
+        f"`{summary['command']}`: {len(drives_)} drives ({span:.0f} s of data: "
+        + ", ".join(d["name"] for d in drives_)
+        + f"), {sum(counts.values())} outages ({per_length}); estimators: {', '.join(summary['estimators'])}.",
+        f"Ran on {env['cpu']}; {env['python']}, numpy {env['numpy']}, casadi {env['casadi']}, sumhe "
+        f"{env['sumhe']}; {env['blas_threads']}; one run at a time, each in its own forked process; "
+        f"{summary['wall_s']:.0f} s wall.",
+    ]
+
+
+def main_table(summary: Mapping[str, Any]) -> list[str]:
+    """THE table: one row per estimator (Markdown)."""
+    estimators = summary["estimators"]
+    lengths = [k for k in next(iter(estimators.values()))["outage"] if k != "all"] if estimators else []
+    mpm = ("mean_m", "p95_m", "max_m")
+    head = (
+        ["estimator", "kind", "outages: mean / p95 / max (m)"]
+        + [f"{L} s outages (m)" for L in lengths]
+        + [
+            "with GPS: mean / p95 / max (m)",
+            "heading: mean / p95 (deg)",
+            "latency per sample p50 / p99 (µs)",
+            "per GNSS epoch p50 / p99 (ms)",
+            "x real time",
+            "peak memory (MB)",
+            "failed runs",
+        ]
+    )
+    lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
+    for name, e in estimators.items():
+        offline = e["kind"] == "offline"
+        latency = [
+            "offline" if offline else _cell(_scaled(e["latency_ms"][k], scale), ("p50", "p99"), -2)
+            for k, scale in (("sample", 1e3), ("epoch", 1.0))
+        ]
+        row = (
+            [f"`{name}`", e["kind"], _cell(e["outage"]["all"], mpm)]
+            + [_cell(e["outage"].get(L, {}), mpm) for L in lengths]
+            + [
+                _cell(e["with_gps"], mpm),
+                _cell(e["heading_deg"], ("mean_deg", "p95_deg")),
+                *latency,
+                _num(e["throughput_x"], 0),
+                _num(e["peak_memory_mb"], 0),
+                f"{e['failed_runs']} of {e['runs']}",
+            ]
+        )
+        lines.append("| " + " | ".join(row) + " |")
+    return lines
+
+
+def motion_table(summary: Mapping[str, Any]) -> list[str]:
+    """Mean / max error during outages by what the vehicle did (Markdown)."""
+    placements = summary["placements"]
+    motions = [m for m in MOTION_ORDER if any(p["motion"] == m for p in placements)]
+    n = {m: sum(p["motion"] == m for p in placements) for m in motions}
+    head = ["estimator", *(f"{m} ({n[m]} outages): mean / p95 / max (m)" for m in motions)]
+    lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
+    for name, e in summary["estimators"].items():
+        cells = [_cell(e["outage_by_motion"].get(m, {}), ("mean_m", "p95_m", "max_m")) for m in motions]
+        lines.append("| " + " | ".join([f"`{name}`", *cells]) + " |")
+    return lines
+
+
+def markdown(summary: Mapping[str, Any]) -> str:
+    """The Markdown report: how it ran, the table, errors by motion, how each figure is measured, failures."""
+    out = ["# sumhe bench: estimators side by side", "", *how_it_ran(summary), "", *main_table(summary), ""]
+    out += ["## Position error during outages by the truth's motion", "", *motion_table(summary), ""]
+    out += [
+        "## How the figures are measured",
+        "",
+        "- Position error: horizontal distance of every estimate (GNSS epochs and CAN rate; offline smoothers: "
+        "every grid step) from the truth at its time, inside the outages (from the first missing fix to the first "
+        "fix after) / outside them after a "
+        f"{summary['settings']['warm_up_s']:g} s warm-up (with GPS).",
+        f"- Heading: azimuth error, wrapped, while the truth moves faster than "
+        f"{summary['settings']['heading_min_speed_mps']:g} m/s.",
+        "- Latency: wall time of each `Pipeline.push` (time checks, frame conversion, estimator, geodetic "
+        "output); per GNSS epoch = the pushes of a GNSS fix. Offline smoothers answer in `finish()`: their cost "
+        "is in x real time.",
+        "- x real time: seconds of data / seconds of `push` + `finish` (estimator construction left out).",
+        f"- Peak memory: {summary['memory']}.",
+    ]
+    if summary["failures"]:
+        out += ["", "## Failed runs", ""]
+        out += [f"- `{f['estimator']}` on {f['drive']}: {f['error']}" for f in summary["failures"]]
+    return "\n".join(out) + "\n"

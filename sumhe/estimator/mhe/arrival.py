@@ -1,0 +1,135 @@
+"""What the MHE keeps of the steps leaving its window: the arrival box and the arrival cost (``docs/mhe.md``).
+
+(1) The arrival box: when steps are dropped, the first state is held to a box around the previous solution's
+estimate of it, of half-widths ``alpha`` carried as an interval bound: ``alpha <- min(alpha, m_k)`` with ``m_k``
+what the dropped step's outputs bound directly (a position by its allowance, the azimuth by the course's, speed and
+yaw rate by the CAN allowances and the CAN states' limits), then moved one step on, ``alpha <- |dT/dx| alpha +
+2 Q_k`` (the set grows by one step of state noise, twice because the box is centred on the estimate, not on the
+set). (2) The arrival cost ``(z_0 - p)' W (z_0 - p)`` of the least-squares objective: the dropped steps' terms
+(their outputs, their state noise and the previous arrival cost), linearised at the solution, with the dropped
+states eliminated (a Schur complement: what an information filter carries). It keeps the correlations a box cannot,
+of the speed scale with the positions above all. The CAN bias and scale may drift by ``estimator.mhe.theta_drift``
+of their ranges per square-root minute.
+
+:func:`arrival_update` is a pure function of the window, the old :class:`Arrival` and the bounds.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sumhe.estimator.mhe.window import Window
+from sumhe.model.su import SuModel
+
+EPS = 1e-9
+"""Regularisation of the arrival cost's eliminations (directions without information)."""
+FloatArray = NDArray[np.float64]
+StepJacobians = Callable[..., tuple[FloatArray, ...]]
+"""``(xp, xn, h, y) -> (w, dw/dxp, dw/dxn, e(xp), de/dxp)``: :func:`~sumhe.estimator.mhe.problem.step_jacobians`."""
+
+
+@dataclass(frozen=True)
+class Arrival:
+    """The arrival box (half-widths ``alpha`` of the dynamic states, ``inf``: none; centre ``box_centre``, m states)
+    and the arrival cost (centre ``prior``, weight ``weight``, m x m) on the window's first state."""
+
+    alpha: FloatArray
+    box_centre: FloatArray
+    prior: FloatArray
+    weight: FloatArray
+
+
+def prior_arrival(x: FloatArray, half_widths: FloatArray, n_dynamic: int) -> Arrival:
+    """The arrival at a start: no box, a weak prior of ``half_widths`` around ``x`` (their inverse squares)."""
+    return Arrival(np.full(n_dynamic, np.inf), x.copy(), x.copy(), np.diag(1.0 / np.square(half_widths)))
+
+
+def measured_bounds(model: SuModel, win: Window, k: int, theta_range: FloatArray) -> FloatArray:
+    """What the outputs of step ``k`` bound directly: half-widths per dynamic state (inf if nothing); speed and
+    yaw rate through the CAN states' whole range (a box must not rely on their estimates)."""
+    md = model.n_dynamic
+    out = np.full(md, np.inf)
+    avail, allow, x = win.avail[k], win.allow[k], win.x[k]
+    (j_e, j_n), (i_e, i_n) = model.j_position, model.position
+    for j, i in ((j_e, i_e), (j_n, i_n), (model.j_azimuth, model.i_phi)):
+        if avail[j]:
+            out[i] = allow[j]
+    i_v, i_k, i_b = model.i_v, model.i_scale, model.i_bias
+    if avail[model.j_can_speed]:
+        k_range = theta_range[i_k - md] if i_k is not None else 0.0
+        k_low = (x[i_k] - k_range) if i_k is not None else 1.0
+        out[i_v] = (allow[model.j_can_speed] + abs(x[i_v]) * k_range) / max(k_low, 1e-3)
+    j_sog = model.j_gps_speed
+    if j_sog is not None and avail[j_sog]:
+        out[i_v] = min(out[i_v], allow[j_sog])
+    if avail[model.j_can_yaw_rate]:
+        out[model.i_omega] = allow[model.j_can_yaw_rate] + (2.0 * theta_range[i_b - md] if i_b is not None else 0.0)
+    return out
+
+
+def arrival_update(
+    model: SuModel,
+    win: Window,
+    drop: int,
+    old: Arrival,
+    Q: FloatArray,
+    q_caps: FloatArray,
+    step_jac: StepJacobians,
+    theta_range: FloatArray,
+    theta_drift: float,
+) -> Arrival:
+    """The arrival after the ``drop`` oldest steps of ``win`` leave it (module docstring), linearised at the
+    window's trajectory; ``Q`` the state bounds of the last solve (``q_caps`` for steps beyond them)."""
+    md, nt = model.n_dynamic, model.n_states - model.n_dynamic
+    nx = (drop + 1) * md
+    # the quadratic d' H d + 2 g' d over (x_0 .. x_drop dynamic states, CAN states) of the dropped terms
+    H, g = np.zeros((nx + nt, nx + nt)), np.zeros(nx + nt)
+    first = np.r_[0:md, nx : nx + nt]
+    H[np.ix_(first, first)] = old.weight
+    g[first] = old.weight @ (win.x[0] - old.prior)
+    alpha = old.alpha
+    for k in range(drop):
+        q = Q[k] if k < len(Q) else q_caps
+        w, dwp, dwn, e, dep = step_jac(win.x[k], win.x[k + 1], float(win.t[k + 1] - win.t[k]), win.y[k])
+        w = w - win.offset[k + 1, :md]
+        J = np.zeros((md, nx + nt))
+        J[:, k * md : (k + 2) * md] = np.hstack([dwp[:, :md], dwn[:, :md]]) / q[:, None]
+        J[:, nx:] = dwp[:, md:] / q[:, None]
+        ok = win.avail[k]
+        Je = np.zeros((int(ok.sum()), nx + nt))
+        Je[:, k * md : (k + 1) * md] = dep[ok, :md] / win.allow[k][ok, None]
+        Je[:, nx:] = dep[ok, md:] / win.allow[k][ok, None]
+        H += J.T @ J + Je.T @ Je
+        g += J.T @ (w / q) + Je.T @ (e[ok] / win.allow[k][ok])
+        alpha = np.minimum(alpha, measured_bounds(model, win, k, theta_range))
+        # x_{k+1} = T(x_k, x_{k+1}) + w: dx_{k+1}/dx_k = (dw/dx_{k+1})^-1 (-dw/dx_k)
+        F = np.abs(np.linalg.solve(dwn[:, :md], -dwp[:, :md]))
+        unknown = ~np.isfinite(alpha)
+        grown = F @ np.where(unknown, 0.0, alpha) + 2.0 * q
+        alpha = np.where((F[:, unknown] > 0).any(axis=1), np.inf, grown)
+    drift = np.square(theta_drift * theta_range) * float(win.t[drop] - win.t[0]) / 60.0
+    prior, weight = reduce(H, g, drop * md, win.x[drop], nt, drift)
+    return Arrival(alpha, win.x[drop].copy(), prior, weight)
+
+
+def reduce(
+    H: FloatArray, g: FloatArray, na: int, x_new: FloatArray, nt: int, drift: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Eliminate the first ``na`` variables (the dropped states) from the quadratic ``d' H d + 2 g' d``: the
+    arrival cost's centre and weight on the new first state (its dynamic states, then the ``nt`` CAN states), the
+    CAN states' variance grown by ``drift``."""
+    K = np.linalg.solve(H[:na, :na] + EPS * np.eye(na), np.column_stack([H[:na, na:], g[:na]]))
+    Hr = H[na:, na:] - H[na:, :na] @ K[:, :-1]
+    gr = g[na:] - H[na:, :na] @ K[:, -1]
+    Hr = 0.5 * (Hr + Hr.T) + EPS * np.eye(len(gr))
+    prior = x_new - np.linalg.solve(Hr, gr)
+    if nt == 0:
+        return prior, Hr
+    # the CAN states drift: W <- (W^-1 + E D E')^-1 by Woodbury, D = drift variance
+    E = Hr[:, -nt:]
+    weight = Hr - E @ np.linalg.solve(Hr[-nt:, -nt:] + np.diag(1.0 / np.maximum(drift, 1e-30)), E.T)
+    return prior, 0.5 * (weight + weight.T)

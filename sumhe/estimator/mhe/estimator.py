@@ -1,0 +1,260 @@
+"""The moving-horizon state-uniform estimator (issue 3): the service's default estimator, ``"mhe"``, a conductor
+of its parts.
+
+At every GNSS epoch the front-end hands over (a fix, a "no fix", or an epoch GNSS missed), one step is appended to
+the window (:mod:`.window`): its CAN speed and yaw rate and, if the gate (:mod:`.gate`) lets the fix in, the fix's
+position, azimuth and speed over ground (Doppler: it pins the CAN speed scale, which the positions' slow wander
+cannot), each with its error allowance (:mod:`.outputs`), and the step's start state, the previous newest state
+moved on by the model with the CAN data (:mod:`.propagate`). Steps leaving the window leave their information in the
+arrival box and cost (:mod:`.arrival`). The window is re-solved (:mod:`.solve`: buckets, retries; the solvers of
+:mod:`.sqp` and :mod:`.nlp` on the problem of :mod:`.problem`) warm-started from the previous solution shifted by
+the steps the window slid; the newest state is the epoch's estimate. Between epochs, each CAN speed sample gives an
+estimate at its own time: the newest solution moved on with the CAN samples since. ``docs/mhe.md`` describes the
+choices.
+
+Failures: if the solve still fails after its retries and the epoch brought a fix, the fix is an outlier the gate
+let in: it is rejected and the window solved again. Otherwise the epoch's estimate is the model prediction with
+``mode="predict"``. An estimate is never skipped because of the solver. When the gate says the estimate is what is
+wrong (fixes rejected too long, or a consistent streak after an outage), the estimator restarts at the newest fix,
+keeping its CAN bias and scale.
+
+Modes: ``"init"`` (first fix), ``"mhe"`` (solved), ``"mhe-widened"`` (solved after widening), ``"predict"``
+(solver failed: model prediction), ``"can"`` (between epochs: the newest solution moved on with CAN data).
+Only the single-antenna model ``su5`` is supported in the sample stream.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sumhe.config import Config
+from sumhe.errors import ConfigError
+from sumhe.estimator.base import StateEstimate, StreamEstimator
+from sumhe.estimator.batch import model_for
+from sumhe.estimator.mhe.arrival import Arrival, arrival_update, prior_arrival
+from sumhe.estimator.mhe.gate import GATE_RESET_S, REACQUIRE_FIXES, FixGate
+from sumhe.estimator.mhe.outputs import can_outputs, step_outputs
+from sumhe.estimator.mhe.problem import SolveResult, step_jacobians
+from sumhe.estimator.mhe.propagate import Propagation, advance
+from sumhe.estimator.mhe.solve import WindowSolve
+from sumhe.estimator.mhe.window import Window, plan_window
+from sumhe.frontend.stream import CanTick, Epoch, FixMeasurement
+from sumhe.messages import GpsStatus
+from sumhe.settings import EstimationSettings
+
+PRIOR_POSITION_M = 1000.0
+"""Half-width of the weak prior on the first position (m) at a start."""
+STATUS_COUNTERS: dict[str, str] = {"ok": "gps_ok", "rejected": "gps_rejected", "outage": "outage_epochs"}
+
+
+class MovingHorizonEstimator(StreamEstimator):
+    """The moving-horizon SU estimator (module docstring) on :class:`~sumhe.estimator.base.StreamEstimator`."""
+
+    name = "mhe"
+
+    def __init__(self, settings: EstimationSettings | None = None) -> None:
+        s = settings or EstimationSettings()
+        if s.estimator.model != "su5":
+            raise ConfigError(
+                f"estimator.model: the moving-horizon estimator supports su5 only, got {s.estimator.model!r}"
+            )
+        super().__init__(s)
+        self.model = model = model_for(s)
+        self.policy = s.estimator.mhe
+        self.window = Window(self.policy.max_steps + 1, model.n_states, model.n_outputs, model.j_position[0])
+        self.solve = WindowSolve(model, s, self.tally)
+        self.gate = FixGate(s)
+        self.propagation = Propagation(model, s.can.max_gap_s)
+        self._step_jac = step_jacobians(model)
+        md = model.n_dynamic
+        self._theta_range = (self.solve.hi[md:] - self.solve.lo[md:]) / 2.0
+        self.reset_state()
+
+    @classmethod
+    def from_config(cls, config: Config) -> MovingHorizonEstimator:
+        """The estimator of ``config.estimation`` (the registry's constructor), with the ``sqp`` solvers of every
+        window size built now (half a second) rather than during the first long outage."""
+        estimator = cls(config.estimation)
+        if config.estimator.mhe.solver == "sqp":
+            estimator.warm_up()
+        return estimator
+
+    # ---- the StreamEstimator's methods ------------------------------------------------------------------------
+
+    def reset_state(self) -> None:
+        """Forget the window, the arrival, the gate's streaks and the CAN states (counters are kept)."""
+        self.window.clear()
+        self.solve.reset()
+        self.gate.start(heading_known=False)
+        self._arrival: Arrival | None = None
+        self._theta0: NDArray[np.float64] | None = None
+        self._status: GpsStatus = "outage"
+
+    def on_epoch(self, epoch: Epoch) -> StateEstimate:
+        if epoch.start:
+            assert epoch.fix is not None  # the front-end starts at a usable fix
+            self._restart()
+            return self._begin(epoch.fix)
+        return self._epoch(epoch.t, epoch.fix)
+
+    def on_can(self, tick: CanTick) -> StateEstimate | None:
+        if not tick.output or not len(self.window):
+            return None
+        return self._estimate(self.propagation.to(tick.t, self.frontend.can), tick.t, self._status, "can")
+
+    def stats(self) -> Mapping[str, float | int | str]:
+        """Counters (epochs, fixes used/rejected, outage epochs, solves, banded solves, widenings, fallbacks,
+        dropped samples), the window length and the nominal period."""
+        return {**super().stats(), "solver": self.policy.solver, "window": len(self.window)}
+
+    # ---- for replays and benchmarks ---------------------------------------------------------------------------
+
+    @property
+    def last_result(self) -> SolveResult | None:
+        """The last solver answer."""
+        return self.solve.last_result
+
+    def smoothed(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The window now: step times (s) and the smoothed states (L x m, the model's state order), for replays."""
+        return self.window.t.copy(), self.window.x.copy()
+
+    def warm_up(self) -> None:
+        """Build the solver of every window size now rather than at first use (milliseconds each for ``sqp``,
+        up to seconds for the NLP solvers)."""
+        self.solve.warm_up()
+
+    # ---- epochs -----------------------------------------------------------------------------------------------
+
+    def _restart(self) -> None:
+        """Forget the window to start over at a fix, keeping the CAN states of the last one."""
+        md = self.model.n_dynamic
+        theta = self.window.x[-1, md:].copy() if len(self.window) else None
+        self.reset_state()
+        self._theta0 = theta
+
+    def _begin(self, fix: FixMeasurement) -> StateEstimate:
+        """Start at a usable fix: position from it, azimuth from its course/heading (else 0), speed and yaw rate
+        from CAN, the CAN states from before a restart or none (bias 0, scale 1), under a weak prior."""
+        model, s, t = self.model, self.settings, fix.t
+        md, can = model.n_dynamic, self.frontend.can
+        x = np.zeros(model.n_states)
+        i_e, i_n = model.position
+        x[i_e], x[i_n] = fix.east_m, fix.north_m
+        speed, yaw = can["speed"].at(t, s.can.max_gap_s), can["yaw_rate"].at(t, s.can.max_gap_s)
+        x[model.i_phi] = fix.azimuth_rad if fix.azimuth_rad is not None else 0.0
+        x[model.i_v] = speed if speed is not None else 0.0
+        x[model.i_omega] = yaw if yaw is not None else 0.0
+        if model.i_scale is not None:
+            x[model.i_scale] = 1.0
+        if self._theta0 is not None:
+            x[md:] = self._theta0
+        # a weak prior (no information yet): the position within a kilometre, the azimuth anywhere on the circle,
+        # speed and yaw rate within their limits, the CAN states within their ranges; it keeps directions no
+        # data fixes yet (the azimuth at standstill) where they are
+        lo, hi = self.solve.lo, self.solve.hi
+        half = np.full(model.n_states, PRIOR_POSITION_M)
+        half[model.i_phi] = math.pi
+        half[model.i_v] = 0.5 * (hi[model.i_v] - lo[model.i_v])
+        half[model.i_omega] = 0.5 * (hi[model.i_omega] - lo[model.i_omega])
+        half[md:] = self._theta_range
+        self._arrival = prior_arrival(x, half, md)
+        y, avail, allow = step_outputs(model, can, t, s.gnss.period_s, self.period_s, fix, s)
+        self.gate.start(heading_known=bool(avail[model.j_azimuth]))
+        self.window.append(t, y, avail, allow, x)
+        self._status = "ok"
+        self.tally.counts["gps_ok"] += 1
+        self.propagation.restart(list(x), t, can)
+        return self._estimate(list(x), t, "ok", "init")
+
+    def _epoch(self, t: float, fix: FixMeasurement | None) -> StateEstimate:
+        """One GNSS epoch at ``t`` (``fix`` None: no usable fix): gate, append, plan, solve, report."""
+        win, model, s, can = self.window, self.model, self.settings, self.frontend.can
+        h_prev = t - float(win.t[-1])
+        x_pred = np.array(advance(model, list(win.x[-1]), float(win.t[-1]), t, can, s.can.max_gap_s))
+        self.gate.drove(abs(float(x_pred[model.i_v])) * h_prev)
+        i_e, i_n = model.position
+        status: GpsStatus = "outage"
+        if fix is not None:
+            status = "ok" if self.gate.passes(fix, x_pred[i_e], x_pred[i_n]) else "rejected"
+            if status == "rejected" and self.gate.locked_out(t):
+                self.tally.count("gate_resets", "fixes rejected for %.0f s: restarting at the newest fix", GATE_RESET_S)
+                self._restart()
+                return self._begin(fix)
+            if status == "rejected" and self.gate.reacquire(fix, x_pred[i_e], x_pred[i_n]):
+                self.tally.count("reacquired", "GNSS re-acquired after an outage: %d agreeing fixes", REACQUIRE_FIXES)
+                self._restart()
+                return self._begin(fix)
+        y, avail, allow = step_outputs(model, can, t, h_prev, self.period_s, fix if status == "ok" else None, s)
+        # the previous step's CAN outputs again, now that the samples of its second half-interval are in
+        i = len(win) - 1
+        t_before = float(win.t[i - 1]) if i else float(win.t[i]) - self.period_s
+        previous = (win.y[i], win.avail[i], win.allow[i])
+        can_outputs(model, can, float(win.t[i]), 0.5 * (t_before + win.t[i]), win.t[i] + 0.5 * h_prev, s, previous)
+        win.append(t, y, avail, allow, x_pred)
+        self.tally.counts[STATUS_COUNTERS[status]] += 1
+        self._status = status
+        plan = plan_window(win.gps, win.t, self.period_s, self.policy)
+        if plan.drop:
+            assert self._arrival is not None  # set at the start
+            self._arrival = arrival_update(
+                model,
+                win,
+                min(plan.drop, len(win) - 1),
+                self._arrival,
+                self.solve.Q,
+                self.solve.q_caps,
+                self._step_jac,
+                self._theta_range,
+                self.policy.theta_drift,
+            )
+        self._merge_offsets(win.apply(plan))
+        x_new, mode = self._solve(None if plan.merge else plan.drop)
+        if mode == "predict" and status == "ok":
+            # the window cannot take the fix even with widened bounds: an outlier the gate let in; drop it
+            self.tally.count("rejected_by_solver", "fix at %.2f rejected: no trajectory of the window reaches it", t)
+            win.avail[-1, list(model.gps_outputs)] = False
+            status = self._status = "rejected"
+            self.tally.counts["gps_ok"] -= 1
+            self.tally.counts["gps_rejected"] += 1
+            x_new, mode = self._solve(None)
+        if mode == "predict":
+            self.tally.count(
+                "fallbacks", "MHE solve failed %d times: the model prediction", self.policy.max_retries + 1
+            )
+        self.gate.done(t, status, status == "ok" and bool(win.avail[-1, model.j_azimuth]))
+        win.x[:] = x_new
+        self.propagation.restart(list(x_new[-1]), t, can)
+        return self._estimate(list(x_new[-1]), t, status, mode)
+
+    def _solve(self, shift: int | None) -> tuple[NDArray[np.float64], str]:
+        assert self._arrival is not None  # set at the start
+        return self.solve.solve(self.window, self._arrival, self.period_s, shift)
+
+    def _merge_offsets(self, merged: list[int]) -> None:
+        """The offsets of the steps whose transitions now span merged steps: what the current trajectory moved
+        beyond one trapezoidal step over the merged span (the CAN data of the steps merged away: a varying yaw
+        rate is not linear over a long step), so the merge does not move the solution."""
+        win, md = self.window, self.model.n_dynamic
+        for j in merged:
+            pred = self.model.transition(win.x[j - 1], win.x[j], float(win.t[j] - win.t[j - 1]))
+            win.offset[j, :md] = win.x[j, :md] - np.array(pred[:md])
+
+    def _estimate(self, x: list[float], t: float, status: GpsStatus, mode: str) -> StateEstimate:
+        model = self.model
+        i_e, i_n = model.position
+        return StateEstimate(
+            t=t,
+            east_m=float(x[i_e]),
+            north_m=float(x[i_n]),
+            azimuth_rad=float(x[model.i_phi]) % (2.0 * math.pi),
+            speed_mps=float(x[model.i_v]),
+            yaw_rate_rps=float(x[model.i_omega]),
+            gps=status,
+            mode=mode,
+            window=len(self.window),
+            solve_ms=self.elapsed_ms(),
+        )

@@ -1,0 +1,96 @@
+"""The MHE's gate: which fixes enter the window.
+
+A fix whose distance to the prediction exceeds its position allowance (``r_cap_sigmas`` x its larger sigma) +
+``estimator.mhe.gate_m`` + ``estimator.mhe.gate_drift`` x the distance driven since the last fix used (twice that
+distance while no azimuth has been measured since the start: the prediction may point anywhere) is rejected, so one
+multipath jump cannot widen the bounds; the first ``max(steps_before, 2)`` fixes are always taken. The gate widens
+with the distance driven, so after a long outage the first good fixes are taken. Two rules say the estimate, not
+the fixes, is wrong (the estimator restarts at the newest fix): fixes rejected for ``GATE_RESET_S`` without a
+break, or, after an outage, ``REACQUIRE_FIXES`` rejected fixes in a row that agree with each other.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from sumhe.frontend.stream import FixMeasurement
+from sumhe.messages import GpsStatus
+from sumhe.settings import EstimationSettings
+
+log = logging.getLogger(__name__)
+
+GATE_RESET_S = 30.0
+"""Valid fixes rejected for this long without a break (longer than a multipath episode): the estimate is what is
+wrong; restart at the newest fix."""
+REACQUIRE_FIXES = 5
+"""After an outage, this many rejected fixes in a row that agree with each other (their offsets from the
+prediction differ by less than the gate's base radius) mean the prediction drifted, not the fixes: restart at the
+newest fix (0.5 s at 10 Hz). Mid-drive, a consistent offset is more likely multipath: ``GATE_RESET_S`` applies."""
+REACQUIRE_AFTER_M = 30.0
+"""Distance driven without a fix used (m) from which a rejection streak counts as "after an outage"."""
+
+
+class FixGate:
+    """The gate's state over the stream (see the module docstring)."""
+
+    def __init__(self, settings: EstimationSettings) -> None:
+        self.settings = settings
+        self.start(heading_known=False)
+
+    def start(self, heading_known: bool) -> None:
+        """A (re)start at a fix used; ``heading_known``: it measured the azimuth."""
+        self.since_fix_m = 0.0
+        self.heading_known = heading_known
+        self.used_fixes = 1
+        self._rejected_since: float | None = None
+        self._offsets: list[tuple[float, float]] = []
+        self._after_outage = False
+
+    def drove(self, distance_m: float) -> None:
+        """The vehicle drove ``distance_m`` (m) since the previous epoch."""
+        self.since_fix_m += distance_m
+
+    def _base_radius(self, fix: FixMeasurement) -> float:
+        s = self.settings
+        return s.estimator.r_cap_sigmas * max(fix.sigma_east_m, fix.sigma_north_m) + s.estimator.mhe.gate_m
+
+    def passes(self, fix: FixMeasurement, east_m: float, north_m: float) -> bool:
+        """Whether ``fix`` passes, against the prediction at (``east_m``, ``north_m``)."""
+        m = self.settings.estimator.mhe
+        drift = m.gate_drift if self.heading_known else 2.0
+        radius = self._base_radius(fix) + drift * self.since_fix_m
+        miss = math.hypot(fix.east_m - east_m, fix.north_m - north_m)
+        if miss <= radius or self.used_fixes < max(m.steps_before, 2):
+            return True
+        log.debug("fix at %.2f rejected: %.1f m from the prediction (gate %.1f m)", fix.t, miss, radius)
+        return False
+
+    def locked_out(self, t: float) -> bool:
+        """Whether fixes have been rejected for :data:`GATE_RESET_S` without a break."""
+        return self._rejected_since is not None and t - self._rejected_since > GATE_RESET_S
+
+    def reacquire(self, fix: FixMeasurement, east_m: float, north_m: float) -> bool:
+        """Whether a rejected fix completes a streak after an outage that says the prediction is what is wrong
+        (:data:`REACQUIRE_FIXES`); records the fix's offset from the prediction."""
+        if not self._offsets:
+            self._after_outage = self.since_fix_m > REACQUIRE_AFTER_M
+        self._offsets.append((fix.east_m - east_m, fix.north_m - north_m))
+        if not self._after_outage or len(self._offsets) < REACQUIRE_FIXES:
+            return False
+        recent = np.array(self._offsets[-REACQUIRE_FIXES:])
+        spread = float(np.max(np.hypot(*(recent - recent.mean(axis=0)).T)))
+        return spread <= self._base_radius(fix)
+
+    def done(self, t: float, status: GpsStatus, azimuth_used: bool) -> None:
+        """The epoch is solved: a fix used (``azimuth_used``: with its azimuth), or one more rejected."""
+        if status == "ok":
+            self.since_fix_m = 0.0
+            self._rejected_since = None
+            self._offsets.clear()
+            self.used_fixes += 1
+            self.heading_known |= azimuth_used
+        elif status == "rejected" and self._rejected_since is None:
+            self._rejected_since = t

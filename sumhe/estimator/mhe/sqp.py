@@ -1,0 +1,297 @@
+"""The SQP real-time-iteration solver of the window problem (:mod:`sumhe.estimator.mhe.problem`).
+
+``"sqp"``: real-time iteration. The constraints are linearised at the previous solution shifted by one step (the
+new step predicted with the newest CAN data), giving one QP per epoch (or a few, by ``estimator.mhe.sqp_iterations``).
+Its least-squares objective without the inequalities has block-banded normal equations, solved by a banded
+Cholesky factorisation in O(N) (a Kalman smoother's cost); if that point is inside every box it solves the QP (the
+problem is convex). Otherwise OSQP solves the QP: the noises are lifted into variables scaled by their bounds,
+``w_k = Q_k v_k``, ``e_k = R_k u_k``, every row is divided by its bound, so that ``P`` is fixed but for the arrival
+block, every bound is a box on a variable, and only ``A``'s values (the Jacobians from one compiled CasADi
+function), ``P``'s arrival block, ``l``, ``u`` and ``q`` change: OSQP is set up once per bucket and re-solved with
+``update``, warm-started with its duals shifted by the window's slide.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import casadi as ca
+import numpy as np
+import osqp
+import scipy.sparse as sp
+from numpy.typing import NDArray
+from scipy.linalg import solveh_banded
+
+from sumhe.errors import SolverError
+from sumhe.estimator.mhe.problem import SolveResult, WindowProblem, residual_functions
+from sumhe.model.compiled import NumpyFunction
+from sumhe.model.su import SuModel
+
+log = logging.getLogger(__name__)
+
+OSQP_OK = (osqp.SolverStatus.OSQP_SOLVED, osqp.SolverStatus.OSQP_SOLVED_INACCURATE)
+STEP_TOL = 0.01
+"""An SQP iteration that turns no azimuth by more than this (rad) ends the iterations: the model is nonlinear
+through the azimuth (positions enter linearly, speed bilinearly with the scale), so the real-time iteration does
+one QP per epoch unless a transient, e.g. the azimuth found when driving off, needs more."""
+BOX_TOL = 1e-9
+"""Slack allowed on the boxes when the banded (unconstrained) solution is checked against them."""
+REGULARISATION = 1e-6
+"""Added to the normal matrix's diagonal: directions no data fixes (an azimuth at standstill) stay put."""
+
+
+def _free(mask: NDArray[np.bool_], lo: NDArray, hi: NDArray) -> tuple[NDArray, NDArray]:
+    """``lo``, ``hi`` where ``mask``, (-inf, inf) elsewhere."""
+    return np.where(mask, lo, -np.inf), np.where(mask, hi, np.inf)
+
+
+class SqpSolver:
+    """Real-time iteration on a structure fixed per capacity (module docstring): banded solve, else OSQP."""
+
+    name = "sqp"
+
+    def __init__(
+        self,
+        model: SuModel,
+        capacity: int,
+        max_iter: int = 200,
+        tol: float = 1e-5,
+        iterations: int = 1,
+        banded: bool = True,
+    ) -> None:
+        if capacity < 2:
+            raise ValueError(f"capacity: need at least 2 steps, got {capacity}")
+        t0 = time.perf_counter()
+        self.model, self.capacity, self.iterations, self.banded = model, capacity, iterations, banded
+        m, md, n, C = model.n_states, model.n_dynamic, model.n_outputs, capacity
+        self.m, self.md, self.n, self.nt = m, md, n, m - md
+        self.nz = C * md + self.nt
+        self.nw, self.ne = md * (C - 1), n * C
+        self.nv = nv = self.nz + self.nw + self.ne
+        fw, fe = residual_functions(model)
+        Xd, th = ca.SX.sym("x", md, C), ca.SX.sym("theta", self.nt)
+        H, Y = ca.SX.sym("h", 1, C - 1), ca.SX.sym("y", n, C)
+        X = ca.vertcat(Xd, ca.repmat(th, 1, C))
+        res = ca.vertcat(ca.vec(fw.map(C - 1)(X[:, :-1], X[:, 1:], H)), ca.vec(fe.map(C)(X, Y)))
+        z = ca.vertcat(ca.vec(Xd), th)
+        J = ca.jacobian(res, z)
+        self._lin = NumpyFunction(ca.Function("mhe_lin", [z, H, Y], [ca.vertcat(res, J.nz[:])]))
+        rows, cols = (np.asarray(a, dtype=np.int64) for a in J.sparsity().get_triplet())
+        self._rows, self._cols = rows, cols
+        self._row_step = np.concatenate([np.repeat(np.arange(C - 1), md), np.repeat(np.arange(C), n)])
+        self._z_step = np.concatenate([np.repeat(np.arange(C), md), np.zeros(self.nt, dtype=np.int64)])
+        # the first state's variables: x_0 (dynamic) then the CAN states, in the order of the model's states
+        self._first = np.concatenate([np.arange(md), self.nz - self.nt + np.arange(self.nt)])
+        self._setup_banded()
+        self._setup_osqp(max_iter, tol)
+        self._y_prev: NDArray[np.float64] | None = None
+        log.debug("SQP MHE problem, %d steps: %d variables, built in %.1f ms", C, nv, 1e3 * (time.perf_counter() - t0))
+
+    def _setup_banded(self) -> None:
+        """Index maps from products of Jacobian entries of one row to the normal matrix: its band (states, upper
+        band storage of :func:`scipy.linalg.solveh_banded`), the state-CAN block and the CAN-CAN block."""
+        rows, cols, nx, nt = self._rows, self._cols, self.capacity * self.md, self.nt
+        order = np.argsort(rows, kind="stable")
+        starts = np.searchsorted(rows[order], np.arange(self.nw + self.ne + 1))
+        first, second = [], []
+        for i in range(self.nw + self.ne):
+            idx = order[starts[i] : starts[i + 1]]
+            a, b = np.meshgrid(idx, idx, indexing="ij")
+            keep = cols[a] <= cols[b]
+            first.append(a[keep])
+            second.append(b[keep])
+        pa, pb = np.concatenate(first), np.concatenate(second)
+        ci, cj = cols[pa], cols[pb]
+        xx, xt, tt = (ci < nx) & (cj < nx), (ci < nx) & (cj >= nx), (ci >= nx) & (cj >= nx)
+        self._bw = int(np.max(cj[xx] - ci[xx], initial=0))
+        if self._bw < self.md - 1:
+            raise SolverError(f"MHE problem: band {self._bw} narrower than a state ({self.md})")
+        self._pairs = (pa, pb)
+        self._xx = (xx, (self._bw + ci[xx] - cj[xx]) * nx + cj[xx])
+        self._xt = (xt, ci[xt] * nt + (cj[xt] - nx))
+        self._tt = (tt, (ci[tt] - nx) * nt + (cj[tt] - nx))
+
+    def _setup_osqp(self, max_iter: int, tol: float) -> None:
+        """OSQP on the lifted QP: A = [J / B, -I; I] (rows divided by their bound B, lifted noises v = w / Q,
+        u = e / R), P = 2 I on the lifted noises plus the arrival block on the first state."""
+        nv, nr, nz = self.nv, self.nw + self.ne, self.nz
+        a_rows = np.concatenate([self._rows, np.arange(nr), nr + np.arange(nv)])
+        a_cols = np.concatenate([self._cols, nz + np.arange(nr), np.arange(nv)])
+        self._perm = np.lexsort((a_rows, a_cols))
+        indptr = np.searchsorted(a_cols[self._perm], np.arange(nv + 1))
+        A = sp.csc_matrix((np.ones(len(self._perm)), a_rows[self._perm], indptr), shape=(nr + nv, nv))
+        self._a_values = np.concatenate([np.zeros(len(self._rows)), -np.ones(nr), np.ones(nv)])
+        # P pattern: the diagonal and the upper triangle of the first state's block
+        fi, fj = np.meshgrid(self._first, self._first, indexing="ij")
+        upper = fi < fj
+        p_rows = np.concatenate([np.arange(nv), fi[upper]])
+        p_cols = np.concatenate([np.arange(nv), fj[upper]])
+        self._p_perm = np.lexsort((p_rows, p_cols))
+        self._p_block = (np.flatnonzero(upper.reshape(-1)), self._first)
+        p_ind = np.searchsorted(p_cols[self._p_perm], np.arange(nv + 1))
+        self._p_base = np.concatenate([np.zeros(nz), np.full(nr, 2.0), np.zeros(int(upper.sum()))])
+        P = sp.csc_matrix((self._p_base[self._p_perm] + (p_rows == p_cols)[self._p_perm], p_rows[self._p_perm], p_ind))
+        # blocks of OSQP's rows (offset, width per step, steps) for shifting the duals
+        C, md, n, nt = self.capacity, self.md, self.n, self.nt
+        self._blocks = [(0, md, C - 1), (self.nw, n, C), (nr, md, C), (nr + C * md, nt, 1)]
+        self._blocks += [(nr + nz, md, C - 1), (nr + nz + self.nw, n, C)]
+        self._osqp = osqp.OSQP()
+        self._osqp.setup(
+            P,
+            np.zeros(nv),
+            A,
+            np.full(nr + nv, -np.inf),
+            np.full(nr + nv, np.inf),
+            verbose=False,
+            eps_abs=tol,
+            eps_rel=tol,
+            eps_prim_inf=1e-6,
+            eps_dual_inf=1e-6,
+            max_iter=max_iter,
+            polishing=False,
+            check_termination=5,
+            warm_starting=True,
+        )
+
+    def _banded_step(
+        self, js: NDArray, rs: NDArray, weight: NDArray, W: NDArray, delta: NDArray, L: int
+    ) -> NDArray[np.float64] | None:
+        """The minimiser of ``sum weight (J dz / B + r / B)^2 + (dz_0 - delta)' W (dz_0 - delta)`` over the first
+        ``L`` steps and the CAN states (None if the normal matrix is singular); ``js = J / B``, ``rs = r / B``,
+        ``dz_0`` the first state's variables."""
+        md, nt, nx, bw = self.md, self.nt, self.capacity * self.md, self._bw
+        pa, pb = self._pairs
+        prod = weight[self._rows[pa]] * js[pa] * js[pb]
+        xx, xx_at = self._xx
+        band = np.bincount(xx_at, prod[xx], minlength=(bw + 1) * nx).reshape(bw + 1, nx)
+        xt, xt_at = self._xt
+        Nxt = np.bincount(xt_at, prod[xt], minlength=nx * nt).astype(float).reshape(nx, nt)
+        tt, tt_at = self._tt
+        Ntt = np.bincount(tt_at, prod[tt], minlength=nt * nt).astype(float).reshape(nt, nt)
+        Ntt = np.triu(Ntt) + np.triu(Ntt, 1).T
+        b = -np.bincount(self._cols, js * (weight * rs)[self._rows], minlength=self.nz)
+        # the arrival cost on the first state
+        b[self._first] += W @ delta
+        for j in range(md):
+            band[bw - j : bw + 1, j] += W[: j + 1, j]
+        Nxt[:md] += W[:md, md:]
+        Ntt += W[md:, md:] + REGULARISATION * np.eye(nt)
+        n_live = L * md
+        band = band[:, :n_live]
+        band[bw] += REGULARISATION
+        try:
+            sol = solveh_banded(band, np.column_stack([b[:n_live], Nxt[:n_live]]), check_finite=False)
+            schur = Ntt - Nxt[:n_live].T @ sol[:, 1:]
+            dtheta = np.linalg.solve(schur, b[nx:] - Nxt[:n_live].T @ sol[:, 0])
+        except np.linalg.LinAlgError:
+            return None
+        dz = np.zeros(self.nz)
+        dz[:n_live] = sol[:, 0] - sol[:, 1:] @ dtheta
+        dz[nx:] = dtheta
+        return dz
+
+    def _shifted_duals(self, shift: int | None) -> NDArray[np.float64]:
+        y = np.zeros(self.nw + self.ne + self.nv)
+        if shift is None or self._y_prev is None:
+            return y
+        for offset, width, steps in self._blocks:
+            if steps == 1:
+                y[offset : offset + width] = self._y_prev[offset : offset + width]
+            elif shift < steps:
+                keep = (steps - shift) * width
+                y[offset : offset + keep] = self._y_prev[offset + shift * width : offset + steps * width]
+        return y
+
+    def solve(self, problem: WindowProblem, shift: int | None, iterations: int | None = None) -> SolveResult:
+        """Run the SQP iterations (``iterations`` QPs at most, default the solver's) from ``problem.x``; OSQP is
+        warm-started with its previous duals shifted by ``shift`` steps (None: cold)."""
+        md, nz, C, L = self.md, self.nz, self.capacity, problem.n_steps
+        x = problem.x.copy()
+        bound = np.concatenate([problem.state_bound.reshape(-1), problem.out_bound.reshape(-1)])
+        active = np.concatenate([self._row_step[: self.nw] < L - 1, problem.avail.reshape(-1)])
+        active[self.nw :] &= self._row_step[self.nw :] < L
+        weight = active.astype(float)
+        W = problem.weight
+        lo0, hi0 = problem.first_box()
+        box_lo = np.concatenate([lo0[:md], np.tile(problem.lo[:md], C - 1), lo0[md:]])
+        box_hi = np.concatenate([hi0[:md], np.tile(problem.hi[:md], C - 1), hi0[md:]])
+        z_live = self._z_step < L
+        status, cost, success = "not solved", np.inf, False
+        iters = qp_solves = 0
+        t_eval = t_asm = t_solve = 0.0
+        for it in range(iterations or self.iterations):
+            t0 = time.perf_counter()
+            zbar = np.concatenate([x[:, :md].reshape(-1), x[0, md:]])
+            lin = self._lin(zbar, problem.h, problem.y.T)
+            res, jac = lin[: self.nw + self.ne], lin[self.nw + self.ne :]
+            res[: self.nw] -= problem.offset.reshape(-1)
+            t1 = time.perf_counter()
+            js, rs = jac / bound[self._rows], res / bound
+            delta = problem.prior - x[0]
+            dz = self._banded_step(js, rs, weight, W, delta, L) if self.banded else None
+            if dz is not None:
+                after = np.bincount(self._rows, js * dz[self._cols], minlength=len(rs)) + rs
+                moved = (zbar + dz)[z_live]
+                if (
+                    np.all(np.abs(after[active]) <= 1.0 + BOX_TOL)
+                    and np.all(moved >= box_lo[z_live] - BOX_TOL)
+                    and np.all(moved <= box_hi[z_live] + BOX_TOL)
+                ):
+                    t_eval, t_asm = t_eval + t1 - t0, t_asm + time.perf_counter() - t1
+                    qp_solves += 1
+                    self._y_prev = np.zeros(self.nw + self.ne + self.nv)
+                    status, success, cost = "banded", True, float(np.sum(after[active] ** 2))
+                    self._apply(x, dz, L)
+                    if self._turned(dz, L) < STEP_TOL:
+                        break
+                    continue
+            row_lo, row_hi = _free(active, -rs, -rs)
+            z_lo, z_hi = _free(z_live, box_lo - zbar, box_hi - zbar)
+            v_lo, v_hi = _free(active, -np.ones(len(rs)), np.ones(len(rs)))
+            p_values = self._p_base.copy()
+            p_values[self._first] = 2.0 * np.diag(W)
+            p_values[nz + len(rs) :] = 2.0 * W.reshape(-1)[self._p_block[0]]
+            q = np.zeros(self.nv)
+            q[self._first] = -2.0 * W @ delta
+            a_values = self._a_values.copy()
+            a_values[: len(js)] = js
+            v0 = np.concatenate([np.zeros(nz), np.where(active, rs, 0.0)])
+            t2 = time.perf_counter()
+            self._osqp.update(
+                q=q,
+                l=np.concatenate([row_lo, z_lo, v_lo]),
+                u=np.concatenate([row_hi, z_hi, v_hi]),
+                Px=p_values[self._p_perm],
+                Ax=a_values[self._perm],
+            )
+            self._osqp.warm_start(x=v0, y=self._shifted_duals(shift if it == 0 else 0))
+            out = self._osqp.solve(raise_error=False)
+            t3 = time.perf_counter()
+            t_eval, t_asm, t_solve = t_eval + t1 - t0, t_asm + t2 - t1, t_solve + t3 - t2
+            qp_solves += 1
+            iters += int(out.info.iter)
+            st = osqp.SolverStatus(out.info.status_val)
+            status = st.name
+            if st not in OSQP_OK or out.x is None or not np.all(np.isfinite(out.x)):
+                success = False
+                self._y_prev = None
+                break
+            success = True
+            self._y_prev = np.asarray(out.y, dtype=float).copy()
+            dz = out.x[:nz]
+            self._apply(x, dz, L)
+            cost = float(np.sum(out.x[nz:][active] ** 2))
+            if self._turned(dz, L) < STEP_TOL:
+                break
+        return SolveResult(x, success, status, iters, qp_solves, cost, t_eval, t_asm, t_solve)
+
+    def _turned(self, dz: NDArray[np.float64], L: int) -> float:
+        """The largest change of an azimuth state over the first ``L`` steps (rad)."""
+        angles = dz[: L * self.md].reshape(L, self.md)[:, list(self.model.angle_states)]
+        return float(np.max(np.abs(angles), initial=0.0))
+
+    def _apply(self, x: NDArray[np.float64], dz: NDArray[np.float64], L: int) -> None:
+        md = self.md
+        x[:L, :md] += dz[: L * md].reshape(L, md)
+        x[:, md:] += dz[self.nz - self.nt :]

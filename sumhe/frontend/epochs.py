@@ -1,0 +1,76 @@
+"""GNSS epochs in time: the receiver's period, the delay of fixes behind the CAN data, the epochs it missed.
+
+One rule for every estimator (and the batch grid): the nominal period is the mean of the intervals between
+epochs that lie within 50 % of their median (the mean of consecutive intervals cancels the receive-time jitter;
+the median test leaves outage gaps out), from at least two intervals (two fixes around an outage say nothing of
+the period), else the GNSS model's ``period_s``. Silence longer than 1.5 periods, measured on the fix clock (the
+newest CAN time minus the typical delay of fixes behind the CAN data), is a missed epoch every period.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from collections import deque
+from collections.abc import Iterable
+
+PERIOD_HISTORY = 32
+"""Intervals (and fix delays) remembered."""
+MAX_PERIOD_S = 5.0
+"""Intervals longer than this are gaps, not periods."""
+MISSED_AFTER_PERIODS = 1.5
+"""Silence of this many periods is a missed epoch."""
+
+
+def nominal_period(intervals: Iterable[float], default: float) -> float:
+    """The GNSS period (s) of ``intervals`` between epochs (see the module docstring); ``default`` from fewer than
+    two."""
+    d = [float(x) for x in intervals if 0 < x <= MAX_PERIOD_S]
+    if len(d) < 2:
+        return default
+    median = statistics.median(d)
+    regular = [x for x in d if abs(x - median) <= 0.5 * median]
+    return statistics.fmean(regular) if regular else median
+
+
+def bad_epoch_time(t: object, last_epoch: float | None) -> tuple[str, str, tuple[float, ...]] | None:
+    """Why a GNSS epoch at ``t`` cannot be taken, as (counter, log message, message args), or None when it can:
+    a non-finite time, or a time not after the previous epoch's."""
+    if not (isinstance(t, int | float) and math.isfinite(t)):
+        return "bad_samples", "GNSS epoch with a non-finite time", ()
+    if last_epoch is not None and t <= last_epoch:
+        return "dropped_backwards", "GNSS epoch %.3f s back in time dropped", (last_epoch - t,)
+    return None
+
+
+class EpochClock:
+    """The stream's GNSS timing: the nominal period, the fixes' delay behind the CAN data, the last epoch."""
+
+    def __init__(self, default_period_s: float) -> None:
+        self.default_period_s = default_period_s
+        self._intervals: deque[float] = deque(maxlen=PERIOD_HISTORY)
+        self._delays: deque[float] = deque(maxlen=PERIOD_HISTORY)
+        self._last_real: float | None = None
+        self.period_s = default_period_s
+        self.delay_s = 0.0
+        self.last_epoch: float | None = None
+        """The time of the last epoch handed out (a fix or a missed one)."""
+
+    def observe(self, t: float, newest_can: float) -> None:
+        """A fix's epoch at ``t`` (s) while the newest CAN data is at ``newest_can``: period and delay."""
+        if self._last_real is not None and 0.0 < t - self._last_real <= MAX_PERIOD_S:
+            self._intervals.append(t - self._last_real)
+            self.period_s = nominal_period(self._intervals, self.default_period_s)
+        self._last_real = t
+        if newest_can > t:
+            self._delays.append(newest_can - t)
+            self.delay_s = statistics.median(self._delays)
+
+    def missed(self, t_fix_clock: float) -> list[float]:
+        """Times of the epochs GNSS missed up to ``t_fix_clock`` (s), each a period after the last; they become the
+        last epoch."""
+        out = []
+        while self.last_epoch is not None and t_fix_clock - self.last_epoch > MISSED_AFTER_PERIODS * self.period_s:
+            self.last_epoch += self.period_s
+            out.append(self.last_epoch)
+        return out

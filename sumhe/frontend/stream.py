@@ -1,0 +1,243 @@
+"""The measurement front-end of the streaming estimators: samples in, epochs and CAN ticks out.
+
+Between the pipeline and every live estimator (MHE, Kalman peers), :class:`FrontEnd` decides once what a sample
+is worth and when it counts:
+
+* input checks: bad or non-finite values, CAN values beyond the vehicle limits, time going back (per quantity),
+  fixes more than ``MAX_FIX_LAG_S`` behind the CAN data, valid fixes without a usable position ("no fix"): each
+  counted in ``stats()`` and logged at its 1st, 10th, 100th ... occurrence, never raised;
+* CAN: the samples' measurement time (timestamp - ``sensors.can.delay_s``) and a buffer of the recent ones
+  (:class:`~sumhe.frontend.can.CanBuffer`) every estimator reads its CAN data from;
+* GNSS timing (:class:`~sumhe.frontend.epochs.EpochClock`): the receiver's period, the fixes' delay behind the CAN
+  data, the epochs it missed (silence over 1.5 periods: an :class:`Epoch` without a fix, ``missed=True``);
+* each fix's measurements by the one policy of :mod:`sumhe.frontend.measurements` (:class:`FixMeasurement`);
+* the start: nothing before the first usable fix, which comes as ``Epoch(start=True)``; no sample at all for
+  ``MAX_DATA_GAP_S`` restarts there (counted ``restarts``).
+
+Events come out in time order: an epoch a CAN sample's time reveals as missed comes before that sample's tick.
+
+Where the inputs still to come belong (each one place): a GNSS time offset against the CAN clock corrects the
+epoch's and the measurement's time in :meth:`FrontEnd._fix`; a course that errs by more than the speed says, or
+differs from the heading (sideslip, mounting), is :func:`~sumhe.frontend.measurements.azimuth_measurement`'s; NMEA
+without HDOP or GST falls to ``sensors.gnss.sigma_m`` in :func:`~sumhe.frontend.measurements.fix_sigmas`; sparse,
+quantised CAN speed (OBD-II polling) is the buffer's and the DBC quantum's (:mod:`sumhe.io.quanta`), and which
+samples make an estimate is :data:`OUTPUT_QUANTITY`; a fix arriving after newer CAN data is judged in
+:meth:`FrontEnd._fix` (``MAX_FIX_LAG_S``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import Counter
+from dataclasses import dataclass
+from typing import NamedTuple
+
+from sumhe.frontend.can import CAN_USED, CanBuffer
+from sumhe.frontend.epochs import EpochClock, bad_epoch_time
+from sumhe.frontend.fixes import LocalFix
+from sumhe.frontend.measurements import azimuth_measurement, gps_speed, gps_speed_sigma
+from sumhe.messages import CanSample
+from sumhe.settings import EstimationSettings
+
+MAX_DATA_GAP_S = 10.0
+"""No sample at all for this long (a clock jump, a paused replay) restarts the estimator at the next usable fix."""
+MAX_FIX_LAG_S = 1.0
+"""Fixes older than this behind the newest CAN data are dropped (counted ``late_fixes``)."""
+OUTPUT_QUANTITY = "speed"
+"""The CAN quantity whose samples the estimators answer with an estimate."""
+CAN_KEEP_S = 2.0
+"""CAN samples are kept for this long, or three periods if longer, behind the newest epoch."""
+
+
+class Tally:
+    """Counters of one estimator (its ``stats()``), logged on its module's logger at the 1st, 10th, 100th, ...
+    occurrence of each."""
+
+    def __init__(self, name: str, logger: logging.Logger) -> None:
+        self.name = name
+        self.log = logger
+        self.counts: Counter[str] = Counter()
+
+    def count(self, key: str, msg: str, *args: object) -> None:
+        self.counts[key] += 1
+        n = self.counts[key]
+        if n == 10 ** int(math.log10(n)):
+            self.log.warning("%s: " + msg + " (%d so far)", self.name, *args, n)
+
+
+@dataclass(frozen=True, slots=True)
+class FixMeasurement:
+    """What one usable fix measures at ``t`` (s, the measurement time on the CAN clock), with its 1-sigma errors:
+    position (m, the local frame), azimuth (rad; a heading, or a course over ground) and speed (m/s, signed like
+    the CAN speed), None where it measures none."""
+
+    t: float
+    east_m: float
+    north_m: float
+    sigma_east_m: float
+    sigma_north_m: float
+    azimuth_rad: float | None
+    azimuth_sigma_rad: float
+    heading: bool
+    speed_mps: float | None
+    speed_sigma_mps: float
+    fix: LocalFix
+
+
+@dataclass(frozen=True, slots=True)
+class Epoch:
+    """A GNSS epoch at ``t`` (s, measurement time): with a usable fix, or without (``fix`` None: the receiver said
+    "no fix", or it was silent and the epoch is ``missed``). ``start``: the first usable fix since a (re)start,
+    where the estimator starts over."""
+
+    t: float
+    fix: FixMeasurement | None
+    missed: bool = False
+    start: bool = False
+
+
+class CanTick(NamedTuple):
+    """A CAN sample taken in: ``t`` its measurement time, ``stamp`` its timestamp (s); ``output``: the estimators
+    answer it with an estimate (the CAN-rate output runs at the rate of the ``speed`` samples). A named tuple: one
+    is made per CAN sample."""
+
+    t: float
+    stamp: float
+    quantity: str
+    value: float
+    output: bool
+
+
+class FrontEnd:
+    """Samples -> :class:`Epoch` and :class:`CanTick` events, for one estimator (see the module docstring).
+
+    ``uses_gps_speed = False`` leaves the fixes' speed over ground out even with ``sensors.gnss.use_speed``.
+    """
+
+    def __init__(self, settings: EstimationSettings, tally: Tally, uses_gps_speed: bool = True) -> None:
+        self.settings = settings
+        self.tally = tally
+        self.uses_gps_speed = uses_gps_speed and settings.gnss.use_speed
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the CAN data and the stream's timing; the next usable fix starts over."""
+        self.can = CanBuffer()
+        self.clock = EpochClock(self.settings.gnss.period_s)
+        self.started = False
+        self._t_last = -math.inf
+
+    @property
+    def period_s(self) -> float:
+        """The nominal GNSS period (s)."""
+        return self.clock.period_s
+
+    def push(self, sample: object) -> list[Epoch | CanTick]:
+        """One sample in (time-ordered), its events out."""
+        if isinstance(sample, CanSample):
+            return self._can(sample) if sample.quantity in CAN_USED else []
+        if isinstance(sample, LocalFix):
+            return self._fix(sample)
+        self.tally.count("bad_samples", "not a LocalFix or CanSample: %s", type(sample).__name__)
+        return []
+
+    def restart(self) -> None:
+        """Start over at the next usable fix, keeping the CAN data and the timing (the estimator's own restart)."""
+        self.started = False
+
+    # ---- CAN --------------------------------------------------------------------------------------------------
+
+    def _can(self, sample: CanSample) -> list[Epoch | CanTick]:
+        q, value, stamp = sample.quantity, sample.value, sample.t
+        if not (isinstance(stamp, float | int) and isinstance(value, float | int) and math.isfinite(stamp)):
+            self.tally.count("bad_samples", "CAN %s sample with a non-finite time or value", q)
+            return []
+        t = stamp - self.settings.can.delay_s
+        store = self.can.samples[q]
+        if t < store.newest:
+            self.tally.count("dropped_backwards", "CAN %s sample %.3f s back in time dropped", q, store.newest - t)
+            return []
+        vehicle = self.settings.vehicle
+        limit = vehicle.max_speed_mps if q == "speed" else 2.0 * vehicle.max_yaw_rate_rps
+        if not (math.isfinite(value) and abs(value) <= limit):
+            self.tally.count("bad_samples", "CAN %s = %r beyond the vehicle limits dropped", q, value)
+            return []
+        self._check_gap(t)
+        store.add(t, float(value))
+        if not self.started:
+            return []
+        events: list[Epoch | CanTick] = self._missed(t - self.clock.delay_s)
+        events.append(CanTick(t, stamp, q, float(value), output=q == OUTPUT_QUANTITY))
+        return events
+
+    # ---- GNSS -------------------------------------------------------------------------------------------------
+
+    def _fix(self, fix: LocalFix) -> list[Epoch | CanTick]:
+        t = fix.t
+        bad = bad_epoch_time(t, self.clock.last_epoch)
+        if bad is not None:
+            self.tally.count(*bad[:2], *bad[2])
+            return []
+        newest_can = self.can.newest
+        if self.started and t < newest_can - MAX_FIX_LAG_S:
+            self.tally.count("late_fixes", "GNSS epoch %.2f s behind the CAN data dropped", newest_can - t)
+            return []
+        sigmas = fix.sigmas(self.settings.gnss)
+        usable = fix.usable(sigmas)
+        if fix.valid and not usable:
+            self.tally.count("bad_fixes", "valid fix without a usable position or sigma taken as no fix")
+        self.clock.observe(t, newest_can)
+        self._check_gap(t)
+        if not self.started:
+            if not usable:
+                return []
+            self.clock.last_epoch = t
+            self.started = True
+            self.tally.counts["epochs"] += 1
+            self.can.trim(t - max(CAN_KEEP_S, 3.0 * self.period_s))
+            return [Epoch(t, self.measure(fix, sigmas), start=True)]
+        events: list[Epoch | CanTick] = self._missed(t)
+        self.clock.last_epoch = t
+        self.tally.counts["epochs"] += 1
+        self.can.trim(t - max(CAN_KEEP_S, 3.0 * self.period_s))
+        events.append(Epoch(t, self.measure(fix, sigmas) if usable else None))
+        return events
+
+    def measure(self, fix: LocalFix, sigmas: tuple[float, float]) -> FixMeasurement:
+        """The measurements of a usable fix whose position ``sigmas`` are :meth:`LocalFix.sigmas`
+        (:mod:`sumhe.frontend.measurements`); the CAN speed at its time signs its speed over ground and, when it
+        has none of its own, decides whether its course counts."""
+        s = self.settings
+        can_speed = self.can["speed"].at(fix.t, s.can.max_gap_s)
+        speed = fix.speed_mps if fix.speed_mps is not None and math.isfinite(fix.speed_mps) else can_speed
+        angle = azimuth_measurement(fix.course_rad, fix.heading_rad, speed, s.gnss)
+        sigma_e, sigma_n = sigmas
+        return FixMeasurement(
+            t=fix.t,
+            east_m=fix.east_m,
+            north_m=fix.north_m,
+            sigma_east_m=sigma_e,
+            sigma_north_m=sigma_n,
+            azimuth_rad=angle[0] if angle is not None else None,
+            azimuth_sigma_rad=angle[1] if angle is not None else math.inf,
+            heading=angle is not None and angle[2],
+            speed_mps=gps_speed(fix.speed_mps, can_speed, s.gnss) if self.uses_gps_speed else None,
+            speed_sigma_mps=gps_speed_sigma(s.gnss),
+            fix=fix,
+        )
+
+    # ---- timing -----------------------------------------------------------------------------------------------
+
+    def _missed(self, t_fix_clock: float) -> list[Epoch | CanTick]:
+        times = self.clock.missed(t_fix_clock)
+        if times:
+            self.tally.counts["epochs"] += len(times)
+            self.tally.counts["missed_epochs"] += len(times)
+        return [Epoch(t, None, missed=True) for t in times]
+
+    def _check_gap(self, t: float) -> None:
+        if self.started and t - self._t_last > MAX_DATA_GAP_S:
+            self.tally.count("restarts", "no data for %.1f s: restarting at the next fix", t - self._t_last)
+            self.started = False
+        self._t_last = max(self._t_last, t)

@@ -1,0 +1,136 @@
+"""The vehicle (``[vehicle]``) and the sensor models (``[sensors.gnss]``, ``[sensors.can]``) every estimator reads.
+
+Units are in the names: ``_m``, ``_mps`` (m/s), ``_mps2``, ``_rad``, ``_rps`` (rad/s), ``_rps2``, ``_s``. These
+describe the car and its sensors, not an estimator: the measurement front-end (:mod:`sumhe.frontend`) turns them
+into each measurement's error model once, for every estimator.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from sumhe.settings.checks import non_negative, positive
+
+FALLBACK_SPEED_RESOLUTION_MPS = 0.01
+"""The CAN speed's quantum (m/s) when neither ``sensors.can.speed_resolution_mps`` nor a DBC says it."""
+FALLBACK_YAW_RATE_RESOLUTION_RPS = 0.0005
+"""The CAN yaw rate's quantum (rad/s) when neither ``sensors.can.yaw_rate_resolution_rps`` nor a DBC says it."""
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleSettings:
+    """What the vehicle can do (the state bounds and the state-noise caps come from these) and its antennas.
+
+    Two antennas (``su7``): distance ``antenna_distance_m`` and tolerance ``antenna_tolerance_m2`` of 000 (23);
+    ``antenna_lever``: antenna 2 swings about antenna 1 in turns.
+    """
+
+    max_speed_mps: float = 70.0
+    max_reverse_speed_mps: float = 10.0
+    max_accel_mps2: float = 10.0
+    max_yaw_rate_rps: float = 1.5
+    max_yaw_accel_rps2: float = 3.0
+    antenna_distance_m: float = 1.0
+    antenna_tolerance_m2: float = 0.05
+    antenna_lever: bool = True
+
+    def __post_init__(self) -> None:
+        positive(
+            self,
+            "max_speed_mps",
+            "max_accel_mps2",
+            "max_yaw_rate_rps",
+            "max_yaw_accel_rps2",
+            "antenna_distance_m",
+            "antenna_tolerance_m2",
+        )
+        non_negative(self, "max_reverse_speed_mps")
+
+
+@dataclass(frozen=True, slots=True)
+class GnssModel:
+    """The GNSS receiver's error model.
+
+    A fix's 1-sigma position error per axis: the receiver's GST sigmas, else by GGA quality (``sigma_rtk_m`` for
+    RTK fixed, ``sigma_float_m`` for float), else HDOP x ``uere_m``, else ``sigma_m``; at least ``resolution_m``
+    (:func:`sumhe.frontend.measurements.fix_sigmas`). Course over ground (above ``course_min_speed_mps``):
+    ``hypot(course_sigma_rad, speed_sigma_mps / speed)``; heading (HDT/THS, with ``use_heading``):
+    ``heading_sigma_rad``. Speed over ground (Doppler, with ``use_speed``): ``speed_sigma_mps``. ``period_s``:
+    the receiver's nominal period until the stream has shown its own.
+    """
+
+    sigma_rtk_m: float = 0.02
+    sigma_float_m: float = 0.3
+    uere_m: float = 1.5
+    sigma_m: float = 3.0
+    resolution_m: float = 0.001
+    speed_sigma_mps: float = 0.05
+    course_sigma_rad: float = 0.0
+    heading_sigma_rad: float = 0.005
+    course_min_speed_mps: float = 2.0
+    use_speed: bool = True
+    use_heading: bool = True
+    period_s: float = 0.1
+
+    def __post_init__(self) -> None:
+        positive(
+            self,
+            "sigma_rtk_m",
+            "sigma_float_m",
+            "uere_m",
+            "sigma_m",
+            "resolution_m",
+            "speed_sigma_mps",
+            "heading_sigma_rad",
+            "period_s",
+        )
+        non_negative(self, "course_sigma_rad", "course_min_speed_mps")
+
+
+@dataclass(frozen=True, slots=True)
+class CanModel:
+    """The CAN speed and yaw-rate sensors' error model.
+
+    ``speed_resolution_mps`` / ``yaw_rate_resolution_rps``: the signals' quanta; unset, the DBC signal's scale
+    (in SI, times the mapping's ``scale``) when the estimator is built from a config with a DBC mapping, else
+    :data:`FALLBACK_SPEED_RESOLUTION_MPS` / :data:`FALLBACK_YAW_RATE_RESOLUTION_RPS`. ``*_sigma_*``: white noise
+    per sample. ``max_gap_s``: a sample older than this is no longer used. ``delay_s``: a sample measures the
+    vehicle this long before its timestamp (a calibration). ``speed_scale_max`` and ``yaw_rate_bias_max_rps``
+    bound the CAN speed's scale error and the yaw rate's bias (CAN speed = k v, CAN yaw rate = omega + b).
+    """
+
+    speed_resolution_mps: float | None = None
+    yaw_rate_resolution_rps: float | None = None
+    speed_sigma_mps: float = 0.02
+    yaw_rate_sigma_rps: float = 0.002
+    max_gap_s: float = 0.5
+    delay_s: float = 0.0
+    speed_scale_max: float = 0.05
+    yaw_rate_bias_max_rps: float = 0.02
+
+    def __post_init__(self) -> None:
+        for name in ("speed_resolution_mps", "yaw_rate_resolution_rps"):
+            if getattr(self, name) is not None:
+                positive(self, name)
+        positive(self, "speed_sigma_mps", "yaw_rate_sigma_rps", "max_gap_s", "speed_scale_max", "yaw_rate_bias_max_rps")
+        non_negative(self, "delay_s")
+        if self.speed_scale_max >= 1:
+            raise ValueError("speed_scale_max: must be below 1 (a relative error)")
+
+    @property
+    def speed_quantum_mps(self) -> float:
+        """The CAN speed's resolution (m/s): the setting, else the fallback."""
+        return self.speed_resolution_mps or FALLBACK_SPEED_RESOLUTION_MPS
+
+    @property
+    def yaw_rate_quantum_rps(self) -> float:
+        """The CAN yaw rate's resolution (rad/s): the setting, else the fallback."""
+        return self.yaw_rate_resolution_rps or FALLBACK_YAW_RATE_RESOLUTION_RPS
+
+
+@dataclass(frozen=True, slots=True)
+class SensorSettings:
+    """``[sensors]``: the GNSS receiver's and the CAN sensors' error models."""
+
+    gnss: GnssModel = field(default_factory=GnssModel)
+    can: CanModel = field(default_factory=CanModel)

@@ -1,0 +1,93 @@
+"""Clock alignment: lags between the receiver's speed/course and the CAN speed/yaw rate, on signals with a known
+lag, scale and bias."""
+
+import math
+
+import numpy as np
+import pytest
+
+from sumhe.frontend.alignment import ClockLearner, course_lag, speed_lag
+
+RNG = np.random.default_rng(7)
+
+
+def true_speed(t):
+    """A drive that speeds up and slows down (m/s)."""
+    return 12.0 + 6.0 * np.sin(2 * math.pi * t / 40.0) + 2.0 * np.sin(2 * math.pi * t / 9.0)
+
+
+def true_yaw_rate(t):
+    """Turns left and right (rad/s, anticlockwise)."""
+    return 0.15 * np.sin(2 * math.pi * t / 25.0) + 0.05 * np.sin(2 * math.pi * t / 7.0)
+
+
+def true_azimuth(t):
+    """-integral of the yaw rate (clockwise), from 0 at t = 0."""
+    return 0.15 * 25.0 / (2 * math.pi) * (np.cos(2 * math.pi * t / 25.0) - 1.0) + 0.05 * 7.0 / (2 * math.pi) * (
+        np.cos(2 * math.pi * t / 7.0) - 1.0
+    )
+
+
+@pytest.mark.parametrize("rate_hz", [1.0, 10.0])
+@pytest.mark.parametrize("lag", [-0.25, 0.0, 0.37])
+def test_speed_lag_recovers_the_lag_and_scale(rate_hz, lag):
+    t_can = np.arange(0.0, 300.0, 0.02)
+    can = 1.01 * true_speed(t_can) + RNG.normal(0, 0.02, len(t_can))
+    t_fix = np.arange(2.0, 298.0, 1.0 / rate_hz)
+    gnss = true_speed(t_fix - lag) + RNG.normal(0, 0.1, len(t_fix))
+    fit = speed_lag(t_fix, gnss, t_can, can)
+    assert fit is not None
+    assert fit.lag_s == pytest.approx(lag, abs=0.02)
+    assert fit.std_s < 0.02
+    assert fit.scale == pytest.approx(1 / 1.01, abs=0.002)
+
+
+def test_course_lag_recovers_lag_scale_and_bias():
+    lag, gain, bias = 0.28, 1.05, math.radians(0.4)
+    t_yaw = np.arange(0.0, 300.0, 0.01)
+    yaw = gain * true_yaw_rate(t_yaw) + bias + RNG.normal(0, math.radians(0.1), len(t_yaw))
+    yaw = np.round(yaw / math.radians(0.25)) * math.radians(0.25)  # the logger's quantum
+    t_fix = np.arange(2.0, 298.0, 1.0)
+    course = np.mod(true_azimuth(t_fix - lag) + RNG.normal(0, math.radians(0.3), len(t_fix)), 2 * math.pi)
+    fit = course_lag(t_fix, course, np.full(len(t_fix), 15.0), t_yaw, yaw)
+    assert fit is not None
+    assert fit.lag_s == pytest.approx(lag, abs=0.03)
+    assert fit.scale == pytest.approx(1 / gain, abs=0.02)
+    assert fit.offset == pytest.approx(bias, abs=math.radians(0.03))
+
+
+def test_too_little_data_or_no_excitation_determines_no_lag():
+    t_can = np.arange(0.0, 100.0, 0.02)
+    t_fix = np.arange(2.0, 98.0, 1.0)
+    assert speed_lag(t_fix[:10], np.full(10, 10.0), t_can, np.full(len(t_can), 10.0)) is None
+    assert speed_lag(t_fix, np.full(len(t_fix), 1.0), t_can, np.full(len(t_can), 1.0)) is None  # below 2 m/s
+    steady = speed_lag(t_fix, 10.0 + RNG.normal(0, 0.1, len(t_fix)), t_can, np.full(len(t_can), 10.0))
+    assert steady is None or not steady.std_s < 0.03  # a constant speed says nothing about the lag
+    assert course_lag(t_fix, np.full(len(t_fix), np.nan), np.full(len(t_fix), 10.0), t_can, t_can * 0) is None
+
+
+def test_learner_starts_at_its_initial_value_and_converges_to_the_offset():
+    lag = 0.3
+    learner = ClockLearner(initial_s=0.05, window_s=120.0, refit_s=5.0)
+    t_can = np.arange(0.0, 200.0, 0.02)
+    can = true_speed(t_can)
+    k = 0
+    for t in np.arange(1.0, 200.0, 1.0):
+        while k < len(t_can) and t_can[k] <= t:
+            learner.add_can_speed(float(t_can[k]), float(can[k]))
+            k += 1
+        if t < 20:
+            assert learner.offset_s == 0.05
+        learner.add_fix(float(t), float(true_speed(t - lag) + RNG.normal(0, 0.05)))
+    assert learner.fits > 0
+    assert learner.offset_s == pytest.approx(-lag, abs=0.02)
+
+
+def test_learner_ignores_fixes_without_speed_and_bad_values():
+    learner = ClockLearner(initial_s=0.1)
+    for t in range(100):
+        learner.add_can_speed(float(t), 10.0)
+        learner.add_fix(float(t), None)
+        learner.add_fix(float(t) + 0.5, math.nan)
+    assert learner.offset_s == 0.1
+    assert learner.fits == 0

@@ -1,0 +1,205 @@
+"""The measurement front-end: one fix-weighting policy, one course sigma, GNSS timing, the CAN buffer, the events
+every streaming estimator reads."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from sumhe.baseline.ekf import Ekf
+from sumhe.config import DatumSettings
+from sumhe.estimator.grid import _fix_sigmas
+from sumhe.estimator.mhe import MovingHorizonEstimator
+from sumhe.frontend.can import CanBuffer
+from sumhe.frontend.epochs import EpochClock, nominal_period
+from sumhe.frontend.fixes import FixConverter, LocalFix
+from sumhe.frontend.measurements import azimuth_measurement, course_sigma, fix_sigmas, gps_speed
+from sumhe.frontend.stream import MAX_DATA_GAP_S, CanTick, Epoch, FrontEnd, Tally
+from sumhe.messages import CanSample, GnssFix
+from sumhe.settings import EstimationSettings, GnssModel, with_changes
+
+GNSS = GnssModel(uere_m=2.5)
+
+
+# ---- one fix-weighting policy ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("quality", "hdop", "gst", "expected"),
+    [
+        (4, 0.8, (0.3, 0.5), (0.3, 0.5)),  # GST first, per axis
+        (4, 0.8, None, (0.02, 0.02)),  # RTK fixed without GST: its sigma, not HDOP x UERE
+        (5, 0.8, None, (0.3, 0.3)),  # RTK float
+        (1, 0.8, None, (2.0, 2.0)),  # HDOP x the configured UERE (2.5 m)
+        (1, None, None, (3.0, 3.0)),  # nothing said: the default
+        (1, None, (0.0001, 0.0001), (0.001, 0.001)),  # at least the resolution
+    ],
+)
+def test_one_fix_weighting_policy(quality: int, hdop: float | None, gst: tuple | None, expected: tuple) -> None:
+    gst_e, gst_n = gst if gst is not None else (None, None)
+    assert fix_sigmas(quality, hdop, gst_e, gst_n, GNSS) == pytest.approx(expected)
+    fix = LocalFix(1.0, True, 0.0, 0.0, quality=quality, hdop=hdop, gst_sigma_east_m=gst_e, gst_sigma_north_m=gst_n)
+    assert fix.sigmas(GNSS) == pytest.approx(expected)
+
+
+def test_the_grid_and_the_stream_weigh_the_same_fix_alike() -> None:
+    rng = np.random.default_rng(2)
+    fixes = [
+        GnssFix(
+            t=float(k),
+            time_utc=None,
+            lat_deg=50.0 + 1e-5 * k,
+            lon_deg=14.0,
+            alt_m=None,
+            quality=int(rng.choice([1, 2, 4, 5])),
+            valid=True,
+            hdop=float(rng.uniform(0.5, 3.0)) if k % 3 else None,
+            sigma_lat_m=float(rng.uniform(0.1, 2.0)) if k % 4 == 0 else None,
+            sigma_lon_m=float(rng.uniform(0.1, 2.0)) if k % 4 == 0 else None,
+        )
+        for k in range(40)
+    ]
+    settings = EstimationSettings(gnss=GNSS)
+    grid_e, grid_n = _fix_sigmas(fixes, settings)
+    converter = FixConverter(DatumSettings("fixed", 50.0, 14.0))
+    stream = np.array([converter.convert(f).sigmas(GNSS) for f in fixes])
+    assert np.allclose(stream[:, 0], grid_e) and np.allclose(stream[:, 1], grid_n)
+    assert len(set(np.round(grid_e, 6))) > 10  # the cases above all occur
+
+
+def test_unusable_sigmas_make_a_valid_fix_no_fix() -> None:
+    for gst in (-1.0, 0.0, 2000.0):
+        fix = LocalFix(t=1.0, valid=True, east_m=0.0, north_m=0.0, gst_sigma_east_m=gst, gst_sigma_north_m=gst)
+        assert not fix.usable(fix.sigmas(GNSS))
+    good = LocalFix(t=1.0, valid=True, east_m=0.0, north_m=0.0, hdop=1.0)
+    assert good.usable(good.sigmas(GNSS))
+    nowhere = LocalFix(t=1.0, valid=True, east_m=math.nan, north_m=0.0)
+    assert not nowhere.usable(nowhere.sigmas(GNSS))
+
+
+# ---- azimuth and speed over ground -------------------------------------------------------------------------------
+
+
+def test_one_course_and_heading_sigma() -> None:
+    gnss = GnssModel(speed_sigma_mps=0.05, course_sigma_rad=0.01, course_min_speed_mps=2.0)
+    assert course_sigma(10.0, gnss) == pytest.approx(math.hypot(0.01, 0.005))
+    assert azimuth_measurement(0.3, 1.2, 10.0, gnss) == (1.2, gnss.heading_sigma_rad, True)  # heading first
+    angle, sigma, heading = azimuth_measurement(0.3, None, 10.0, gnss)  # type: ignore[misc]
+    assert (angle, heading) == (0.3, False) and sigma == pytest.approx(course_sigma(10.0, gnss))
+    assert azimuth_measurement(0.3, None, 1.0, gnss) is None  # below the minimum speed
+    assert azimuth_measurement(0.3, None, None, gnss) is None
+    no_heading = GnssModel(use_heading=False)
+    assert azimuth_measurement(0.3, 1.2, 10.0, no_heading)[0] == 0.3  # type: ignore[index]
+    speeds = np.array([10.0, 1.0, np.nan])
+    assert np.allclose(gps_speed(speeds, np.array([-5.0, 5.0, 5.0]), gnss), [-10.0, np.nan, np.nan], equal_nan=True)
+
+
+# ---- GNSS timing ----------------------------------------------------------------------------------------------
+
+
+def test_the_period_is_the_mean_of_the_regular_intervals() -> None:
+    assert nominal_period([0.1], 0.2) == 0.2  # one interval says nothing
+    assert nominal_period([0.09, 0.11, 0.1, 3.0, 0.1], 0.2) == pytest.approx(0.1)  # the outage gap left out
+    assert nominal_period([1.0, 1.0, 1.02, 0.98], 0.1) == pytest.approx(1.0)  # a 1 Hz receiver
+    assert nominal_period([0.01, 0.09], 0.5) == pytest.approx(0.05)  # nothing regular: the median
+
+
+def test_the_clock_counts_missed_epochs_on_the_fix_clock() -> None:
+    clock = EpochClock(0.1)
+    for k in range(5):
+        clock.observe(10.0 + 0.1 * k, newest_can=10.05 + 0.1 * k)
+    assert clock.period_s == pytest.approx(0.1) and clock.delay_s == pytest.approx(0.05)
+    clock.last_epoch = 10.4
+    assert clock.missed(10.54) == []
+    assert clock.missed(10.8) == pytest.approx([10.5, 10.6, 10.7])
+    assert clock.last_epoch == pytest.approx(10.7)
+
+
+def test_the_can_buffer() -> None:
+    buf = CanBuffer()
+    for k in range(10):
+        buf["speed"].add(float(k), 10.0 + k)
+    assert buf["speed"].mean(2.0, 5.0) == (pytest.approx(14.0), 3)
+    assert buf["speed"].at(4.5, 1.0) == 14.0 and buf["speed"].at(20.0, 1.0) is None
+    assert buf.newest == 9.0
+    buf.trim(100.0)
+    assert buf["speed"].newest == -math.inf
+
+
+# ---- the streaming front-end's events ---------------------------------------------------------------------------
+
+
+def _frontend(**changes: object) -> FrontEnd:
+    settings = with_changes(EstimationSettings(), {"can.delay_s": 0.02, **changes})
+    return FrontEnd(settings, Tally("test", __import__("logging").getLogger("test")))
+
+
+def _fix(t: float, **kw: object) -> LocalFix:
+    return LocalFix(t=t, valid=True, east_m=1.0, north_m=2.0, hdop=1.0, speed_mps=10.0, course_rad=0.5, **kw)  # type: ignore[arg-type]
+
+
+def test_events_start_at_the_first_usable_fix_and_missed_epochs_come_first() -> None:
+    fe = _frontend()
+    assert fe.push(CanSample(10.0, "speed", 10.0)) == []  # nothing before the first fix
+    assert fe.push(LocalFix(t=10.01, valid=False)) == []
+    (start,) = fe.push(_fix(10.05))
+    assert isinstance(start, Epoch) and start.start and start.fix is not None
+    assert start.fix.speed_mps == 10.0 and start.fix.azimuth_rad == 0.5
+    assert start.fix.sigma_east_m == pytest.approx(1.5)  # HDOP x UERE
+    (tick,) = fe.push(CanSample(10.10, "speed", 10.0))
+    assert tick == CanTick(pytest.approx(10.08), 10.10, "speed", 10.0, output=True)  # measured delay_s before its stamp
+    fe.push(_fix(10.15))
+    fe.push(_fix(10.25))
+    # GNSS falls silent: each CAN sample reveals the epochs missed before it
+    events = fe.push(CanSample(10.52, "yaw_rate", 0.1))
+    assert [type(e) for e in events] == [Epoch, Epoch, CanTick] and not events[2].output  # type: ignore[union-attr]
+    assert [e.t for e in events[:2]] == pytest.approx([10.35, 10.45]) and all(e.missed for e in events[:2])  # type: ignore[union-attr]
+    assert fe.tally.counts["missed_epochs"] == 2
+
+
+def test_bad_input_is_counted_not_raised() -> None:
+    fe = _frontend()
+    fe.push(CanSample(10.0, "speed", 10.0))
+    fe.push(_fix(10.05))
+    for bad in (
+        CanSample(math.nan, "speed", 1.0),
+        CanSample(10.1, "yaw_rate", 1e9),
+        CanSample(9.0, "speed", 1.0),
+        LocalFix(t=10.0, valid=True, east_m=0.0, north_m=0.0),
+        _fix(10.2, gst_sigma_east_m=-1.0, gst_sigma_north_m=-1.0),
+        "not a sample",
+    ):
+        assert not [e for e in fe.push(bad) if isinstance(e, Epoch) and e.fix is not None]  # type: ignore[arg-type]
+    counts = fe.tally.counts
+    assert counts["bad_samples"] == 3 and counts["dropped_backwards"] == 2 and counts["bad_fixes"] == 1
+    # fixes more than a second behind the CAN data are dropped
+    late = _frontend()
+    for k in range(5):
+        late.push(CanSample(20.0 + 0.1 * k, "speed", 10.0))
+        events = late.push(_fix(18.5 + 0.1 * k))
+        assert len(events) == (k == 0)
+    assert late.tally.counts["late_fixes"] == 4
+
+
+def test_a_long_gap_restarts_at_the_next_usable_fix() -> None:
+    fe = _frontend()
+    fe.push(_fix(10.0))
+    t = 10.0 + MAX_DATA_GAP_S + 5.0
+    assert fe.push(CanSample(t, "speed", 3.0)) == []
+    (epoch,) = fe.push(_fix(t + 0.1))
+    assert epoch.start and fe.tally.counts["restarts"] == 1  # type: ignore[union-attr]
+
+
+def test_every_family_reads_the_same_fix_sigma() -> None:
+    """An RTK fix without GST: 2 cm for the MHE and for the Kalman filters (the EKF took 1.5 x HDOP before)."""
+    settings = EstimationSettings()
+    rtk = LocalFix(t=10.0, valid=True, east_m=0.0, north_m=0.0, quality=4, hdop=0.9, speed_mps=0.0)
+    mhe, ekf = MovingHorizonEstimator(settings), Ekf(settings)
+    for est in (mhe, ekf):
+        est.push(CanSample(9.99, "speed", 0.0))
+        est.push(rtk)
+    k = settings.estimator.r_cap_sigmas
+    assert mhe.window.allow[0, mhe.model.j_position[0]] == pytest.approx(k * 0.02)
+    assert ekf.P[0, 0] == pytest.approx((ekf.noise.gps_scale * 0.02) ** 2)
