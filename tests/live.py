@@ -126,10 +126,21 @@ def wait_for(path: Path, text: str, timeout: float) -> bool:
     return False
 
 
-def check_drive(records, code, stop_s, offset, sim, svc_text, max_stop_s: float = 2.0, emulated: bool = False):
-    """What arrived against the truth. ``emulated`` (the CI virtual machine: Python ~10x slower on shared cores,
-    where the estimator may fall behind real time and skip epochs): an estimate in every 5 s instead of >= 9 Hz in
-    every second, and the jump's checks only on the estimates that were made around it."""
+EMULATED_COVERED_S = OUTAGE[0] + OUTAGE[1] + 4.0
+"""Drive time (s) up to which an emulated daemon must have kept within the time guard's stale limit (10 s) of real
+time: through the outage and back on GPS (about half of real-time speed suffices; measured: 0.7 to 0.8)."""
+
+
+def check_drive(
+    records, code, stop_s, offset, sim, svc_text, max_stop_s: float = 2.0, emulated: bool = False, status=None
+):
+    """What arrived against the truth. ``emulated`` (the CI virtual machine: Python 10-50x slower on shared cores)
+    asserts correctness, not real-time speed: there the daemon may fall behind real time, and more than 10 s
+    behind it drops the samples as stale (its defined fallback, counted in ``status["time"]["stale"]``), so
+    estimates may thin out or stop before the end of the drive. Every estimate made is checked; a second without
+    one is allowed only where the daemon's final ``status`` counts stale samples, and only after the outage and the
+    return of GPS (:data:`EMULATED_COVERED_S`); the jump must be rejected and GPS used throughout after the outage
+    unless the daemon skipped or dropped epochs; the jump must never pull the estimates made around it."""
     assert code == 0, svc_text[-3000:]
     assert stop_s < max_stop_s, f"SIGTERM took {stop_s:.2f} s"
     assert "sumhe stopped" in svc_text
@@ -138,18 +149,29 @@ def check_drive(records, code, stop_s, offset, sim, svc_text, max_stop_s: float 
     assert len(records) > 0
     first_ok = t[[r["gps"] == "ok" for r in records]].min()
     # output rate >= 9 Hz in every second of the drive after the first fix, through every fault
-    width, least = (5.0, 1) if emulated else (1.0, 9)
-    bins = np.arange(math.ceil(first_ok) + 1, DURATION_S - width)
-    counts = np.array([np.sum((t >= b) & (t < b + width)) for b in bins])
-    assert counts.min() >= least, dict(zip(bins.tolist(), counts.tolist(), strict=True))
+    bins = np.arange(math.ceil(first_ok) + 1, DURATION_S - 1.0)
+    counts = np.array([np.sum((t >= b) & (t < b + 1.0)) for b in bins])
+    status = status or {}
+    stale = status.get("time", {}).get("stale", 0)
+    if emulated:
+        gaps = bins[counts == 0]
+        assert not gaps.size or (stale > 0 and gaps.min() >= EMULATED_COVERED_S), (
+            f"seconds without an estimate {gaps.tolist()}; samples dropped as stale: {stale} (the daemon fell "
+            f"{'more' if stale else 'less'} than 10 s behind real time)"
+        )
+    else:
+        assert counts.min() >= 9, dict(zip(bins.tolist(), counts.tolist(), strict=True))
     # gps flags: outage inside the outage, the 50 m jump rejected, ok again afterwards
     gps = np.array([r["gps"] for r in records])
     inside = (t > OUTAGE[0] + 0.3) & (t < OUTAGE[0] + OUTAGE[1] - 0.2)
     assert set(gps[inside]) == {"outage"}
     near_jump = (t > JUMP_AT_S - 0.2) & (t < JUMP_AT_S + 0.3)
-    assert "rejected" in set(gps[near_jump]) or (emulated and not near_jump.any())
+    # behind real time, the daemon solves the newest epoch only, or drops stale ones: the jump's may be gone, and
+    # the estimator takes the epochs it did not get for missed ones (flagged outage)
+    shed = stale + status.get("skipped_epochs", 0)
+    assert "rejected" in set(gps[near_jump]) or (emulated and (shed > 0 or not near_jump.any()))
     after = (t > OUTAGE[0] + OUTAGE[1] + 1.5) & (t < JUMP_AT_S - 0.5)
-    assert set(gps[after]) == {"ok"}
+    assert set(gps[after]) == {"ok"} or (emulated and shed > 0 and "ok" in set(gps[after])), set(gps[after])
     # errors against the truth
     frame = sim.frame
     enu = frame.to_enu(np.array([r["lat"] for r in records]), np.array([r["lon"] for r in records]), frame.alt0_m)
