@@ -134,13 +134,17 @@ time: through the outage and back on GPS (about half of real-time speed suffices
 def check_drive(
     records, code, stop_s, offset, sim, svc_text, max_stop_s: float = 2.0, emulated: bool = False, status=None
 ):
-    """What arrived against the truth. ``emulated`` (the CI virtual machine: Python 10-50x slower on shared cores)
-    asserts correctness, not real-time speed: there the daemon may fall behind real time, and more than 10 s
-    behind it drops the samples as stale (its defined fallback, counted in ``status["time"]["stale"]``), so
-    estimates may thin out or stop before the end of the drive. Every estimate made is checked; a second without
-    one is allowed only where the daemon's final ``status`` counts stale samples, and only after the outage and the
-    return of GPS (:data:`EMULATED_COVERED_S`); the jump must be rejected and GPS used throughout after the outage
-    unless the daemon skipped or dropped epochs; the jump must never pull the estimates made around it."""
+    """What arrived against the truth, for a daemon that kept real time.
+
+    ``emulated`` (the CI virtual machine: Python 10 to 50 times slower on shared cores) asserts correctness, not
+    real-time speed. There the daemon may fall behind real time and shed load as it is built to: it solves the
+    newest GNSS epoch of a late batch only (``skipped_epochs``; the estimator takes the epochs it did not get for
+    missed ones) and, more than 10 s behind, drops samples as stale (``time.stale``). Checked then: a second without
+    an estimate only where the final ``status`` counts stale samples and only after the outage and the return of
+    GPS (:data:`EMULATED_COVERED_S`); the shedding logged, never silent; every estimate inside the outage flagged
+    ``outage``. The estimates' errors against the truth are checked only where the daemon shed nothing: with most
+    fixes skipped they measure the machine, not sumhe (the SocketCAN data's accuracy is checked by replaying its
+    recording, ``test_socketcan.py``)."""
     assert code == 0, svc_text[-3000:]
     assert stop_s < max_stop_s, f"SIGTERM took {stop_s:.2f} s"
     assert "sumhe stopped" in svc_text
@@ -151,27 +155,28 @@ def check_drive(
     # output rate >= 9 Hz in every second of the drive after the first fix, through every fault
     bins = np.arange(math.ceil(first_ok) + 1, DURATION_S - 1.0)
     counts = np.array([np.sum((t >= b) & (t < b + 1.0)) for b in bins])
-    status = status or {}
-    stale = status.get("time", {}).get("stale", 0)
+    gps = np.array([r["gps"] for r in records])
+    inside = (t > OUTAGE[0] + 0.3) & (t < OUTAGE[0] + OUTAGE[1] - 0.2)
+    assert set(gps[inside]) == {"outage"}
     if emulated:
+        status = status or {}
+        stale, skipped = status.get("time", {}).get("stale", 0), status.get("skipped_epochs", 0)
         gaps = bins[counts == 0]
         assert not gaps.size or (stale > 0 and gaps.min() >= EMULATED_COVERED_S), (
             f"seconds without an estimate {gaps.tolist()}; samples dropped as stale: {stale} (the daemon fell "
             f"{'more' if stale else 'less'} than 10 s behind real time)"
         )
+        assert not skipped or "estimator behind" in svc_text
+        assert not stale or "samples dropped for their time" in svc_text
+        if stale or skipped:
+            return
     else:
         assert counts.min() >= 9, dict(zip(bins.tolist(), counts.tolist(), strict=True))
-    # gps flags: outage inside the outage, the 50 m jump rejected, ok again afterwards
-    gps = np.array([r["gps"] for r in records])
-    inside = (t > OUTAGE[0] + 0.3) & (t < OUTAGE[0] + OUTAGE[1] - 0.2)
-    assert set(gps[inside]) == {"outage"}
+    # gps flags: the 50 m jump rejected, ok again after the outage
     near_jump = (t > JUMP_AT_S - 0.2) & (t < JUMP_AT_S + 0.3)
-    # behind real time, the daemon solves the newest epoch only, or drops stale ones: the jump's may be gone, and
-    # the estimator takes the epochs it did not get for missed ones (flagged outage)
-    shed = stale + status.get("skipped_epochs", 0)
-    assert "rejected" in set(gps[near_jump]) or (emulated and (shed > 0 or not near_jump.any()))
+    assert "rejected" in set(gps[near_jump])
     after = (t > OUTAGE[0] + OUTAGE[1] + 1.5) & (t < JUMP_AT_S - 0.5)
-    assert set(gps[after]) == {"ok"} or (emulated and shed > 0 and "ok" in set(gps[after])), set(gps[after])
+    assert set(gps[after]) == {"ok"}
     # errors against the truth
     frame = sim.frame
     enu = frame.to_enu(np.array([r["lat"] for r in records]), np.array([r["lon"] for r in records]), frame.alt0_m)
