@@ -257,6 +257,7 @@ def test_canplayer_feeds_the_daemon_and_its_candump_recording_replays(drive, tmp
     err, t = _shifted_truth_errors(records, sim, nmea_offset)
     gps = np.array([r["gps"] for r in records])
     inside = (t > OUTAGE[0] + 0.3) & (t < OUTAGE[0] + OUTAGE[1] - 0.2)
+    assert set(gps[inside]) == {"outage"}
     assert np.mean(err[(t > 5.0) & (gps == "ok")]) < 2.5
     assert np.max(err[inside]) < 12.0
 
