@@ -3,6 +3,10 @@
 Each subcommand module provides ``add_arguments(parser)`` and ``run(args) -> int``; only the module of the
 command being run is imported, so ``sumhe nmea`` never loads the solver.
 Errors sumhe raises on purpose print ``error: ...`` and exit 1; ``--debug`` shows the traceback.
+
+Logging: warnings and errors by default; a command module may set ``LOG_INFO_FROM``, logger name prefixes whose
+INFO lines it shows by default (the daemon's start-up, ready, status and stop lines). ``-v`` is INFO and
+``--debug`` DEBUG for every logger (python-can's too); both are accepted before or after the command name.
 """
 
 from __future__ import annotations
@@ -24,6 +28,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("sumhe.commands.simulate", "simulate a drive (CAN log, NMEA, truth) or measure a drive's errors"),
     "demo": ("sumhe.commands.demo", "the bundled drive through the full live path, no hardware needed"),
     "run": ("sumhe.commands.run", "the daemon: CAN bus + serial GNSS in, positions over UDP out"),
+    "can-up": ("sumhe.commands.can_up", "bring up the configured SocketCAN interface (vcan: create it; can: bitrate)"),
+    "listen": ("sumhe.commands.listen", "print the positions sumhe sends over UDP (JSON or NMEA)"),
     "play": ("sumhe.commands.play", "play a recorded drive onto a CAN bus and a pseudo-terminal (real time)"),
     "replay": ("sumhe.commands.replay", "run an estimator on a recorded CAN log + NMEA log (JSON lines out)"),
     "fleet": ("sumhe.commands.fleet", "reprocess many recorded drives on Ray: per-drive results and a fleet table"),
@@ -40,6 +46,11 @@ def pin_blas_threads() -> None:
         os.environ.setdefault(var, "1")
 
 
+def _log_flags(parser: argparse.ArgumentParser, default: object) -> None:
+    parser.add_argument("--debug", action="store_true", default=default, help="show tracebacks and debug logging")
+    parser.add_argument("-v", "--verbose", action="store_true", default=default, help="info-level logging")
+
+
 def build_parser(argv: Sequence[str] = ()) -> argparse.ArgumentParser:
     """The parser; the arguments of a subcommand are added only if ``argv`` names it."""
     parser = argparse.ArgumentParser(
@@ -47,16 +58,27 @@ def build_parser(argv: Sequence[str] = ()) -> argparse.ArgumentParser:
         description="Vehicle position through GPS outages: GPS + CAN fused by a state-uniform estimator.",
     )
     parser.add_argument("--version", action="version", version=f"sumhe {__version__}")
-    parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
-    parser.add_argument("-v", "--verbose", action="store_true", help="info-level logging")
+    _log_flags(parser, False)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, (module_name, text) in COMMANDS.items():
         p = sub.add_parser(name, help=text, description=text)
+        _log_flags(p, argparse.SUPPRESS)  # after the command too; given nowhere, the top-level False stands
         if name in argv:
             module = importlib.import_module(module_name)
             module.add_arguments(p)
-            p.set_defaults(_run=module.run)
+            p.set_defaults(_run=module.run, _log_info_from=getattr(module, "LOG_INFO_FROM", ()))
     return parser
+
+
+def configure_logging(args: argparse.Namespace) -> None:
+    """WARNING (INFO with ``-v``, DEBUG with ``--debug``) for every logger, and INFO for the loggers the command
+    names in ``LOG_INFO_FROM`` (a handler filter: no logger keeps a level of its own after ``main`` returns)."""
+    level = logging.DEBUG if args.debug else logging.INFO if args.verbose else logging.WARNING
+    prefixes: tuple[str, ...] = args._log_info_from
+    own = logging.INFO if prefixes and level > logging.INFO else level
+    logging.basicConfig(level=own, format="%(asctime)s %(levelname)s %(name)s: %(message)s", force=True)
+    if own < level:
+        logging.getLogger().handlers[0].addFilter(lambda r: r.levelno >= level or r.name.startswith(prefixes))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -65,8 +87,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser(argv)
     args = parser.parse_args(argv)
-    level = logging.DEBUG if args.debug else logging.INFO if args.verbose else logging.WARNING
-    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", force=True)
+    configure_logging(args)
     try:
         return int(args._run(args))
     except SumheError as e:

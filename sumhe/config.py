@@ -3,12 +3,15 @@
 This is the only module that reads configuration files or the environment. Precedence:
 overrides (CLI) > environment (``SUMHE_<SECTION>__<KEY>``, e.g. ``SUMHE_CAN__CHANNEL=vcan1``; a nested table's
 key with one ``__`` per level, ``SUMHE_ESTIMATOR__MHE__STEPS=80``) > file > defaults. Every error is a
-:class:`~sumhe.errors.ConfigError` naming the file and the key.
+:class:`~sumhe.errors.ConfigError` naming the key and where it was set: the file, the environment variable
+(``SUMHE_CAN__CHANEL`` for a typo there), or the command line.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import difflib
+import logging
 import os
 import sys
 import types
@@ -27,6 +30,8 @@ if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover - exercised on Python 3.10 only
     import tomli as tomllib
+
+log = logging.getLogger(__name__)
 
 PACKAGE_DATA = Path(__file__).parent / "data"
 DEFAULT_DBC = "dbc/sumhe_ref.dbc"
@@ -151,27 +156,44 @@ class DatumSettings:
                 raise ValueError("lon: must be within [-180, 180]")
 
 
+DEFAULT_JSON = ("127.0.0.1:5005",)
+
+
 @dataclass(frozen=True, slots=True)
 class OutputSettings:
-    """Sinks: UDP destinations ``host:port`` and formats ``json`` and/or ``nmea``."""
+    """Sinks: one list of UDP destinations ``host:port`` per format (``json``, ``nmea``), and the status line."""
 
-    udp: tuple[str, ...] = ("127.0.0.1:5005",)
-    formats: tuple[str, ...] = ("json",)
+    json: tuple[str, ...] = DEFAULT_JSON
+    nmea: tuple[str, ...] = ()
     status_udp: str | None = None
     status_interval_s: float = 5.0
 
     def __post_init__(self) -> None:
-        for f in self.formats:
-            if f not in ("json", "nmea"):
-                raise ValueError(f"formats: unknown format {f!r} (json, nmea)")
-        for dest in (*self.udp, *((self.status_udp,) if self.status_udp else ())):
-            parse_host_port(dest)
+        for name in ("json", "nmea"):
+            for dest in getattr(self, name):
+                _destination(name, dest)
+        if self.status_udp is not None:
+            _destination("status_udp", self.status_udp)
         _positive(self, "status_interval_s")
+
+    @property
+    def formats(self) -> dict[str, tuple[str, ...]]:
+        """Format -> destinations, for the formats that have any."""
+        return {name: dests for name in ("json", "nmea") if (dests := getattr(self, name))}
+
+
+LEGACY_OUTPUT_KEYS = ("udp", "formats")
+"""Keys of ``[output]`` before one destination list per format; still read (every listed format to every
+destination, as before), with a warning naming the keys that replace them."""
 
 
 @dataclass(frozen=True, slots=True)
 class Config:
-    """All settings of one sumhe process."""
+    """All settings of one sumhe process.
+
+    ``source`` is the config file (or ``"<defaults>"``); ``origins`` says where a key given elsewhere came from
+    (``"environment variable SUMHE_CAN__CHANNEL"``, ``"command line"``), so errors blame the right place.
+    """
 
     can: CanSettings = field(default_factory=CanSettings)
     gps: GpsSettings = field(default_factory=GpsSettings)
@@ -184,6 +206,16 @@ class Config:
     base_dir: Path = field(default_factory=Path.cwd)
     log_dirs: tuple[Path, ...] = ()
     """The folders of the logs being replayed: files named in the config are looked for there too."""
+    origins: Mapping[str, str] = field(default_factory=dict)
+
+    def blame(self, key: str) -> str:
+        """Where ``key`` (dotted, e.g. ``can.signals.speed``) was set: an environment variable, the command line,
+        or the config file (also for keys left at their defaults)."""
+        return _origin_of(key, self.origins, self.source)
+
+    def error(self, key: str, text: str) -> ConfigError:
+        """A ConfigError ``"<where key was set>: <key>: <text>"``."""
+        return ConfigError(f"{self.blame(key)}: {key}: {text}")
 
     def resolve_path(self, value: str, key: str) -> Path:
         """Find a file named in the config: absolute, next to the config file, in the working directory, beside
@@ -199,7 +231,7 @@ class Config:
             if p.is_absolute()
             else f" (looked in {', '.join(str(d) for d in dict.fromkeys(dirs))} and the bundled files)"
         )
-        raise ConfigError(f"{self.source}: {key}: file not found: {value}{where}")
+        raise self.error(key, f"file not found: {value}{where}")
 
     @property
     def dbc_paths(self) -> tuple[Path, ...]:
@@ -221,6 +253,22 @@ class Config:
 _SIGNAL_QUANTITIES: dict[type, tuple[str, ...]] = {CanSettings: CAN_QUANTITIES, GpsSettings: GNSS_QUANTITIES}
 """Settings classes with a ``signals`` table -> the quantities it may map."""
 
+REQUIRED_SIGNALS: tuple[str, ...] = ("speed", "yaw_rate")
+"""The CAN quantities every estimator needs: ``sumhe run`` and ``sumhe replay`` refuse to start without them."""
+
+
+def require_signals(config: Config) -> None:
+    """ConfigError naming ``can.signals.<quantity>`` (and where the mapping came from) for a required quantity
+    that is not mapped."""
+    for quantity in REQUIRED_SIGNALS:
+        if quantity not in config.can.signals:
+            raise config.error(
+                f"can.signals.{quantity}",
+                "not mapped; sumhe needs the vehicle's speed and yaw rate "
+                f'(add {quantity} = "MESSAGE.SIGNAL" under [can.signals]; README: "A real car")',
+            )
+
+
 _SECTIONS: dict[str, type] = {
     "can": CanSettings,
     "gps": GpsSettings,
@@ -237,8 +285,15 @@ def parse_host_port(text: str) -> tuple[str, int]:
     host, sep, port = text.rpartition(":")
     host = host.strip("[]")
     if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
-        raise ValueError(f"not a host:port destination: {text!r}")
+        raise ValueError(f"{text!r} is not a host:port destination (e.g. '127.0.0.1:5005' or '[::1]:5005')")
     return host, int(port)
+
+
+def _destination(key: str, text: str) -> None:
+    try:
+        parse_host_port(text)
+    except ValueError as e:
+        raise ValueError(f"{key}: {e}") from e
 
 
 def _positive(obj: object, *names: str) -> None:
@@ -338,7 +393,9 @@ def build_section(cls: type, table: Mapping[str, Any], section: str, base: Any =
         if full in MOVED:
             raise ValueError(f"{full}: moved: set {MOVED[full]}")
         if key not in defaults:
-            raise ValueError(f"{full}: unknown key (known: {', '.join(sorted(defaults))})")
+            close = difflib.get_close_matches(key, defaults, n=1)
+            guess = f"did you mean {section}.{close[0]}? " if close else ""
+            raise ValueError(f"{full}: unknown key ({guess}known: {', '.join(sorted(defaults))})")
         if key == "signals" and cls in _SIGNAL_QUANTITIES:
             quantities = _SIGNAL_QUANTITIES[cls]
             if not isinstance(value, Mapping):
@@ -362,31 +419,92 @@ def build_section(cls: type, table: Mapping[str, Any], section: str, base: Any =
         raise ValueError(msg if msg.startswith(section + ".") else f"{section}.{msg}") from e
 
 
-def _env_overrides(env: Mapping[str, str]) -> dict[str, Any]:
-    out: dict[str, Any] = {}
+ENV_PREFIX = "SUMHE_"
+
+
+def _env_overrides(env: Mapping[str, str]) -> dict[str, tuple[Any, str]]:
+    """``SUMHE_<SECTION>__<KEY>[__<SUBKEY>]`` variables as dotted key -> (value, origin). A value is read as a
+    TOML value where it parses as one (``500000``, ``true``, ``["a", "b"]``), else as a plain string. A variable
+    that names a section but misses the double underscore is an error (it would be ignored otherwise)."""
+    out: dict[str, tuple[Any, str]] = {}
     for name, raw in env.items():
-        if not name.startswith("SUMHE_") or "__" not in name:
+        if not name.startswith(ENV_PREFIX):
             continue
-        section, _, key = name[len("SUMHE_") :].lower().partition("__")
-        key = key.replace("__", ".")
+        rest = name[len(ENV_PREFIX) :].lower()
+        origin = f"environment variable {name}"
+        if "__" not in rest:
+            section = rest.partition("_")[0]
+            if section in _SECTIONS:
+                hint = f"{ENV_PREFIX}{section.upper()}__{rest[len(section) + 1 :].upper()}"
+                raise ConfigError(f"{origin}: not a setting: write {ENV_PREFIX}<SECTION>__<KEY> (e.g. {hint})")
+            continue
         try:
             value: Any = tomllib.loads(f"v = {raw}")["v"]
         except tomllib.TOMLDecodeError:
             value = raw
-        out[f"{section}.{key}"] = value
+        out[rest.replace("__", ".")] = (value, origin)
     return out
 
 
-def _apply(data: dict[str, Any], dotted: Mapping[str, Any], origin: str) -> None:
-    for key, value in dotted.items():
+def _apply(data: dict[str, Any], dotted: Mapping[str, tuple[Any, str]], origins: dict[str, str]) -> None:
+    for key, (value, origin) in dotted.items():
         section, _, rest = key.partition(".")
         if section not in _SECTIONS or not rest:
-            raise ConfigError(f"{origin}: {key}: unknown setting")
+            raise ConfigError(f"{origin}: {key}: unknown setting (sections: {', '.join(_SECTIONS)})")
         node = data.setdefault(section, {})
         *parents, leaf = rest.split(".")
         for p in parents:
             node = node.setdefault(p, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"{origin}: {key}: {p} is not a table")
         node[leaf] = value
+        origins[key] = origin
+
+
+def _origin_of(key: str, origins: Mapping[str, str], default: str) -> str:
+    """The origin of ``key`` or of the nearest enclosing table that was given as a whole."""
+    parts = key.split(".")
+    for n in range(len(parts), 0, -1):
+        origin = origins.get(".".join(parts[:n]))
+        if origin is not None:
+            return origin
+    return default
+
+
+def _legacy_output(table: Mapping[str, Any], origins: Mapping[str, str], source: str) -> dict[str, Any]:
+    """``[output] udp`` + ``formats`` (every format to every destination) as ``json`` / ``nmea`` lists."""
+    given = [k for k in LEGACY_OUTPUT_KEYS if k in table]
+    if not given:
+        return dict(table)
+    where = _origin_of(f"output.{given[0]}", origins, source)
+    mixed = [k for k in ("json", "nmea") if k in table]
+    if mixed:
+        raise ConfigError(
+            f"{where}: output.{given[0]}: replaced by output.json and output.nmea; remove it (output.{mixed[0]} is set)"
+        )
+    out = {k: v for k, v in table.items() if k not in LEGACY_OUTPUT_KEYS}
+    formats = table.get("formats", ["json"])
+    udp = table.get("udp", list(DEFAULT_JSON))
+    if isinstance(formats, str) or not isinstance(formats, list):
+        raise ConfigError(f"{where}: output.formats: expected a list, got {formats!r}")
+    try:
+        for dest in _coerce(udp, tuple[str, ...], "output.udp"):
+            _destination("output.udp", dest)
+    except ValueError as e:
+        raise ConfigError(f"{where}: {e}") from e
+    for f in formats:
+        if f not in ("json", "nmea"):
+            raise ConfigError(f"{where}: output.formats: unknown format {f!r} (json, nmea)")
+    for f in ("json", "nmea"):
+        out[f] = udp if f in formats else []
+    new = " and ".join(f"{f} = {udp!r}".replace("'", '"') for f in formats)
+    log.warning(
+        "%s: output.%s: replaced by one destination list per format; write %s under [output]",
+        where,
+        " and output.".join(given),
+        new,
+    )
+    return out
 
 
 def _read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
@@ -416,28 +534,40 @@ def load_config(
     overrides: Mapping[str, Any] | None = None,
     layers: Sequence[str | os.PathLike[str]] = (),
 ) -> Config:
-    """Load, merge and validate the configuration; raise ConfigError naming the file and key. ``layers`` are
-    TOML files merged over ``path`` in order, key by key (e.g. one recorded drive's ``config.toml`` over a
-    fleet's config); the environment and ``overrides`` still come last."""
+    """Load, merge and validate the configuration; ConfigError naming the key and where it was set (the file,
+    the environment variable, or the command line). ``layers`` are TOML files merged over ``path`` in order, key
+    by key (e.g. one recorded drive's ``config.toml`` over a fleet's config); the environment and ``overrides``
+    still come last."""
     source = " + ".join(str(p) for p in (*([path] if path is not None else []), *layers)) or "<defaults>"
     data: dict[str, Any] = _read_toml(path) if path is not None else {}
     for layer in layers:
         _merge(data, _read_toml(layer))
-    _apply(data, _env_overrides(os.environ if env is None else env), "environment")
-    _apply(data, overrides or {}, "command line")
+    origins: dict[str, str] = {}
+    for name, table in data.items():
+        if section_error := _section_error(name, table):
+            raise ConfigError(f"{source}: {section_error}")
+    _apply(data, _env_overrides(os.environ if env is None else env), origins)
+    _apply(data, {k: (v, "command line") for k, v in (overrides or {}).items()}, origins)
     kwargs: dict[str, Any] = {}
     for section, table in data.items():
-        if section not in _SECTIONS:
-            raise ConfigError(f"{source}: {section}: unknown section (known: {', '.join(_SECTIONS)})")
-        if not isinstance(table, Mapping):
-            raise ConfigError(f"{source}: {section}: expected a table")
+        if section == "output":
+            table = _legacy_output(table, origins, source)
         try:
             kwargs[section] = build_section(_SECTIONS[section], table, section)
         except ValueError as e:
-            raise ConfigError(f"{source}: {e}") from e
+            msg = str(e)
+            raise ConfigError(f"{_origin_of(msg.partition(':')[0], origins, source)}: {msg}") from e
     first = path if path is not None else next(iter(layers), None)
     base = Path(first).resolve().parent if first is not None else Path.cwd()
-    return Config(**kwargs, source=source, base_dir=base)
+    return Config(**kwargs, source=source, base_dir=base, origins=origins)
+
+
+def _section_error(section: str, table: Any) -> str | None:
+    if section not in _SECTIONS:
+        return f"{section}: unknown section (known: {', '.join(_SECTIONS)})"
+    if not isinstance(table, Mapping):
+        return f"{section}: expected a table"
+    return None
 
 
 def describe(config: Config) -> dict[str, Any]:

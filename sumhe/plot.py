@@ -256,3 +256,97 @@ def _draw_panel(ax: Any, name: str, tracks: Sequence[Track], truth: Truth | None
 def _colour(index: int) -> str:
     """The same colour for an estimator in every panel (matplotlib's default cycle)."""
     return f"C{index % 10}"
+
+
+ZOOM_MARGIN_S = 3.0
+"""Time before and after an outage drawn in its zoomed map (s)."""
+ZOOM_PAD_M = 3.0
+"""Space around the largest error in a zoomed map (m)."""
+
+
+def plot_outages(
+    tracks: Sequence[Track],
+    truth: Truth,
+    outages: Sequence[tuple[float, float]],
+    out: str | Path,
+    fixes: Track | None = None,
+    title: str = "",
+) -> Path:
+    """The demo's figure: an overview map; for each outage (``(start, end)``, s on the tracks' clock) a map zoomed
+    on the true position where GPS returns, the truth, the raw GNSS ``fixes`` and every track drawn through it, so
+    the gap each estimator built up is seen at metre scale; below, the horizontal error against the truth over
+    time of the fixes and of each track (log scale, outages shaded). PlotError without matplotlib."""
+    try:
+        from matplotlib.figure import Figure
+    except ImportError as e:
+        raise PlotError(MATPLOTLIB_MISSING) from e
+    frame = LocalFrame(float(truth.lat[0]), float(truth.lon[0]))
+    local_truth = truth_in_frame(truth, frame)
+    shown = ([fixes] if fixes is not None else []) + list(tracks)
+    styles = {id(tr): _style(tr, i, raw=False) for i, tr in enumerate(tracks)}
+    if fixes is not None:
+        styles[id(fixes)] = _style(fixes, 0, raw=True)
+    fig = Figure(figsize=(5.0 * (1 + len(outages)), 9.5), layout="constrained")
+    grid = fig.add_gridspec(2, 1 + len(outages), height_ratios=(1.3, 1.0))
+    overview = fig.add_subplot(grid[0, 0])
+    _draw_map(overview, tracks, local_truth, frame, list(outages))
+    overview.set_title(title or "trajectory (GPS outages shaded)")
+    t0 = float(truth.t[0])
+    for k, (start, end) in enumerate(outages):
+        ax = fig.add_subplot(grid[0, 1 + k])
+        _draw_zoom(ax, shown, styles, local_truth, frame, (start - ZOOM_MARGIN_S, end + ZOOM_MARGIN_S), end)
+        ax.set_title(f"outage {k + 1} ({end - start:.0f} s from {start - t0:.0f} s): where GPS returns")
+    ax_err = fig.add_subplot(grid[1, :])
+    for start, end in outages:
+        ax_err.axvspan(start - t0, end - t0, color=OUTAGE_COLOUR, alpha=0.25, lw=0)
+    for tr in shown:
+        t, err = track_errors(tr, local_truth, frame)
+        ax_err.plot(t - t0, np.maximum(err, 1e-3), **styles[id(tr)])
+    ax_err.set_yscale("log")
+    ax_err.set(xlabel="time (s)", ylabel="horizontal error (m)", title="error against the truth (outages shaded)")
+    ax_err.grid(alpha=0.3, which="both")
+    ax_err.legend(loc="upper left", fontsize=8)
+    path = Path(out)
+    fig.savefig(path, dpi=100)
+    return path
+
+
+def _style(track: Track, index: int, raw: bool) -> dict[str, Any]:
+    """Raw fixes as grey dots; estimators as lines in their colour (as in :func:`plot_replays`), the first (ours)
+    drawn on top, the others beneath the fixes (a peer that follows the fixes would hide them)."""
+    if raw:
+        return {"ls": "none", "marker": ".", "ms": 3.0, "color": "0.35", "label": track.label, "zorder": 3}
+    first = index == 0
+    return {"lw": 1.5 if first else 0.8, "color": _colour(index), "label": track.label, "zorder": 4 if first else 2}
+
+
+def _draw_zoom(
+    ax: Any,
+    shown: Sequence[Track],
+    styles: dict[int, dict[str, Any]],
+    truth: Truth,
+    frame: LocalFrame,
+    span: tuple[float, float],
+    at: float,
+) -> None:
+    """The tracks over ``span`` (s) in a square around the true position at ``at``, wide enough for the largest
+    error at that time."""
+    sel = (truth.t >= span[0]) & (truth.t <= span[1])
+    ax.plot(truth.east[sel], truth.north[sel], color="black", lw=1.2, label="truth")
+    k = int(np.clip(np.searchsorted(truth.t, at), 0, len(truth.t) - 1))
+    centre = (float(truth.east[k]), float(truth.north[k]))
+    half = ZOOM_PAD_M
+    for tr in shown:
+        inside = (tr.t >= span[0]) & (tr.t <= span[1])
+        enu = frame.to_enu(tr.lat[inside], tr.lon[inside], frame.alt0_m)
+        ax.plot(enu[:, 0], enu[:, 1], **styles[id(tr)])
+        near = np.abs(tr.t[inside] - at) <= 0.5
+        if np.any(near):
+            gap = np.hypot(enu[near, 0] - centre[0], enu[near, 1] - centre[1])
+            half = max(half, float(gap.max()) * 1.2 + ZOOM_PAD_M)
+    ax.plot(*centre, marker="x", ms=9, color="black", ls="none", label="truth when GPS returns")
+    ax.set(xlim=(centre[0] - half, centre[0] + half), ylim=(centre[1] - half, centre[1] + half))
+    ax.set(xlabel="east (m)", ylabel="north (m)")
+    ax.set_aspect("equal", adjustable="box")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=7)

@@ -224,7 +224,7 @@ def test_daemon_with_gnss_from_can_needs_no_serial_port(tmp_path):
     live = re.sub(r", channel = \d+", "", LOGGER_CONFIG)  # one live bus: no channels
     live = live.replace("[can]\n", f"[can]\ninterface = 'virtual'\nchannel = '{channel}'\n")
     path = tmp_path / "live.toml"
-    path.write_text(live + "[output]\nudp = []\n")
+    path.write_text(live + "[output]\njson = []\n")
     config = load_config(path, env={})
     assert config.gps.source == "can" and all(s.channel is None for s in config.can.signals.values())
     got = []

@@ -3,7 +3,7 @@ from pathlib import Path
 
 import pytest
 
-from sumhe.config import Config, load_config, parse_host_port
+from sumhe.config import Config, load_config, parse_host_port, require_signals
 from sumhe.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -70,9 +70,13 @@ def test_signal_mapping_string_and_table_forms(tmp_path):
         ("[gps]\nlatency_s = -0.1\n", "gps.latency_s"),
         ("[datum]\nmode = 'fixed'\n", "datum.lat"),
         ("[datum]\nmode = 'fixed'\nlat = 91.0\nlon = 0.0\n", "datum.lat"),
-        ("[output]\nudp = ['localhost']\n", "output"),
+        ("[output]\nudp = ['localhost']\n", "output.udp: 'localhost' is not a host:port destination"),
+        ("[output]\njson = ['localhost']\n", "output.json: 'localhost' is not a host:port destination"),
+        ("[output]\nnmea = ['127.0.0.1:0']\n", "output.nmea"),
+        ("[output]\nstatus_udp = 'x'\n", "output.status_udp"),
         ("[output]\nformats = ['xml']\n", "output.formats"),
         ("[output]\nudp = '127.0.0.1:1'\n", "output.udp"),
+        ("[output]\nudp = ['127.0.0.1:1']\njson = ['127.0.0.1:2']\n", "output.udp: replaced by output.json"),
         ("[estimator]\nmodel = 'su9'\n", "estimator.model"),
         ("can = 3\n", "can"),
     ],
@@ -138,3 +142,58 @@ def test_parse_host_port_accepts(text):
 def test_parse_host_port_rejects(text):
     with pytest.raises(ValueError):
         parse_host_port(text)
+
+
+@pytest.mark.parametrize(
+    ("env", "blamed", "key"),
+    [
+        (
+            {"SUMHE_CAN__CHANEL": "vcan1"},
+            "environment variable SUMHE_CAN__CHANEL",
+            "can.chanel: unknown key (did you mean",
+        ),
+        ({"SUMHE_GPS__BAUDRATE": "fast"}, "environment variable SUMHE_GPS__BAUDRATE", "gps.baudrate"),
+        ({"SUMHE_OUTPUT__JSON": '["localhost"]'}, "environment variable SUMHE_OUTPUT__JSON", "output.json"),
+        ({"SUMHE_CAN__SIGNALS__SPEED": "X"}, "environment variable SUMHE_CAN__SIGNALS__SPEED", "can.signals.speed"),
+        ({"SUMHE_CAN_CHANNEL": "vcan1"}, "environment variable SUMHE_CAN_CHANNEL", "SUMHE_CAN__CHANNEL"),
+    ],
+)
+def test_errors_from_the_environment_blame_the_variable_not_the_file(tmp_path, env, blamed, key):
+    path = _write(tmp_path, "[can]\nchannel = 'can0'\n")
+    with pytest.raises(ConfigError) as err:
+        load_config(path, env=env)
+    msg = str(err.value)
+    assert msg.startswith(blamed + ": ") and key in msg
+    assert str(path) not in msg
+
+
+def test_a_setting_in_the_environment_is_blamed_by_later_checks(tmp_path):
+    cfg = load_config(_write(tmp_path, ""), env={"SUMHE_CAN__DBC": "no/such.dbc"})
+    assert cfg.blame("can.dbc") == "environment variable SUMHE_CAN__DBC"
+    assert cfg.blame("can.channel") == cfg.source
+    with pytest.raises(ConfigError, match=r"^environment variable SUMHE_CAN__DBC: can\.dbc: file not found"):
+        _ = cfg.dbc_paths
+    cfg = load_config(None, env={}, overrides={"can.signals": {"speed": "A.B"}})
+    assert cfg.blame("can.signals.speed") == "command line"
+
+
+def test_speed_and_yaw_rate_are_required_with_the_key_named(tmp_path):
+    path = _write(tmp_path, '[can.signals]\nspeed = "ESP_VEHICLE_SPEED.VEHICLE_SPEED"\n')
+    with pytest.raises(ConfigError, match=rf"^{path}: can\.signals\.yaw_rate: not mapped"):
+        require_signals(load_config(path, env={}))
+    cfg = load_config(path, env={"SUMHE_CAN__SIGNALS__YAW_RATE": "ESP_YAW_RATE.YAW_RATE"})
+    require_signals(cfg)
+    assert cfg.can.signals["yaw_rate"].signal == "YAW_RATE"
+
+
+def test_one_destination_list_per_format_and_the_old_keys_still_read(tmp_path, caplog):
+    cfg = load_config(_write(tmp_path, '[output]\njson = ["127.0.0.1:5005"]\nnmea = ["[::1]:10110"]\n'), env={})
+    assert cfg.output.formats == {"json": ("127.0.0.1:5005",), "nmea": ("[::1]:10110",)}
+    assert load_config(None, env={}).output.formats == {"json": ("127.0.0.1:5005",)}
+    old = _write(tmp_path, '[output]\nudp = ["127.0.0.1:1"]\nformats = ["nmea"]\n')
+    cfg = load_config(old, env={})
+    assert cfg.output.formats == {"nmea": ("127.0.0.1:1",)}
+    assert (
+        'output.udp and output.formats: replaced by one destination list per format; write nmea = ["127.0.0.1:1"]'
+        in (caplog.text)
+    )

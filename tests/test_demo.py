@@ -1,20 +1,38 @@
 """The README's main job: ``sumhe demo`` plays the bundled drive through the full live path."""
 
+import logging
 import re
+import subprocess
+from pathlib import Path
 
 import pytest
 
 from sumhe.cli import main
+from sumhe.commands.demo import DEFAULT_OUT
 
 pytestmark = pytest.mark.slow
 
+REPO = Path(__file__).resolve().parents[1]
 
-def test_demo_runs_the_bundled_drive_and_beats_dead_reckoning(capsys, tmp_path):
-    png = tmp_path / "demo.png"
-    assert main(["demo", "--speed", "8", "--png", str(png)]) == 0  # 15x overloads 2 shared cores: epochs skipped
+
+LOAD_WARNINGS = ("sumhe.service.app: estimator behind", "sumhe.service.pipeline: samples dropped for their time")
+"""What a stall of the shared cores of more than ~0.1 s (at 4x: a few epochs) causes in the daemon, as it would in a
+car's: counted and logged. Nothing else may warn."""
+
+
+def test_demo_at_the_default_speed_runs_clean_and_beats_dead_reckoning(capsys, caplog, tmp_path):
+    """A clean run logs no warning: no solver failure, no source timeout, no sample dropped for its time because of
+    the demo's clocks (each had a cause, fixed in the demo, not hidden by the log level); only a stall of the
+    machine may cost a few epochs (of 2100)."""
+    png = tmp_path / "figures" / "demo.png"
+    with caplog.at_level(logging.WARNING):
+        assert main(["demo", "--out", str(png)]) == 0
+    messages = [f"{r.name}: {r.getMessage()}" for r in caplog.records if r.levelno >= logging.WARNING]
+    assert [m for m in messages if not m.startswith(LOAD_WARNINGS)] == []
     out = capsys.readouterr().out
     rate = float(re.search(r"output rate ([\d.]+) Hz", out).group(1))
     assert rate >= 9.0
+    assert int(re.search(r"skipped epochs (\d+)", out).group(1)) <= 20
     rows = {
         m.group(1).strip(): [float(x) for x in m.groups()[1:]]
         for m in re.finditer(
@@ -31,6 +49,14 @@ def test_demo_runs_the_bundled_drive_and_beats_dead_reckoning(capsys, tmp_path):
     try:
         import matplotlib  # noqa: F401
     except ImportError:
-        assert "no plot" in out
+        assert "matplotlib is not installed" in out
     else:
-        assert png.stat().st_size > 10_000
+        assert f"plot: {png}" in out and png.stat().st_size > 10_000
+
+
+@pytest.mark.skipif(not (REPO / ".git").exists(), reason="not a git checkout")
+def test_the_default_figure_is_written_where_git_does_not_track_it():
+    ignored = subprocess.run(["git", "check-ignore", "-q", str(DEFAULT_OUT)], cwd=REPO, check=False)
+    assert ignored.returncode == 0, f"{DEFAULT_OUT} is not ignored by git"
+    tracked = subprocess.run(["git", "ls-files", "*.png"], cwd=REPO, capture_output=True, text=True, check=True)
+    assert tracked.stdout == "", "no picture is tracked"

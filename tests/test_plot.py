@@ -105,3 +105,20 @@ def test_plot_input_errors_exit_with_a_message(replays, tmp_path, capsys):
     assert main(["plot", str(tmp_path / "nothing.jsonl"), "--out", str(png)]) == 1
     assert "cannot read" in capsys.readouterr().err
     assert not png.exists()
+
+
+def test_the_demo_figure_zooms_on_each_outage_and_plots_raw_gnss_errors(replays, tmp_path):
+    pytest.importorskip("matplotlib", reason="matplotlib (the 'plot' extra) is not installed")
+    from sumhe.bench.demo import gnss_records
+    from sumhe.plot import plot_outages
+    from sumhe.sim import load_truth
+
+    truth = load_truth(replays["truth"])
+    tracks = [load_track(replays["mhe"], "sumhe"), load_track(replays["ekf"], "ekf")]
+    fixes = track_from_records(gnss_records(replays["truth"].with_name("drive.nmea")), "raw GNSS")
+    assert len(fixes.t) > 200 and not np.any((fixes.t > truth.t[0] + 15.5) & (fixes.t < truth.t[0] + 24.5))
+    png = plot_outages(tracks, truth, [(truth.t[0] + 15.0, truth.t[0] + 25.0)], tmp_path / "demo.png", fixes)
+    fig = _image(png)
+    assert fig.shape[:2] == (950, 1000)  # overview + one zoomed outage above, errors over time below
+    zoom = fig[: fig.shape[0] // 2, fig.shape[1] // 2 :, :3]
+    assert zoom.std() > 0.05, "the zoomed panel shows the tracks"

@@ -97,3 +97,39 @@ def test_absent_receiver_is_not_an_error():
 def test_bad_destination_is_rejected_up_front():
     with pytest.raises(ValueError, match="host:port"):
         UdpSender(["localhost"])
+
+
+def test_each_format_goes_only_to_its_own_destinations(receiver):
+    """The README's `gpsd -N udp://...` line receives NMEA only; a JSON client receives JSON only."""
+    from sumhe.config import OutputSettings
+    from sumhe.io.udp import UdpSink
+
+    nmea_rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    nmea_rx.bind(("127.0.0.1", 0))
+    nmea_rx.settimeout(2.0)
+    json_dest = f"127.0.0.1:{receiver.getsockname()[1]}"
+    nmea_dest = f"127.0.0.1:{nmea_rx.getsockname()[1]}"
+    sink = UdpSink(OutputSettings(json=(json_dest,), nmea=(nmea_dest,)))
+    try:
+        assert sink.describe() == f"json to {json_dest}, nmea to {nmea_dest}"
+        for _ in range(3):
+            sink.send(_estimate())
+        got_json = [receiver.recv(65535) for _ in range(3)]
+        got_nmea = [nmea_rx.recv(65535) for _ in range(3)]
+        receiver.settimeout(0.2)
+        nmea_rx.settimeout(0.2)
+        for sock in (receiver, nmea_rx):
+            with pytest.raises(TimeoutError):
+                sock.recv(65535)
+    finally:
+        sink.close()
+        nmea_rx.close()
+    assert all(json.loads(d)["class"] == "TPV" for d in got_json)
+    assert all(d.startswith(b"$GPGGA") and b"$GPRMC" in d for d in got_nmea)
+
+
+def test_a_destination_that_does_not_resolve_is_a_config_error_naming_the_key():
+    from sumhe.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"^c\.toml: output\.nmea: cannot resolve 'no-such-host\.invalid'"):
+        UdpSender(["no-such-host.invalid:10110"], "output.nmea", "c.toml")

@@ -5,7 +5,10 @@ the service reads them as it reads a car (:class:`~sumhe.io.can_source.CanBusSou
 :class:`~sumhe.io.serial.SerialNmeaSource`), runs the estimator and sends UDP JSON to 127.0.0.1, where the demo
 listens like any client. Faster than real time (``speed`` > 1), everything runs on one scaled clock
 ``t0 + (wall - wall0) * speed``: the player keeps the frames' timestamps (``preserve_timestamps``) and the serial
-source stamps lines with the same clock, so the estimator sees the drive as it happened.
+source stamps lines with the same clock, so the estimator sees the drive as it happened. Wall-clock delays (the
+serial source's 50 ms idle gap that closes an epoch, thread hand-overs) last ``speed`` times longer on that clock,
+so the reorder margin is scaled with it: unscaled, fixes came after CAN samples already released and were dropped
+as late, and a skipped epoch later failed a solve.
 """
 
 from __future__ import annotations
@@ -29,15 +32,17 @@ from sumhe.estimator.registry import check_live, make_estimator
 from sumhe.geo import LocalFrame
 from sumhe.io.can import REFERENCE_E2E, REFERENCE_SIGNALS, read_log
 from sumhe.io.can_source import CanBusSource
+from sumhe.io.nmea import iter_fixes
 from sumhe.io.player import Player, Pty, read_nmea_log
 from sumhe.io.replay import log_samples
 from sumhe.io.serial import SerialNmeaSource
 from sumhe.io.udp import estimate_to_json
-from sumhe.service.app import Service, install_signal_handlers
+from sumhe.service.app import REORDER_MARGIN_S, Service, install_signal_handlers
 from sumhe.service.pipeline import Pipeline
 from sumhe.sim import Truth, bundled_drive_dir, load_settings, load_truth
 
 LIVE_LINE_S = 1.0
+POLL_S = 0.05
 
 
 @dataclass(frozen=True)
@@ -76,8 +81,7 @@ def demo_config(channel: str, pty_link: Path, udp_port: int, latency_s: float, e
         "can.e2e": list(REFERENCE_E2E),
         "gps.port": str(pty_link),
         "gps.latency_s": latency_s,
-        "output.udp": [f"127.0.0.1:{udp_port}"],
-        "output.formats": ["json"],
+        "output.json": [f"127.0.0.1:{udp_port}"],
     }
     if estimator:
         overrides["estimator.name"] = estimator
@@ -130,13 +134,20 @@ async def run_live(
 
         pty = Pty(link)
         bus = can.Bus(interface="virtual", channel=config.can.channel, preserve_timestamps=True)
-        player = Player(frames, lines, bus, pty, speed=speed, clock=clock)
-        sources = {"can": CanBusSource.from_config(config), "gps": SerialNmeaSource(config.gps, clock=clock)}
+        # the service clock reads t0 exactly when the player starts pacing (on_start), so the frames are stamped
+        # with their drive times: a thread's start-up delay (x speed) would otherwise make CAN lag the GNSS
+        player = Player(frames, lines, bus, pty, speed=speed, clock=lambda: t0)
+        player.on_start = lambda: wall0.__setitem__(0, time.time())
+        sources = {
+            "can": CanBusSource.from_config(config, clock=clock),
+            "gps": SerialNmeaSource(config.gps, clock=clock),
+        }
         check_live(config.estimator.name)
         service = Service(
             config,
             make_estimator(config.estimator.name, config),
             sources,
+            hold_s=latency + REORDER_MARGIN_S * speed,
             clock=clock,
             clock_rate=speed,
         )
@@ -145,13 +156,15 @@ async def run_live(
         for src in sources.values():
             await src.start()
         await asyncio.sleep(0.3)  # let the sources open before the first frame
-        wall0[0] = time.time()  # the service clock reads t0 when the drive starts
+        wall0[0] = time.time()
         player.start()
         task = asyncio.create_task(service.run(stop))
         try:
-            while not player.join(0) and not stop.is_set():
-                await asyncio.sleep(LIVE_LINE_S)
-                if records:
+            next_line = time.monotonic() + LIVE_LINE_S
+            while not player.join(0) and not stop.is_set() and not task.done():
+                await asyncio.sleep(POLL_S)  # the end of the drive is noticed at once, before CAN times out
+                if records and time.monotonic() >= next_line:
+                    next_line += LIVE_LINE_S
                     say(_live_line(records[-1], truth, frame))
             await asyncio.sleep(max(0.5, 2.0 * latency / speed))
         finally:
@@ -175,45 +188,28 @@ def dead_reckoning_records(drive_dir: Path) -> list[dict[str, Any]]:
     return out
 
 
-def plot(
-    path: Path, truth: Truth, frame: LocalFrame, runs: dict[str, list[dict[str, Any]]], outages: list[list[float]]
-) -> bool:
-    """Trajectory and error-over-time PNG (outages shaded); False when matplotlib is not installed."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        return False
-    fig, (ax, ax_err) = plt.subplots(1, 2, figsize=(14, 7), gridspec_kw={"width_ratios": [1, 1.6]})
-    ax.plot(truth.east, truth.north, color="black", lw=1.0, label="truth")
-    t0 = truth.t[0]
-    for start, length in outages:
-        sel = (truth.t >= t0 + start) & (truth.t <= t0 + start + length)
-        ax.plot(truth.east[sel], truth.north[sel], color="orange", lw=7, alpha=0.35)
-        ax_err.axvspan(start, start + length, color="orange", alpha=0.25)
-    for name, recs in runs.items():
-        if recs:
-            enu = frame.to_enu(np.array([r["lat"] for r in recs]), np.array([r["lon"] for r in recs]), frame.alt0_m)
-            ax.plot(enu[:, 0], enu[:, 1], lw=0.8, label=name)
-            err, _ = position_errors(recs, truth, frame)
-            ax_err.plot(np.array([r["t"] for r in recs]) - t0, err, lw=0.8, label=name)
-    ax.plot([], [], color="orange", lw=7, alpha=0.35, label="GPS outage")
-    ax.set(xlabel="east (m)", ylabel="north (m)", title="bundled drive")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.legend(loc="best", fontsize=8)
-    ax_err.set(xlabel="time (s)", ylabel="horizontal error (m)", title="error against the truth (outages shaded)")
-    ax_err.legend(loc="upper left", fontsize=8)
-    ax_err.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return True
+def gnss_records(nmea_log: Path) -> list[dict[str, Any]]:
+    """The receiver's own valid fixes as JSON-like records at the time their position refers to (UTC)."""
+    return [
+        {"t": fix.time_utc.timestamp(), "lat": fix.lat_deg, "lon": fix.lon_deg, "gps": "ok"}
+        for fix in iter_fixes(nmea_log)
+        if fix.valid and fix.time_utc is not None and fix.lat_deg is not None
+    ]
 
 
-def demo(speed: float, estimator: str | None, png: Path | None, say: Callable[[str], None]) -> int:
-    """Run the demo; returns the exit code (0 when estimates arrived at the expected rate)."""
+@dataclass(frozen=True)
+class DemoRun:
+    """What one demo run gives its figure: the estimates of sumhe and of dead reckoning (JSON-like records), the
+    receiver's own fixes, the truth and the outages (absolute start and end, s)."""
+
+    runs: dict[str, list[dict[str, Any]]]
+    fixes: list[dict[str, Any]]
+    truth: Truth
+    outages: list[tuple[float, float]]
+
+
+def demo(speed: float, estimator: str | None, say: Callable[[str], None]) -> DemoRun:
+    """Run the demo, saying its summary against the truth."""
     drive_dir = bundled_drive_dir()
     sim = load_settings(drive_dir / "scenario.toml")
     truth = load_truth(drive_dir / "truth.csv")
@@ -237,10 +233,5 @@ def demo(speed: float, estimator: str | None, png: Path | None, say: Callable[[s
             f"  {name:<24} {s.ok[0]:8.2f} / {s.ok[1]:6.2f} / {s.ok[2]:6.2f}      "
             f"{s.outage[0]:8.2f} / {s.outage[1]:6.2f} / {s.outage[2]:6.2f}"
         )
-    if png is not None:
-        runs = {"sumhe": records, "dead reckoning": dr}
-        if plot(png, truth, frame, runs, [list(o) for o in sim.outages]):
-            say(f"trajectory plot: {png}")
-        else:
-            say("matplotlib is not installed: no plot (pip install 'sumhe[plot]')")
-    return 0 if records else 1
+    outages = [(truth.t[0] + start, truth.t[0] + start + length) for start, length in sim.outages]
+    return DemoRun({"sumhe": records, "dead reckoning": dr}, gnss_records(drive_dir / "drive.nmea"), truth, outages)

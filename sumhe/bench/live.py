@@ -56,7 +56,7 @@ def run_live(duration_s: float, estimator: str, say: Any = print) -> dict[str, A
         (tmp / "service.toml").write_text(
             can + '[can.signals]\nspeed = "ESP_VEHICLE_SPEED.VEHICLE_SPEED"\nyaw_rate = "ESP_YAW_RATE.YAW_RATE"\n'
             f'[gps]\nport = "{tmp / "gps"}"\nlatency_s = {latency}\nreconnect_max_s = 0.5\n'
-            f'[output]\nudp = ["127.0.0.1:{est_sock.getsockname()[1]}"]\n'
+            f'[output]\njson = ["127.0.0.1:{est_sock.getsockname()[1]}"]\n'
             f'status_udp = "127.0.0.1:{status_sock.getsockname()[1]}"\nstatus_interval_s = 1.0\n'
             f'[estimator]\nname = "{estimator}"\n'
         )

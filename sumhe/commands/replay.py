@@ -18,7 +18,7 @@ from contextlib import nullcontext
 from sumhe.bench.reprocess import replay_drive
 from sumhe.commands.candump import reference_config
 from sumhe.commands.simulate import outage
-from sumhe.config import load_config
+from sumhe.config import load_config, require_signals
 from sumhe.estimator.registry import make_estimator
 from sumhe.frontend.can import CAN_USED
 from sumhe.io.replay import RecordedDrive, check_gps_source
@@ -53,6 +53,7 @@ def add_outage_option(parser: argparse.ArgumentParser, flag: str, origin: str) -
 
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config) if args.config else reference_config()
+    require_signals(config)
     check_gps_source(config, args.nmea)
     drive = RecordedDrive(config, args.logs, args.nmea, args.offset, CAN_USED)
     estimator = make_estimator(args.estimator or config.estimator.name, drive.config)

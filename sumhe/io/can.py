@@ -205,6 +205,8 @@ class DecodeStats:
     frames_lost: int = 0
     stale: int = 0
     error_frames: int = 0
+    fd_frames: int = 0
+    """CAN FD frames on ids of classic messages (or unused ids): ignored."""
     remote_frames: int = 0
     other_mux: int = 0
     invalid: int = 0
@@ -494,6 +496,9 @@ class CanDecoder:
         route = self._routes.get((channel, key)) if self._by_channel else None
         if route is None:
             route = self._routes.get((None, key))
+        if msg.is_fd and (route is None or not route.message.is_fd):
+            stats.fd_frames += 1
+            return None
         if route is None:
             stats.unused += 1
             ids = stats.unused_ids

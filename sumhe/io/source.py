@@ -6,6 +6,10 @@ in a daemon thread, reconnects with capped exponential back-off when the device 
 ``_open``/``_read``), and hands items to the event loop through a bounded queue that drops the OLDEST item when
 full (fresh data beats complete data), counting drops. ``async for`` raises :class:`SourceTimeout` when nothing
 arrived for ``receive_timeout_s``; the source keeps running, so the caller may simply continue iterating.
+
+An open failure that retrying cannot mend (a subclass says which, in ``_permanent``: a missing driver, an
+interface that does not exist at start-up) ends the reader thread; the next ``async for`` raises it as a
+:class:`SourceError`, so the service stops with the message instead of retrying forever.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import threading
+import time
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import AsyncIterator
@@ -22,6 +27,9 @@ from typing import Generic, TypeVar
 from sumhe.errors import SourceError
 
 log = logging.getLogger(__name__)
+
+REPEAT_LOG_S = 60.0
+"""The same open or read failure, repeating while a device is away, is logged at most this often (s)."""
 
 T = TypeVar("T")
 
@@ -69,6 +77,7 @@ class DropOldestQueue(Generic[T]):
         self._maxsize = maxsize
         self._stats = stats
         self._event = asyncio.Event()
+        self._error: SourceError | None = None
 
     def put_nowait(self, item: T) -> None:
         """Append ``item`` (event-loop thread only), dropping the oldest when full."""
@@ -78,9 +87,16 @@ class DropOldestQueue(Generic[T]):
         self._items.append(item)
         self._event.set()
 
+    def fail(self, error: SourceError) -> None:
+        """The source has ended with ``error`` (event-loop thread only): ``get`` raises it once drained."""
+        self._error = error
+        self._event.set()
+
     async def get(self, timeout_s: float) -> T:
-        """Next item; :class:`SourceTimeout` after ``timeout_s`` with nothing."""
+        """Next item; :class:`SourceTimeout` after ``timeout_s`` with nothing; the source's error if it ended."""
         while not self._items:
+            if self._error is not None:
+                raise self._error
             self._event.clear()
             try:
                 await asyncio.wait_for(self._event.wait(), timeout_s)
@@ -106,6 +122,7 @@ class ThreadedSource(ABC, Generic[T]):
         self._thread: threading.Thread | None = None
         self._queue: DropOldestQueue[T] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._next_repeat_log = 0.0
 
     @abstractmethod
     def _open(self) -> None:
@@ -118,6 +135,18 @@ class ThreadedSource(ABC, Generic[T]):
     @abstractmethod
     def _close(self) -> None:
         """Blocking; runs in the reader thread."""
+
+    def _explain(self, err: Exception) -> str:
+        """What an open or read failure means, for the log (subclasses add the device and the fix)."""
+        return str(err)
+
+    def _permanent(self, err: Exception, connected_before: bool) -> bool:
+        """Whether an open failure cannot mend by retrying (then the source ends with it); never, by default."""
+        return False
+
+    def counters(self) -> dict[str, object]:
+        """The source's counters for the status line (subclasses add their decoder's)."""
+        return vars(self.stats)
 
     async def start(self) -> None:
         """Start the reader thread (idempotent)."""
@@ -161,12 +190,17 @@ class ThreadedSource(ABC, Generic[T]):
 
     def _run(self) -> None:
         assert self._loop is not None
+        connected_before = False
         while not self._stop.is_set():
             try:
                 self._open()
-            except Exception as e:  # any failure to open is retried: the device may come back
+            except Exception as e:  # retried unless the subclass says it cannot mend
+                if self._permanent(e, connected_before):
+                    self._end(SourceError(f"{self.name}: {self._explain(e)}"))
+                    return
                 self._note_failure("open", e)
                 continue
+            connected_before = True
             self.stats.connected = True
             self._backoff.reset()
             log.info("%s: connected", self.name)
@@ -185,12 +219,29 @@ class ThreadedSource(ABC, Generic[T]):
             if failure is not None:
                 self._note_failure("read", failure)
 
-    def _note_failure(self, what: str, err: Exception) -> None:
+    def _end(self, error: SourceError) -> None:
         self.stats.errors += 1
-        self.stats.last_error = f"{what}: {err}"
+        self.stats.last_error = str(error)
+        assert self._loop is not None and self._queue is not None
+        self._loop.call_soon_threadsafe(self._queue.fail, error)
+
+    def _note_failure(self, what: str, err: Exception) -> None:
+        """Count, log (a new failure at once, the same one again at most every ``REPEAT_LOG_S``), back off."""
+        self.stats.errors += 1
+        last, self.stats.last_error = self.stats.last_error, f"{what}: {err}"
         delay = self._backoff.next_delay()
         self.stats.reconnects += 1
-        log.warning("%s: %s failed (%s); retrying in %.1f s", self.name, what, err, delay)
+        now = time.monotonic()
+        if self.stats.last_error != last or now >= self._next_repeat_log:
+            self._next_repeat_log = now + REPEAT_LOG_S
+            log.warning(
+                "%s: %s failed: %s; retrying in %.1f s (%d failures so far)",
+                self.name,
+                what,
+                self._explain(err),
+                delay,
+                self.stats.errors,
+            )
         self._stop.wait(delay)
 
     def _safe_close(self) -> None:

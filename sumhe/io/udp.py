@@ -11,11 +11,12 @@ import json
 import logging
 import math
 import socket
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
 from sumhe.config import OutputSettings, parse_host_port
+from sumhe.errors import ConfigError
 from sumhe.io.nmea_format import format_gga, format_rmc
 from sumhe.messages import Estimate
 
@@ -92,16 +93,24 @@ class UdpStats:
 
 
 class UdpSender:
-    """Fire-and-forget datagrams to fixed ``host:port`` destinations (IPv4 or IPv6)."""
+    """Fire-and-forget datagrams to fixed ``host:port`` destinations (IPv4 or IPv6).
 
-    def __init__(self, destinations: Iterable[str]) -> None:
+    Names are resolved once, here; one that does not resolve is a ConfigError naming ``key`` (and ``origin``,
+    where it was set).
+    """
+
+    def __init__(self, destinations: Iterable[str], key: str = "output", origin: str = "<config>") -> None:
         self.stats = UdpStats()
         self._dests: list[tuple[socket.socket, tuple[Any, ...], str]] = []
         self._socks: dict[int, socket.socket] = {}
         self._warned: set[str] = set()
         for text in destinations:
             host, port = parse_host_port(text)
-            family, _, _, _, addr = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)[0]
+            try:
+                family, _, _, _, addr = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)[0]
+            except socket.gaierror as e:
+                self.close()
+                raise ConfigError(f"{origin}: {key}: cannot resolve {host!r} ({e.strerror})") from e
             sock = self._socks.get(family)
             if sock is None:
                 sock = socket.socket(family, socket.SOCK_DGRAM)
@@ -143,17 +152,33 @@ class UdpSender:
         self.close()
 
 
-class UdpSink:
-    """The configured output: every estimate to every ``output.udp`` destination in every ``output.formats``."""
+ENCODERS: dict[str, Callable[[Estimate], bytes]] = {"json": encode_json, "nmea": encode_nmea}
 
-    def __init__(self, settings: OutputSettings) -> None:
-        encoders = {"json": encode_json, "nmea": encode_nmea}
-        self._encoders = [encoders[f] for f in settings.formats]
-        self.sender = UdpSender(settings.udp)
+
+class UdpSink:
+    """The configured output: each estimate, encoded in each format, to that format's destinations
+    (``output.json``, ``output.nmea``)."""
+
+    def __init__(self, settings: OutputSettings, blame: Callable[[str], str] | None = None) -> None:
+        self.formats = settings.formats
+        self.senders: dict[str, UdpSender] = {}
+        for fmt, dests in settings.formats.items():
+            key = f"output.{fmt}"
+            try:
+                self.senders[fmt] = UdpSender(dests, key, blame(key) if blame else "<config>")
+            except ConfigError:
+                self.close()
+                raise
+        self._encoders = [(ENCODERS[fmt], sender) for fmt, sender in self.senders.items()]
 
     def send(self, est: Estimate) -> None:
-        for encode in self._encoders:
-            self.sender.send(encode(est))
+        for encode, sender in self._encoders:
+            sender.send(encode(est))
+
+    def describe(self) -> str:
+        """``json to 127.0.0.1:5005, nmea to 127.0.0.1:10110`` (for the start-up line)."""
+        return ", ".join(f"{fmt} to {' '.join(dests)}" for fmt, dests in self.formats.items()) or "nowhere"
 
     def close(self) -> None:
-        self.sender.close()
+        for sender in self.senders.values():
+            sender.close()

@@ -15,7 +15,11 @@ sources) -> the estimator, run off the event loop in a worker thread -> sinks (U
 * Time: every timestamp is on one service clock (``time.time()`` live; a scaled clock for faster-than-real-time
   demos), which also judges stale and future-dated samples.
 * Health: a status line every ``output.status_interval_s`` (log, and JSON to ``output.status_udp`` if set).
-* Lifecycle: SIGINT/SIGTERM set the stop event; tasks unwind and buses, ports and sockets close in ``finally``.
+* Lifecycle, logged at INFO (``sumhe run`` shows it by default): ``sumhe starting`` (what is read and where the
+  output goes, then the resolved config), ``sumhe ready`` (every source open), ``status: ...`` periodically,
+  ``sumhe stopped`` (the final counters; also sent as the last JSON status). SIGINT/SIGTERM set the stop event;
+  tasks unwind and buses, ports and sockets close in ``finally``. A source that ends with an error it cannot
+  mend (a CAN interface that does not exist) stops the service with that error.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ from typing import Any
 
 import numpy as np
 
+from sumhe import __version__
 from sumhe.config import Config, describe
 from sumhe.estimator.base import Estimator
 from sumhe.io.fixtime import stamp_fix
@@ -48,6 +53,18 @@ log = logging.getLogger(__name__)
 
 REORDER_MARGIN_S = 0.1
 SOLVE_WINDOW = 2000
+READY_POLL_S = 0.1
+SOURCE_COUNTERS = (
+    "reconnects",
+    "dropped",
+    "decode_errors",
+    "crc_errors",
+    "stale",
+    "error_frames",
+    "fd_frames",
+    "remote_frames",
+)
+"""Source counters shown in the status line when not zero (the JSON status has them all)."""
 
 
 @dataclass
@@ -133,16 +150,25 @@ class Service:
         self.stats = ServiceStats()
         epoch_s = config.gps.epoch_span_s if config.gps.source == "can" else 0.0  # a CAN GNSS epoch may come late
         self.reorder = Reorder(config.gps.latency_s + epoch_s + REORDER_MARGIN_S if hold_s is None else hold_s)
-        self._udp = UdpSink(config.output) if config.output.udp else None
-        self._status_udp = UdpSender([config.output.status_udp]) if config.output.status_udp else None
+        self._udp = UdpSink(config.output, config.blame)
+        status_udp = config.output.status_udp
+        self._status_udp = (
+            UdpSender([status_udp], "output.status_udp", config.blame("output.status_udp")) if status_udp else None
+        )
         self._extra_sink = sink
 
     async def run(self, stop: asyncio.Event) -> None:
         """Run until ``stop`` is set; everything is closed when this returns."""
-        log.info("sumhe starting: %s", json.dumps(describe(self.config), default=str))
+        log.info("sumhe starting (version %s): %s", __version__, self.summary())
+        log.info("config: %s", json.dumps(describe(self.config), default=str))
+        for src in self.sources.values():
+            start = getattr(src, "start", None)
+            if start is not None:
+                await start()  # idempotent: a caller may have started them already
         tasks = [asyncio.create_task(self._read(name, src), name=f"read-{name}") for name, src in self.sources.items()]
         tasks.append(asyncio.create_task(self._estimate(), name="estimate"))
         tasks.append(asyncio.create_task(self._status(), name="status"))
+        ready = asyncio.create_task(self._ready(), name="ready")  # ends by itself: not watched
         try:
             stopper = asyncio.create_task(stop.wait())
             done, _ = await asyncio.wait([stopper, *tasks], return_when=asyncio.FIRST_COMPLETED)
@@ -150,19 +176,45 @@ class Service:
                 if task is not stopper and task.exception() is not None:
                     raise task.exception()  # type: ignore[misc]
         finally:
-            for task in tasks:
+            for task in (*tasks, ready):
                 task.cancel()
-            await asyncio.gather(*tasks, return_exceptions=True)
+            await asyncio.gather(*tasks, ready, return_exceptions=True)
             for src in self.sources.values():
                 close = getattr(src, "close", None)
                 if close is not None:
                     with contextlib.suppress(Exception):
                         await close()
-            if self._udp is not None:
-                self._udp.close()
+            log.info("sumhe stopped after %.1f s: %s", time.monotonic() - self.stats.started_wall, self.status_line())
+            self._send_status()
+            self._udp.close()
             if self._status_udp is not None:
                 self._status_udp.close()
-            log.info("sumhe stopped: %s", self.status_line())
+
+    def summary(self) -> str:
+        """What the service reads and where its output goes (the start-up line)."""
+        c = self.config
+        reads = []
+        for name in self.sources:
+            if name == "can":
+                quantities = ", ".join([*c.can.signals, *(f"gps {q}" for q in c.gps.signals)])  # gps: source "can"
+                reads.append(f"can {c.can.interface} {c.can.channel} ({quantities}; DBC {', '.join(c.can.dbc_files)})")
+            elif name == "gps":
+                reads.append(f"gps {c.gps.port} at {c.gps.baudrate} Bd")
+            else:
+                reads.append(name)
+        return (
+            f"estimator {self.estimator.name}; reading {'; '.join(reads)}; sending {self._udp.describe()}; "
+            f"config {c.source}"
+        )
+
+    async def _ready(self) -> None:
+        """Log ``sumhe ready`` once every source is open (sources without a ``stats.connected`` count as open)."""
+        while True:
+            waiting = [n for n, s in self.sources.items() if not getattr(getattr(s, "stats", None), "connected", 1)]
+            if not waiting:
+                log.info("sumhe ready: %s open; estimates follow the first GNSS fix", ", ".join(self.sources))
+                return
+            await asyncio.sleep(READY_POLL_S)
 
     async def _read(self, name: str, source: AsyncIterator[Sample]) -> None:
         self.stats.received[name] = 0
@@ -233,8 +285,11 @@ class Service:
         while True:
             await asyncio.sleep(interval)
             log.info("status: %s", self.status_line())
-            if self._status_udp is not None:
-                self._status_udp.send(json.dumps(self.status(), default=str, separators=(",", ":")).encode())
+            self._send_status()
+
+    def _send_status(self) -> None:
+        if self._status_udp is not None:
+            self._status_udp.send(json.dumps(self.status(), default=str, separators=(",", ":")).encode())
 
     def status(self) -> dict[str, Any]:
         """The health figures as plain data (the JSON status datagram)."""
@@ -245,7 +300,7 @@ class Service:
             "class": "STATUS",
             "rates_hz": {k: round(v / elapsed, 2) for k, v in self.stats.received.items()},
             "source_timeouts": dict(self.stats.timeouts),
-            "sources": {k: vars(getattr(s, "stats", None) or {}) for k, s in self.sources.items()},
+            "sources": {k: _counters(s) for k, s in self.sources.items()},
             "time": vars(self.pipeline.guard.stats),
             "fix": "no fix yet" if ps.first_fix_t is None else "ok",
             "estimates": ps.estimates,
@@ -266,11 +321,27 @@ class Service:
         t = s["time"]
         time_drops = t["zero_time"] + t["future"] + t["stale"] + t["late"] + t["duplicate"]
         rates = " ".join(f"{k}={v:g}Hz" for k, v in s["rates_hz"].items())
+        sources = "".join(
+            f" {name}[{' '.join(f'{k}={c[k]}' for k in SOURCE_COUNTERS if c.get(k))}]"
+            if any(c.get(k) for k in SOURCE_COUNTERS)
+            else ""
+            for name, c in s["sources"].items()
+        )
+        down = "".join(
+            f" {name}=DOWN({c.get('last_error', '')})"
+            for name, c in s["sources"].items()
+            if c.get("connected") is False and c.get("last_error")
+        )
         return (
             f"{rates} fix={s['fix']} gps={s['gps']} mode={s['mode']} window={s['window']} "
             f"solve p50/p99={s['solve_ms_p50']}/{s['solve_ms_p99']} ms sent={s['sent']} "
-            f"skipped={s['skipped_epochs']} time_drops={time_drops}"
+            f"skipped={s['skipped_epochs']} time_drops={time_drops}{sources}{down}"
         )
+
+
+def _counters(source: object) -> dict[str, Any]:
+    counters = getattr(source, "counters", None)
+    return dict(counters()) if counters is not None else {}
 
 
 def install_signal_handlers(stop: asyncio.Event) -> None:
