@@ -245,7 +245,7 @@ async def soak_daemon(
     transport, counter = await loop.create_datagram_endpoint(_Counter, local_addr=("127.0.0.1", 0))
     port = transport.get_extra_info("sockname")[1]
     config = dataclasses.replace(
-        reference_config(), output=OutputSettings(udp=(f"127.0.0.1:{port}",), status_interval_s=60.0)
+        reference_config(), output=OutputSettings(json=(f"127.0.0.1:{port}",), status_interval_s=60.0)
     )
     samples = iter(RecordedDrive(config, can_logs, nmea_logs, quantities=CAN_USED).samples())
     head = next(samples)
