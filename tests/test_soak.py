@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from sumhe.bench.soak import GAP_S, chained_drive, soak_daemon, soak_replay
+from sumhe.errors import ConfigError
 from sumhe.io.can import LogStats, read_logs
 from sumhe.io.nmea import iter_fixes
 from sumhe.sim import load_settings, load_truth
@@ -62,3 +63,13 @@ def test_soak_daemon_sends_every_estimate_to_its_client(chained):
     assert 0.9 * status["sent"] <= received <= status["sent"]
     assert status["time"]["stale"] == 0 and status["time"]["future"] == 0
     assert points[-1].data_s == pytest.approx(SEGMENT_S, abs=3.0) and len(points) >= 4
+
+
+def test_soak_daemon_refuses_a_bad_run_without_leaving_its_socket_open(chained, tmp_path):
+    _, (can_logs, nmea_logs) = chained
+    with pytest.raises(ConfigError, match="no-such"):
+        asyncio.run(soak_daemon(can_logs[:1], nmea_logs[:1], "no-such", 8.0))
+    empty = tmp_path / "empty.log"
+    empty.write_text("")
+    with pytest.raises(ValueError, match="no usable sample"):
+        asyncio.run(soak_daemon([empty], [empty], "ekf", 8.0))

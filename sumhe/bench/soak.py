@@ -243,19 +243,26 @@ async def soak_daemon(
     Returns the final status, the memory points and the datagrams received."""
     loop = asyncio.get_running_loop()
     transport, counter = await loop.create_datagram_endpoint(_Counter, local_addr=("127.0.0.1", 0))
-    port = transport.get_extra_info("sockname")[1]
-    config = dataclasses.replace(
-        reference_config(), output=OutputSettings(json=(f"127.0.0.1:{port}",), status_interval_s=60.0)
-    )
-    samples = iter(RecordedDrive(config, can_logs, nmea_logs, quantities=CAN_USED).samples())
-    head = next(samples)
+    try:
+        port = transport.get_extra_info("sockname")[1]
+        config = dataclasses.replace(
+            reference_config(), output=OutputSettings(json=(f"127.0.0.1:{port}",), status_interval_s=60.0)
+        )
+        samples = iter(RecordedDrive(config, can_logs, nmea_logs, quantities=CAN_USED).samples())
+        head = next(samples, None)
+        if head is None:
+            raise ValueError(f"soak daemon: no usable sample in {', '.join(map(str, [*can_logs, *nmea_logs]))}")
+        running = make_estimator(estimator, config)
+    except BaseException:
+        transport.close()  # a bad drive or estimator name: no socket left open
+        raise
     first, wall0 = head.t, time.time()
 
     def clock() -> float:
         return first + (time.time() - wall0) * speed
 
     source = _Paced(itertools.chain([head], samples), clock, speed)
-    service = Service(config, make_estimator(estimator, config), {"drive": source}, clock=clock, clock_rate=speed)
+    service = Service(config, running, {"drive": source}, clock=clock, clock_rate=speed)
     stop = asyncio.Event()
     task = asyncio.create_task(service.run(stop))
     points: list[MemoryPoint] = []
