@@ -367,7 +367,10 @@ def _input_counters(drive: RecordedDrive) -> dict[str, Any]:
         "other_mux": ds.other_mux,
         "invalid": ds.invalid,
         "decode_errors": ds.decode_errors,
+        "fd_frames": ds.fd_frames,
+        "long_frames": ds.long_frames,
         "malformed": ls.malformed,
+        "clock_rebases": ls.rebases,
         "ended_early": ls.error,
     }
     if drive.decoder.gnss is not None:
@@ -388,8 +391,9 @@ def _input_lines(counters: Mapping[str, Any]) -> list[str]:
     c = counters
     out = [
         f"CAN: {c['files']} files, {c['frames']} frames; unused {c['unused']}, other multiplexer values "
-        f"{c['other_mux']}, flagged invalid {c['invalid']}, decode errors {c['decode_errors']}, malformed "
-        f"{c['malformed']}" + (f"; ended early: {c['ended_early']}" if c["ended_early"] else "")
+        f"{c['other_mux']}, flagged invalid {c['invalid']}, decode errors {c['decode_errors']}, FD frames on classic "
+        f"ids {c['fd_frames']}, too long for their message {c['long_frames']}, malformed {c['malformed']}, clock "
+        f"re-based {c['clock_rebases']} times" + (f"; ended early: {c['ended_early']}" if c["ended_early"] else "")
     ]
     if "gnss" in c:
         g = c["gnss"]

@@ -207,6 +207,9 @@ class DecodeStats:
     error_frames: int = 0
     fd_frames: int = 0
     """CAN FD frames on ids of classic messages (or unused ids): ignored."""
+    long_frames: int = 0
+    """Frames of a classic message with a longer payload than its DBC length (e.g. a 64-byte FD payload from a log
+    or an MF4 record without the FD flag): refused, never decoded from their first bytes."""
     remote_frames: int = 0
     other_mux: int = 0
     invalid: int = 0
@@ -509,11 +512,16 @@ class CanDecoder:
         return route
 
     def _data(self, route: _Route, msg: can.Message) -> bytes | None:
-        """The payload, or None (counted) when it is short or fails its E2E check."""
+        """The payload, or None (counted) when it is short, longer than a classic message's DBC length, or fails
+        its E2E check."""
         data = bytes(msg.data)
         if len(data) < route.length:
             self.stats.decode_errors += 1
             self._warn("%s: short payload (%d of %d bytes)", route.name, len(data), route.length)
+            return None
+        if len(data) > route.length and not route.message.is_fd:
+            self.stats.long_frames += 1
+            self._warn("%s: %d-byte payload on a %d-byte classic message: refused", route.name, len(data), route.length)
             return None
         if route.e2e and not self._check_e2e(route, data):
             return None
@@ -618,6 +626,8 @@ class LogStats:
     files: int = 0
     frames: int = 0
     malformed: int = 0
+    rebases: int = 0
+    """Clock jumps inside a file that were re-based (:class:`LogClock`)."""
     error: str = ""
     first_t: float = math.nan
 
@@ -730,15 +740,57 @@ class _CandumpReader:
                 )
 
 
+LOG_JUMP_S = 60.0
+"""A step between consecutive frames of one log file larger than this (s, either way) is the logger's clock
+jumping (an NTP step, an RTC set), not the bus: :class:`LogClock` re-bases the frames after it."""
+
+
+class LogClock:
+    """Re-bases one log file's timestamps across clock jumps: a frame more than :data:`LOG_JUMP_S` after (or
+    before) the previous one continues the timeline one frame step after it, and so do the frames that follow.
+
+    A bus that fell silent for longer than that inside one file (a logger running through a parked hour) is
+    compressed the same way; the estimator restarts at the next fix either way (``TimeGuard``'s ``jump_s``).
+    """
+
+    def __init__(self, path: Path, stats: LogStats) -> None:
+        self.path, self.stats = path, stats
+        self.offset = 0.0
+        self._last = math.nan
+        self._step = 0.0
+
+    def __call__(self, stamp: float) -> float:
+        """The frame time on the file's continuous timeline (s)."""
+        step = stamp - self._last
+        if abs(step) > LOG_JUMP_S:
+            shifted = self._last + self.offset + self._step
+            self.stats.rebases += 1
+            log.warning(
+                "%s: the log's clock jumps by %+.3f s at %.6f: the frames after it are re-based to %.6f (%d so far)",
+                self.path,
+                step,
+                stamp,
+                shifted,
+                self.stats.rebases,
+            )
+            self.offset = shifted - stamp
+        elif step >= 0.0:
+            self._step = step
+        self._last = stamp
+        return stamp + self.offset
+
+
 def _frames(
     reader: can.io.generic.MessageReader | _CandumpReader, path: Path, stats: LogStats
 ) -> Iterator[can.Message]:
+    clock = LogClock(path, stats)
     with reader:
         frames = 0
         try:
             for msg in reader:
                 frames += 1
                 stats.frames += 1
+                msg.timestamp = clock(msg.timestamp)
                 yield msg
         except Exception as e:  # a corrupt file must end the read, never the program
             stats.malformed += 1

@@ -34,6 +34,14 @@ If any verdict says no fix, or there is no position, the fix has ``valid=False``
 longitude or altitude, so it can never be used as a position. Sentences
 that report no fix contribute no position, speed or course.
 
+Plausibility. A value outside what a GNSS receiver can report (:data:`LIMITS`: speed above the 1000 kn export
+limit, altitude outside [-1 km, 18 km], DOP above 100, ...) is counted ``implausible`` and ignored: that field is
+dropped as if it were empty, the rest of the sentence is used (a position is range-checked already: a bad one makes
+the sentence ``garbled``). A date (RMC or ZDA) more than :data:`MAX_DATE_OFFSET_S` from both the line's receive
+time and the previous epoch's time (before any: ahead of the host clock by more) is ``implausible`` too: the epoch
+takes its date as if the sentence had none, until :data:`RESYNC_AFTER` epochs in a row bring such dates (the
+receiver's date really changed). The first of each kind is logged as a warning, the rest at debug level.
+
 Time. ``time_utc`` is the epoch's time of day on a date from RMC or ZDA; once a date is known, later
 epochs take the date nearest to the previous epoch, which rolls over at midnight. Before any date is
 known the decoder uses the ``date`` it was given; without one, a fix with a receive time is emitted with
@@ -51,6 +59,7 @@ import logging
 import math
 import os
 import re
+import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
@@ -70,6 +79,20 @@ MAX_HELD = 64
 """Epochs held while waiting for a date (no receive time, no date yet)."""
 RESYNC_AFTER = 3
 """Consecutive backwards epochs after which the decoder follows the receiver's new time."""
+
+LIMITS: Mapping[str, tuple[float, float]] = {
+    "speed_mps": (0.0, 1000.0 * KNOT_MPS),
+    "alt_m": (-1000.0, 18000.0),
+    "hdop": (0.0, 100.0),
+    "sats": (0, 255),
+    "sigma_lat_m": (0.0, 1e6),
+    "sigma_lon_m": (0.0, 1e6),
+    "sigma_alt_m": (0.0, 1e6),
+}
+"""Physical limits [low, high] of the values a GNSS receiver reports (the COCOM limits of 1000 kn and 18 km bound
+what any civil receiver outputs); a value outside is ignored and counted ``implausible``."""
+MAX_DATE_OFFSET_S = 86400.0
+"""A date of fix further than this from the previous epoch (or ahead of the host clock) is not believed (s)."""
 
 GOOD_QUALITY = range(1, 6)
 """GGA fix qualities that are GNSS positions: GPS, DGPS, PPS, RTK fixed, RTK float."""
@@ -109,6 +132,7 @@ class NmeaCounters:
     no_fix: int = 0
     backwards: int = 0
     undated: int = 0
+    implausible: int = 0
 
     def summary(self) -> str:
         """One line ``name=value ...`` of every counter."""
@@ -414,6 +438,7 @@ class NmeaDecoder:
         self._ref: dt.datetime | None = None
         self._last_when: dt.datetime | None = None
         self._behind = 0
+        self._odd_dates = 0
         self._held: deque[_Epoch] = deque()
         self._warned: set[str] = set()
 
@@ -486,7 +511,18 @@ class NmeaDecoder:
         except _BAD_FIELD_ERRORS as e:
             return self._bad("garbled", "bad field (%s): %r", e, fragment[:80])
         self.counters.sentences += 1
-        return part
+        return self._plausible(part, fragment)
+
+    def _plausible(self, part: _Part, fragment: str) -> _Part:
+        """``part`` without the values outside :data:`LIMITS` (each counted ``implausible``)."""
+        bad = [k for k, v in part.values.items() if k in LIMITS and not LIMITS[k][0] <= v <= LIMITS[k][1]]
+        if not bad:
+            return part
+        for k in bad:
+            self._bad(
+                "implausible", "%s = %g outside %s; field ignored: %r", k, part.values[k], LIMITS[k], fragment[:80]
+            )
+        return dataclasses.replace(part, values={k: v for k, v in part.values.items() if k not in bad})
 
     def _bad(self, counter: str, fmt: str, *args: object) -> None:
         """Count one bad input; the first of each kind is logged as a warning, the rest at debug level."""
@@ -552,6 +588,8 @@ class NmeaDecoder:
         if epoch.tod is None:
             return None
         date = next((p.date for p in reversed(epoch.parts) if p.date is not None), None)
+        if date is not None and not self._date_plausible(date, epoch):
+            date = None
         if date is not None:
             when = _utc(date, epoch.tod)
         elif self._ref is not None:
@@ -562,6 +600,25 @@ class NmeaDecoder:
             return None
         self._ref = when
         return when
+
+    def _date_plausible(self, date: dt.date, epoch: _Epoch) -> bool:
+        """Whether the epoch's date of fix lies within :data:`MAX_DATE_OFFSET_S` of its receive time or of the
+        previous epoch's time (before any: not ahead of the host clock by more); else counted ``implausible``, until
+        :data:`RESYNC_AFTER` epochs in a row say so (the receiver's date really changed)."""
+        assert epoch.tod is not None
+        when = _utc(date, epoch.tod)
+        if epoch.rx is not None and abs(when.timestamp() - epoch.rx) <= MAX_DATE_OFFSET_S:
+            ok, clock = True, "the receive time"
+        elif self._ref is not None:
+            ok, clock = abs((when - self._ref).total_seconds()) <= MAX_DATE_OFFSET_S, "the last epoch"
+        else:
+            ok, clock = when.timestamp() <= time.time() + MAX_DATE_OFFSET_S, "the host clock"
+        self._odd_dates = 0 if ok else self._odd_dates + 1
+        if ok or self._odd_dates >= RESYNC_AFTER:
+            self._odd_dates = 0
+            return True
+        self._bad("implausible", "date %s more than %g s from %s; date ignored", date, MAX_DATE_OFFSET_S, clock)
+        return False
 
     def _hold(self, epoch: _Epoch) -> None:
         if len(self._held) >= MAX_HELD:

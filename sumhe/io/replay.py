@@ -24,7 +24,7 @@ from sumhe.config import Config
 from sumhe.errors import ConfigError, SourceError
 from sumhe.io.can import CanDecoder, LogStats, read_logs
 from sumhe.io.fixtime import stamp_fix
-from sumhe.io.nmea import iter_fixes
+from sumhe.io.nmea import NmeaDecoder, iter_fixes
 from sumhe.messages import GnssFix, Sample
 
 REORDER_MARGIN_S = 0.1
@@ -105,7 +105,8 @@ class RecordedDrive:
     ConfigError for a mapping the DBCs do not hold. ``quantities`` limits the CAN quantities decoded (None: all
     mapped). ``config`` is the given one with the logs' folders added to
     :attr:`~sumhe.config.Config.log_dirs`; ``decoder`` (None without CAN logs) and ``log_stats`` hold the counters
-    of the CAN side, ``first_t`` the timestamp of the drive's first CAN frame (s; NaN without CAN logs).
+    of the CAN side, ``nmea_decoders`` (one per NMEA log) those of the NMEA side, ``first_t`` the timestamp of the
+    drive's first CAN frame (s; NaN without CAN logs).
     """
 
     def __init__(
@@ -123,6 +124,7 @@ class RecordedDrive:
         for p in self.nmea_logs:
             if not p.is_file():
                 raise SourceError(f"{p}: NMEA log not found")
+        self.nmea_decoders = [NmeaDecoder() for _ in self.nmea_logs]
         self.log_stats = LogStats()
         self._frames = read_logs(self.can_logs, self.log_stats) if self.can_logs else iter(())
         self.decoder = CanDecoder.from_config(self.config, quantities=quantities) if self.can_logs else None
@@ -140,9 +142,24 @@ class RecordedDrive:
             can_samples = self._can_samples(self.decoder)
             streams.append(time_ordered(can_samples, reorder_hold_s(self.config)) if self.decoder.gnss else can_samples)
         if self.nmea_logs:
-            fixes = merge_by_time(*(iter_fixes(p) for p in self.nmea_logs))
+            fixes = merge_by_time(*(iter_fixes(p, d) for p, d in zip(self.nmea_logs, self.nmea_decoders, strict=True)))
             streams.append(stamp_fix(fix, gps) for fix in shift_fixes(fixes, self.offset_s))  # type: ignore[arg-type]
         return merge_by_time(*streams)
+
+    def unusable(self, valid_fixes: int, can_samples: int) -> str | None:
+        """Why a replay of this drive that gave ``valid_fixes`` valid fixes and ``can_samples`` CAN samples had
+        nothing to estimate from (the logs, their counters and what to check), or None when it had both."""
+        if valid_fixes and can_samples:
+            return None
+        if not valid_fixes and self.nmea_logs:
+            return "; ".join(
+                f"{p}: no valid fix in the NMEA log ({d.counters.summary()})"
+                for p, d in zip(self.nmea_logs, self.nmea_decoders, strict=True)
+            )
+        if not valid_fixes:
+            return f"{' '.join(map(str, self.can_logs))}: no valid fix from the gps.signals mapping"
+        logs = " ".join(map(str, self.can_logs)) or "no CAN log given"
+        return f"{logs}: no CAN samples of the mapped signals (can.signals) in {self.log_stats.frames} frames"
 
     def _can_samples(self, decoder: CanDecoder) -> Iterator[Sample]:
         gps = self.config.gps

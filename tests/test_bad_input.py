@@ -1,0 +1,174 @@
+"""Bad input that parses (issue 15, item 4): implausible NMEA values, FD and over-long CAN frames on classic
+messages, a clock jump inside a CAN log, and a replay with nothing usable (the last two through ``sumhe replay`` in a
+subprocess, on a simulated drive's files)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import can
+import pytest
+
+from sumhe.io.can import CanDecoder, LogStats, read_log, reference_config
+from sumhe.io.nmea import MAX_DATE_OFFSET_S, NmeaDecoder
+from sumhe.io.nmea_format import sentence
+
+from canframes import speed_frame
+from loggerframes import write_log
+
+ENV = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
+
+
+def gga(hhmmss: str, alt: str = "545.4", hdop: str = "0.9") -> str:
+    return sentence(f"GPGGA,{hhmmss}.00,4807.038,N,01131.000,E,1,08,{hdop},{alt},M,46.9,M,,")
+
+
+def rmc(hhmmss: str, date: str = "170524", knots: str = "10.0") -> str:
+    return sentence(f"GPRMC,{hhmmss}.00,A,4807.038,N,01131.000,E,{knots},84.4,{date},,,A")
+
+
+def zda(hhmmss: str, year: int) -> str:
+    return sentence(f"GPZDA,{hhmmss}.00,17,05,{year},00,00")
+
+
+def decode(lines: list[str]) -> tuple[list, NmeaDecoder]:
+    dec = NmeaDecoder()
+    fixes = [f for line in lines for f in dec.feed(line)] + dec.flush()
+    return fixes, dec
+
+
+def test_an_implausible_speed_altitude_or_hdop_is_ignored_and_counted_the_position_kept():
+    fixes, dec = decode([gga("120000", alt="1e308", hdop="1e308"), rmc("120000", knots="1000000000")])
+    (fix,) = fixes
+    assert fix.valid and fix.lat_deg == pytest.approx(48 + 7.038 / 60)
+    assert (fix.alt_m, fix.hdop, fix.speed_mps) == (None, None, None)
+    assert dec.counters.implausible == 3 and dec.counters.garbled == 0 and dec.counters.sentences == 2
+
+
+def test_values_at_the_limits_are_kept():
+    fixes, dec = decode([gga("120000", alt="17999", hdop="99.9"), rmc("120000", knots="999")])
+    assert (fixes[0].alt_m, fixes[0].hdop) == (17999.0, 99.9)
+    assert fixes[0].speed_mps == pytest.approx(999 * 1852 / 3600)
+    assert dec.counters.implausible == 0
+
+
+def test_a_zda_year_2099_is_ignored_and_costs_no_epoch():
+    lines = []
+    for s in range(6):
+        hhmmss = f"1200{s:02d}"
+        lines += [zda(hhmmss, 2099), gga(hhmmss)] if s == 2 else [gga(hhmmss), rmc(hhmmss)]
+    fixes, dec = decode(lines)
+    assert [f.time_utc.isoformat() for f in fixes] == [f"2024-05-17T12:00:{s:02d}+00:00" for s in range(6)]
+    assert dec.counters.implausible == 1 and dec.counters.backwards == 0
+
+
+def test_a_date_far_from_the_receive_time_is_ignored_but_one_near_it_is_followed():
+    """A receiver whose date really changed (near its own receive time) is followed at once."""
+    rx0 = 1715947200.0  # 2024-05-17 12:00:00 UTC
+    dec = NmeaDecoder()
+    first = dec.feed(f"({rx0 + 0.1:.3f}) {gga('120000')}") + dec.feed(f"({rx0 + 0.1:.3f}) {rmc('120000')}")
+    later = rx0 + 3 * MAX_DATE_OFFSET_S + 1  # the log goes on three days later: the receive time agrees with the date
+    fixes = first + dec.feed(f"({later:.3f}) {gga('120001')}") + dec.feed(f"({later:.3f}) {rmc('120001', '200524')}")
+    fixes += dec.flush()
+    assert [f.time_utc.day for f in fixes] == [17, 20] and dec.counters.implausible == 0
+
+
+def test_a_persistent_new_date_is_followed_after_a_few_epochs():
+    lines = [gga("120000"), rmc("120000")]
+    lines += [x for s in range(1, 6) for x in (gga(f"1200{s:02d}"), rmc(f"1200{s:02d}", date="170530"))]
+    fixes, dec = decode(lines)
+    years = [f.time_utc.year for f in fixes]
+    assert years[0] == 2024 and years[-1] == 2030 and dec.counters.implausible == 2
+
+
+def test_fd_and_over_long_frames_of_classic_messages_in_a_candump_log_are_refused(tmp_path):
+    good = speed_frame(1780300800.0, 36.0, 0)
+    long_payload = bytes(good.data) + bytes(56)
+    log = tmp_path / "drive.log"
+    log.write_text(
+        f"(1780300800.000000) can0 1A0#{bytes(good.data).hex().upper()}\n"
+        f"(1780300800.010000) can0 1A0#{long_payload.hex().upper()}\n"  # 64 bytes without the FD mark
+        f"(1780300800.020000) can0 1A0##0{long_payload.hex().upper()}\n"  # a CAN FD frame
+        f"(1780300800.030000) can0 1A0#{bytes(good.data).hex().upper()}00\n"  # 9 bytes on an 8-byte message
+    )
+    decoder = CanDecoder.from_config(reference_config())
+    samples = [s for msg in read_log(log, LogStats()) for s in decoder.decode(msg)]
+    assert [(s.quantity, s.value) for s in samples] == [("speed", pytest.approx(10.0))]
+    assert (decoder.stats.fd_frames, decoder.stats.long_frames, decoder.stats.decoded) == (1, 2, 1)
+
+
+def test_fd_and_over_long_frames_in_an_mf4_log_are_refused(tmp_path):
+    good = speed_frame(1780300800.0, 36.0, 0)
+    long_payload = bytes(good.data) + bytes(56)
+    frames = [good]
+    for i, fd in enumerate((True, False), 1):
+        frames.append(
+            can.Message(
+                timestamp=good.timestamp + 0.01 * i,
+                arbitration_id=0x1A0,
+                is_extended_id=False,
+                is_fd=fd,
+                data=long_payload,
+                channel=0,
+            )
+        )
+    path = write_log(tmp_path / "drive.mf4", frames)
+    decoder = CanDecoder.from_config(reference_config())
+    samples = [s for msg in read_log(path, LogStats()) for s in decoder.decode(msg)]
+    assert [s.quantity for s in samples] == ["speed"]
+    assert decoder.stats.fd_frames + decoder.stats.long_frames == 2 and decoder.stats.decoded == 1
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("drive")
+    subprocess.run(
+        [sys.executable, "-m", "sumhe", "simulate", "--out", str(out), "--duration", "40", "--seed", "3"],
+        check=True,
+        env=ENV,
+        capture_output=True,
+    )
+    return out
+
+
+def replay(drive: Path, can_log: Path, nmea_log: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "sumhe", "replay", str(can_log), "--nmea", str(nmea_log), "--estimator", "ekf"],
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+
+
+def test_a_one_hour_clock_jump_in_the_can_log_is_re_based_and_loses_no_output(drive, tmp_path):
+    lines = (drive / "drive.log").read_text().splitlines()
+    half = len(lines) // 2
+
+    def later(line: str) -> str:
+        stamp, rest = line[1:].split(")", 1)
+        return f"({float(stamp) + 3600.0:.6f}){rest}"
+
+    jumped = tmp_path / "jumped.log"
+    jumped.write_text("\n".join(lines[:half] + [later(x) for x in lines[half:]]) + "\n")
+    plain, moved = replay(drive, drive / "drive.log", drive / "drive.nmea"), replay(drive, jumped, drive / "drive.nmea")
+    assert plain.returncode == 0 and moved.returncode == 0, moved.stderr
+    a = [json.loads(x) for x in plain.stdout.splitlines()]
+    b = [json.loads(x) for x in moved.stdout.splitlines()]
+    assert len(a) > 1000 and len(b) == len(a)
+    assert max(abs(x["lat"] - y["lat"]) for x, y in zip(a, b, strict=True)) < 1e-5  # within a metre
+    assert "clock jumps by +3600.0" in moved.stderr and "clock re-based 1 times" in moved.stderr
+    assert "clock resets 0" in moved.stderr
+
+
+def test_a_replay_without_one_valid_nmea_sentence_exits_1_with_the_reason(drive, tmp_path):
+    bad = tmp_path / "bad.nmea"
+    bad.write_bytes(b"(1780300800.1) $GPGGA,garbage*00\n(1780300800.2) \x1b[31mhello\n")
+    result = replay(drive, drive / "drive.log", bad)
+    assert result.returncode == 1 and result.stdout == ""
+    assert f"error: nothing to estimate from: {bad}: no valid fix in the NMEA log" in result.stderr
+    assert "checksum_errors=1 garbled=1" in result.stderr
