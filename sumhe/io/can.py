@@ -28,6 +28,7 @@ import io
 import itertools
 import logging
 import math
+import os
 import re
 import time
 from collections import deque
@@ -42,7 +43,7 @@ import cantools
 from cantools.database.can import Database, Message
 
 from sumhe.config import Config, SignalSpec, load_config
-from sumhe.errors import ConfigError, SourceError
+from sumhe.errors import ConfigError, SourceError, printable
 from sumhe.io.can_gnss import GnssAssembler
 from sumhe.io.checksum import is_intact, rolling_counter
 from sumhe.messages import CAN_QUANTITIES, GNSS_QUANTITIES, CanSample, GnssFix, Sample
@@ -139,21 +140,28 @@ def si_factor(unit: str | None, quantity: str) -> float | None:
     return _UNITS[_KIND_OF[quantity]].get((unit or "").strip().lower().replace(" ", ""))
 
 
-def load_dbc(path: str | PathLike[str], strict: bool = True) -> Database:
-    """Load a CAN database (DBC, KCD, SYM, ARXML by suffix); ConfigError naming the file on any failure.
+def load_dbc(path: str | PathLike[str], strict: bool = True, max_mb: float = 32.0) -> Database:
+    """Load a CAN database (DBC, KCD, SYM, ARXML by suffix); ConfigError naming the file on any failure, its text
+    safe for a terminal (:func:`~sumhe.config.printable`: a binary file's bytes come out escaped).
 
     ``strict=False`` accepts databases with overlapping signals or signals past the message end, which
-    several public DBCs have.
+    several public DBCs have. A file larger than ``max_mb`` MB (``can.dbc_max_mb``) is refused unread.
     """
     try:
+        size = os.stat(path).st_size
+        if size > max_mb * 1e6:
+            raise ConfigError(
+                f"{path}: {size / 1e6:.1f} MB, larger than can.dbc_max_mb = {max_mb:g} MB: not a CAN database? "
+                "(raise can.dbc_max_mb for a database this large)"
+            )
         db = cantools.database.load_file(str(path), strict=strict)
     except FileNotFoundError as e:
         raise ConfigError(f"{path}: DBC file not found") from e
     except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{path}: cannot read DBC: {e}") from e
+        raise ConfigError(f"{path}: cannot read DBC: {printable(str(e))}") from e
     except cantools.database.Error as e:
         hint = " (can.dbc_strict = false accepts it)" if strict and _loads_leniently(path) else ""
-        raise ConfigError(f"{path}: not a valid CAN database: {e}{hint}") from e
+        raise ConfigError(f"{path}: not a valid CAN database: {printable(str(e))}{hint}") from e
     if not isinstance(db, Database):
         raise ConfigError(f"{path}: not a CAN database")
     return db
@@ -348,7 +356,7 @@ class CanDecoder:
         """Load ``can.dbc`` (honouring ``can.dbc_strict``) and resolve ``can.signals``, ``can.e2e`` and, with
         ``gps.source = "can"``, ``gps.signals``. ``quantities`` keeps only those CAN quantities of the mapping (a
         replay decodes nothing its estimator does not read); None keeps all."""
-        dbs = [load_dbc(path, config.can.dbc_strict) for path in config.dbc_paths]
+        dbs = [load_dbc(path, config.can.dbc_strict, config.can.dbc_max_mb) for path in config.dbc_paths]
         gnss = config.gps.signals if config.gps.source == "can" else None
         signals = {q: s for q, s in config.can.signals.items() if quantities is None or q in quantities}
         return cls(dbs, signals, config.can.e2e, config.source, every_message, gnss, config.gps.epoch_span_s)
