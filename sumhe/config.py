@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import ipaddress
 import logging
 import os
+import re
 import sys
 import types
 import typing
@@ -163,12 +165,17 @@ DEFAULT_JSON = ("127.0.0.1:5005",)
 
 @dataclass(frozen=True, slots=True)
 class OutputSettings:
-    """Sinks: one list of UDP destinations ``host:port`` per format (``json``, ``nmea``), and the status line."""
+    """Sinks: one list of UDP destinations ``host:port`` per format (``json``, ``nmea``), and the status line.
+
+    A destination is an IP address or a host name (resolved at start). Without ``allow_remote`` every destination
+    must be this host (loopback, an address of its own, an interface-local IPv6 multicast group); broadcast,
+    multicast beyond the host and other hosts need ``allow_remote = true`` (:mod:`sumhe.io.udp`)."""
 
     json: tuple[str, ...] = DEFAULT_JSON
     nmea: tuple[str, ...] = ()
     status_udp: str | None = None
     status_interval_s: float = 5.0
+    allow_remote: bool = False
 
     def __post_init__(self) -> None:
         for name in ("json", "nmea"):
@@ -291,11 +298,28 @@ def parse_host_port(text: str) -> tuple[str, int]:
     return host, int(port)
 
 
+_HOST_LABEL = re.compile(r"(?!-)[A-Za-z0-9-]{1,63}(?<!-)")
+
+
+def is_host(text: str) -> bool:
+    """Whether ``text`` is an IP address (IPv6 with an optional ``%zone``) or a host name (RFC 1123 labels)."""
+    try:
+        ipaddress.ip_address(text.partition("%")[0])
+    except ValueError:
+        labels = text.removesuffix(".").split(".")
+        return len(text) <= 253 and all(_HOST_LABEL.fullmatch(x) for x in labels) and not labels[-1].isdigit()
+    return True
+
+
 def _destination(key: str, text: str) -> None:
     try:
-        parse_host_port(text)
+        host, _ = parse_host_port(text)
     except ValueError as e:
         raise ValueError(f"{key}: {e}") from e
+    if not is_host(host):
+        raise ValueError(
+            f"{key}: '{printable(text, 80)}': '{printable(host, 80)}' is neither an IP address nor a host name"
+        )
 
 
 def _positive(obj: object, *names: str) -> None:

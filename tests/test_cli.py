@@ -180,3 +180,31 @@ def test_link_commands_for_real_and_virtual_interfaces():
         ["ip", "link", "set", "can0", "down"],
         ["ip", "link", "set", "can0", "up", "type", "can", "bitrate", "500000", "restart-ms", "100"],
     ]
+
+
+@pytest.mark.slow
+def test_sighup_stops_the_daemon_cleanly_with_the_stopped_line(tmp_path):
+    """SIGHUP (the terminal hung up) stops the daemon as SIGTERM does: exit 0 and the stopped line (it used to kill
+    it with exit 129 and no line); it does not re-read the config (README)."""
+    pty = Pty(tmp_path / "gps")
+    status_rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    status_rx.bind(("127.0.0.1", 0))
+    status_rx.settimeout(10)
+    config = tmp_path / "c.toml"
+    config.write_text(
+        f'[can]\ninterface = "virtual"\nchannel = "sumhe-sighup-test"\n{SIGNALS}[gps]\nport = "{tmp_path / "gps"}"\n'
+        f'[output]\njson = ["127.0.0.1:{_free_udp_port()}"]\nstatus_interval_s = 0.5\n'
+        f'status_udp = "127.0.0.1:{status_rx.getsockname()[1]}"\n'
+    )
+    proc = _sumhe("run", "--config", str(config))
+    try:
+        status_rx.recv(65535)  # running
+        proc.send_signal(signal.SIGHUP)
+        _, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        pty.close()
+        status_rx.close()
+    assert proc.returncode == 0, err
+    assert re.search(r"sumhe stopped after \d+\.\d s:", err), err
