@@ -739,8 +739,13 @@ class _CandumpReader:
                     )
                     continue
             if general(stripped):
-                yield from can.CanutilsLogReader(io.StringIO(stripped))
-                continue
+                try:
+                    frames = list(can.CanutilsLogReader(io.StringIO(stripped)))
+                except ValueError:  # python-can reads the FD flags digit as decimal: ``##A`` to ``##F`` fail
+                    frames = []
+                if frames:
+                    yield from frames
+                    continue
             self.stats.malformed += 1
             if throttle.ready():
                 log.warning(
