@@ -4,6 +4,7 @@ subprocess, on a simulated drive's files)."""
 
 from __future__ import annotations
 
+import datetime as dt
 import json
 import os
 import subprocess
@@ -14,8 +15,9 @@ import can
 import pytest
 
 from sumhe.io.can import CanDecoder, LogStats, read_log, reference_config
-from sumhe.io.nmea import MAX_DATE_OFFSET_S, NmeaDecoder
+from sumhe.io.nmea import MAX_DATE_OFFSET_S, NmeaCounters, NmeaDecoder, rebase_receive_times
 from sumhe.io.nmea_format import sentence
+from sumhe.messages import GnssFix
 
 from canframes import speed_frame
 from loggerframes import write_log
@@ -163,6 +165,48 @@ def test_a_one_hour_clock_jump_in_the_can_log_is_re_based_and_loses_no_output(dr
     assert max(abs(x["lat"] - y["lat"]) for x, y in zip(a, b, strict=True)) < 1e-5  # within a metre
     assert "clock jumps by +3600.0" in moved.stderr and "clock re-based 1 times" in moved.stderr
     assert "clock resets 0" in moved.stderr
+
+
+def shifted_after(lines: list[str], t_jump: float, by_s: float) -> list[str]:
+    """Log lines ``(t) ...`` with ``by_s`` added to the times from ``t_jump`` on (the logger's clock stepped)."""
+    out = []
+    for line in lines:
+        stamp, rest = line[1:].split(")", 1)
+        t = float(stamp)
+        out.append(f"({t + by_s if t >= t_jump else t:.6f}){rest}")
+    return out
+
+
+def test_a_host_clock_step_in_both_logs_is_re_based_in_both(drive, tmp_path):
+    """The logger's clock steps by 1 h mid-drive (both logs stamped by it); the NMEA receive times are re-based on
+    the receiver's UTC, the CAN frames on their own timeline: the output is the plain replay's."""
+    can_lines = (drive / "drive.log").read_text().splitlines()
+    t_jump = float(can_lines[len(can_lines) // 2][1:].split(")")[0])
+    for name in ("drive.log", "drive.nmea"):
+        lines = (drive / name).read_text().splitlines()
+        (tmp_path / name).write_text("\n".join(shifted_after(lines, t_jump, 3600.0)) + "\n")
+    plain = replay(drive, drive / "drive.log", drive / "drive.nmea")
+    moved = replay(drive, tmp_path / "drive.log", tmp_path / "drive.nmea")
+    assert moved.returncode == 0, moved.stderr
+    a, b = plain.stdout.splitlines(), moved.stdout.splitlines()
+    assert len(a) > 1000 and abs(len(b) - len(a)) <= 2, moved.stderr
+    assert "drive.nmea: the log's clock jumps by +3600" in moved.stderr and "clock resets 0" in moved.stderr
+
+
+def fix_at(rx: float, utc: float) -> GnssFix:
+    when = dt.datetime.fromtimestamp(utc, dt.timezone.utc)
+    return GnssFix(t=rx, time_utc=when, lat_deg=48.0, lon_deg=11.0, alt_m=None, quality=1, valid=True)
+
+
+def test_nmea_receive_times_are_re_based_only_when_the_loggers_clock_jumped():
+    t0 = 1780300800.0
+    steps = [(t0, t0), (t0 + 3600.1, t0 + 0.1), (t0 + 3600.2, t0 + 0.2)]  # the logger's clock jumped
+    steps += [(t0 + 7200.2, t0 + 3600.2)]  # then a pause of an hour: both clocks moved
+    steps += [(t0 + 7200.3, t0 + 7200.3)]  # then the receiver's UTC jumped on its own
+    counters = NmeaCounters()
+    out = [f.t for f in rebase_receive_times([fix_at(rx, utc) for rx, utc in steps], "x.nmea", counters)]
+    assert out == pytest.approx([t0, t0 + 0.1, t0 + 0.2, t0 + 3600.2, t0 + 3600.3], abs=1e-6)
+    assert counters.rebases == 1
 
 
 def test_a_replay_without_one_valid_nmea_sentence_exits_1_with_the_reason(drive, tmp_path):

@@ -133,6 +133,8 @@ class NmeaCounters:
     backwards: int = 0
     undated: int = 0
     implausible: int = 0
+    rebases: int = 0
+    """Jumps of a log's receive clock re-based (:func:`rebase_receive_times`)."""
 
     def summary(self) -> str:
         """One line ``name=value ...`` of every counter."""
@@ -675,6 +677,40 @@ def iter_fixes(
     for line in source:
         yield from dec.feed(line)
     yield from dec.flush()
+
+
+LOG_JUMP_S = 60.0
+"""A log's receive clock moving this far (s) against the receiver's UTC (or, without a UTC date, between
+consecutive fixes) has jumped: :func:`rebase_receive_times`."""
+
+
+def rebase_receive_times(fixes: Iterable[GnssFix], name: str, counters: NmeaCounters) -> Iterator[GnssFix]:
+    """The fixes of a logged NMEA stream with their receive times re-based across jumps of the logger's clock (an
+    NTP step, an RTC set): where ``receive time - UTC`` changes by more than :data:`LOG_JUMP_S` from one fix to the
+    next while the receive time itself steps by as much, the fixes after keep the old difference (counted in
+    ``counters.rebases``, logged). A pause of the log (receiver or logger off) moves both clocks alike and is kept;
+    a jump of the receiver's own UTC leaves the receive times steady and is left to the decoder. Fixes without a
+    UTC date are judged by the step between receive times alone."""
+    offset = 0.0
+    last_rx = last_lag = math.nan
+    for fix in fixes:
+        rx = fix.t
+        lag = rx - fix.time_utc.timestamp() if fix.time_utc is not None else math.nan
+        jump = lag - last_lag if math.isfinite(lag) and math.isfinite(last_lag) else rx - last_rx
+        if abs(jump) > LOG_JUMP_S and abs(rx - last_rx) > LOG_JUMP_S:
+            offset -= jump
+            counters.rebases += 1
+            log.warning(
+                "%s: the log's clock jumps by %+.3f s at %.3f: the fixes after it are re-based (%d so far)",
+                name,
+                jump,
+                rx,
+                counters.rebases,
+            )
+        last_rx = rx
+        if math.isfinite(lag):
+            last_lag = lag
+        yield fix if offset == 0.0 else dataclasses.replace(fix, t=rx + offset)
 
 
 def format_log_line(t: float, raw: bytes) -> bytes:

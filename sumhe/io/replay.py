@@ -24,7 +24,7 @@ from sumhe.config import Config
 from sumhe.errors import ConfigError, SourceError
 from sumhe.io.can import CanDecoder, LogStats, read_logs
 from sumhe.io.fixtime import stamp_fix
-from sumhe.io.nmea import NmeaDecoder, iter_fixes
+from sumhe.io.nmea import NmeaDecoder, iter_fixes, rebase_receive_times
 from sumhe.messages import GnssFix, Sample
 
 REORDER_MARGIN_S = 0.1
@@ -135,14 +135,20 @@ class RecordedDrive:
 
     def samples(self) -> Iterator[Sample]:
         """Every decoded sample of the drive in time order; fixes stamped with their measurement time
-        (:func:`~sumhe.io.fixtime.stamp_fix`; NMEA receive times moved by ``offset_s`` first)."""
+        (:func:`~sumhe.io.fixtime.stamp_fix`; NMEA receive times re-based across jumps of the log's clock
+        (:func:`~sumhe.io.nmea.rebase_receive_times`) and moved by ``offset_s`` first)."""
         gps = self.config.gps
         streams: list[Iterable[Sample]] = []
         if self.decoder is not None:
             can_samples = self._can_samples(self.decoder)
             streams.append(time_ordered(can_samples, reorder_hold_s(self.config)) if self.decoder.gnss else can_samples)
         if self.nmea_logs:
-            fixes = merge_by_time(*(iter_fixes(p, d) for p, d in zip(self.nmea_logs, self.nmea_decoders, strict=True)))
+            fixes = merge_by_time(
+                *(
+                    rebase_receive_times(iter_fixes(p, d), str(p), d.counters)
+                    for p, d in zip(self.nmea_logs, self.nmea_decoders, strict=True)
+                )
+            )
             streams.append(stamp_fix(fix, gps) for fix in shift_fixes(fixes, self.offset_s))  # type: ignore[arg-type]
         return merge_by_time(*streams)
 
