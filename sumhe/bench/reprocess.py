@@ -373,6 +373,11 @@ def _input_counters(drive: RecordedDrive) -> dict[str, Any]:
         "clock_rebases": ls.rebases,
         "ended_early": ls.error,
     }
+    if drive.nmea_decoders:
+        out["nmea"] = {
+            k: sum(getattr(d.counters, k) for d in drive.nmea_decoders)
+            for k in ("lines", "fixes", "checksum_errors", "garbled", "implausible", "backwards", "rebases")
+        }
     if drive.decoder.gnss is not None:
         gs = drive.decoder.gnss.stats
         out["gnss"] = {
@@ -395,6 +400,13 @@ def _input_lines(counters: Mapping[str, Any]) -> list[str]:
         f"ids {c['fd_frames']}, too long for their message {c['long_frames']}, malformed {c['malformed']}, clock "
         f"re-based {c['clock_rebases']} times" + (f"; ended early: {c['ended_early']}" if c["ended_early"] else "")
     ]
+    if "nmea" in c:
+        n = c["nmea"]
+        out.append(
+            f"NMEA: {n['lines']} lines, {n['fixes']} fixes; checksum errors {n['checksum_errors']}, garbled "
+            f"{n['garbled']}, implausible values {n['implausible']}, time going back {n['backwards']}, clock "
+            f"re-based {n['rebases']} times"
+        )
     if "gnss" in c:
         g = c["gnss"]
         out.append(
