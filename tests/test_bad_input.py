@@ -79,6 +79,13 @@ def test_a_date_far_from_the_receive_time_is_ignored_but_one_near_it_is_followed
     assert [f.time_utc.day for f in fixes] == [17, 20] and dec.counters.implausible == 0
 
 
+def test_the_date_given_to_the_decoder_does_not_judge_the_receivers_dates():
+    dec = NmeaDecoder(date=dt.date(2020, 1, 1))
+    fixes = dec.feed(gga("120000")) + dec.feed(gga("120001")) + dec.feed(rmc("120001")) + dec.flush()
+    assert [f.time_utc.date().isoformat() for f in fixes] == ["2020-01-01", "2024-05-17"]
+    assert dec.counters.implausible == 0
+
+
 def test_a_persistent_new_date_is_followed_after_a_few_epochs():
     lines = [gga("120000"), rmc("120000")]
     lines += [x for s in range(1, 6) for x in (gga(f"1200{s:02d}"), rmc(f"1200{s:02d}", date="170530"))]

@@ -438,6 +438,8 @@ class NmeaDecoder:
         self._ender: tuple[str, int] | None = None
         self._ender_seen: tuple[str, int] | None = None
         self._ref: dt.datetime | None = None
+        self._input_dated = False
+        """Whether a date has come from the input (not only the ``date`` given): then dates are judged against it."""
         self._last_when: dt.datetime | None = None
         self._behind = 0
         self._odd_dates = 0
@@ -594,6 +596,7 @@ class NmeaDecoder:
             date = None
         if date is not None:
             when = _utc(date, epoch.tod)
+            self._input_dated = True
         elif self._ref is not None:
             when = _nearest_day(self._ref, epoch.tod)
         elif self.date is not None:
@@ -605,13 +608,13 @@ class NmeaDecoder:
 
     def _date_plausible(self, date: dt.date, epoch: _Epoch) -> bool:
         """Whether the epoch's date of fix lies within :data:`MAX_DATE_OFFSET_S` of its receive time or of the
-        previous epoch's time (before any: not ahead of the host clock by more); else counted ``implausible``, until
-        :data:`RESYNC_AFTER` epochs in a row say so (the receiver's date really changed)."""
+        previous epoch's time dated by the input (before any: not ahead of the host clock by more); else
+        ``implausible``, until :data:`RESYNC_AFTER` epochs in a row say so (the receiver's date really changed)."""
         assert epoch.tod is not None
         when = _utc(date, epoch.tod)
         if epoch.rx is not None and abs(when.timestamp() - epoch.rx) <= MAX_DATE_OFFSET_S:
             ok, clock = True, "the receive time"
-        elif self._ref is not None:
+        elif self._ref is not None and self._input_dated:
             ok, clock = abs((when - self._ref).total_seconds()) <= MAX_DATE_OFFSET_S, "the last epoch"
         else:
             ok, clock = when.timestamp() <= time.time() + MAX_DATE_OFFSET_S, "the host clock"
