@@ -223,3 +223,37 @@ def test_a_replay_without_one_valid_nmea_sentence_exits_1_with_the_reason(drive,
     assert result.returncode == 1 and result.stdout == ""
     assert f"error: nothing to estimate from: {bad}: no valid fix in the NMEA log" in result.stderr
     assert "checksum_errors=1 garbled=1" in result.stderr
+
+
+def test_a_receiver_on_a_serial_port_sending_implausible_values_loses_no_epoch():
+    """Through the serial source on a real pty: 1e9 kn, altitude and HDOP 1e308, a ZDA year 2099 in between."""
+    from test_serial_source import Pty, run, settings, until
+
+    from sumhe.io.serial import SerialNmeaSource
+
+    pty = Pty()
+    epochs = [
+        [gga("120000"), rmc("120000")],
+        [gga("120001", alt="1e308", hdop="1e308"), rmc("120001", knots="1e9")],
+        [zda("120002", 2099), gga("120002")],
+        [gga("120003"), rmc("120003")],
+        [gga("120004"), rmc("120004")],
+    ]
+
+    async def main():
+        async with SerialNmeaSource(settings(pty.path)) as source:
+            await until(lambda: source.stats.connected)
+            fixes = []
+            for lines in epochs:
+                pty.write("".join(f"{x}\r\n" for x in lines).encode())
+                fixes.append(await anext(source))
+            return fixes, source.decoder.counters
+
+    try:
+        fixes, counters = run(main())
+    finally:
+        pty.close()
+    assert [f.time_utc.isoformat()[:19] for f in fixes] == [f"2024-05-17T12:00:0{s}" for s in range(5)]
+    assert all(f.valid for f in fixes)
+    assert (fixes[1].alt_m, fixes[1].hdop, fixes[1].speed_mps) == (None, None, None)
+    assert fixes[0].alt_m == 545.4 and counters.implausible == 4 and counters.backwards == 0
