@@ -90,7 +90,8 @@ def summary(stats: DecodeStats, log_stats: LogStats, silent: Iterable[str] = ())
         f"counter jumps {stats.counter_jumps} ({stats.frames_lost} frames lost), error frames {stats.error_frames}, "
         f"remote frames {stats.remote_frames}, FD frames on classic ids {stats.fd_frames}, too long for their "
         f"message {stats.long_frames}, other multiplexer values {stats.other_mux}, "
-        f"flagged invalid {stats.invalid}, malformed log lines {log_stats.malformed}"
+        f"flagged invalid {stats.invalid}, malformed log lines {log_stats.malformed}, log clock re-based "
+        f"{log_stats.rebases} times"
     ]
     if log_stats.files > 1 or len(stats.channels) > 1:
         lines.append(

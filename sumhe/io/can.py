@@ -763,11 +763,13 @@ class LogClock:
     before) the previous one continues the timeline one frame step after it, and so do the frames that follow.
 
     A bus that fell silent for longer than that inside one file (a logger running through a parked hour) is
-    compressed the same way; the estimator restarts at the next fix either way (``TimeGuard``'s ``jump_s``).
+    compressed the same way; the estimator restarts at the next fix either way (``TimeGuard``'s ``jump_s``). Each
+    jump is counted in ``stats.rebases`` and logged (a warning at most every 10 s, the others at debug level).
     """
 
     def __init__(self, path: Path, stats: LogStats) -> None:
         self.path, self.stats = path, stats
+        self._throttle = Throttle()
         self.offset = 0.0
         self._last = math.nan
         self._step = 0.0
@@ -778,7 +780,8 @@ class LogClock:
         if abs(step) > LOG_JUMP_S:
             shifted = self._last + self.offset + self._step
             self.stats.rebases += 1
-            log.warning(
+            log.log(
+                logging.WARNING if self._throttle.ready() else logging.DEBUG,
                 "%s: the log's clock jumps by %+.3f s at %.6f: the frames after it are re-based to %.6f (%d so far)",
                 self.path,
                 step,

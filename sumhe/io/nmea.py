@@ -693,7 +693,8 @@ def rebase_receive_times(fixes: Iterable[GnssFix], name: str, counters: NmeaCoun
     next while the receive time itself steps by as much, the fixes after keep the old difference (counted in
     ``counters.rebases``, logged). A pause of the log (receiver or logger off) moves both clocks alike and is kept;
     a jump of the receiver's own UTC leaves the receive times steady and is left to the decoder. Fixes without a
-    UTC date are judged by the step between receive times alone."""
+    UTC date are judged by the step between receive times alone. The first jump is logged as a warning, the others
+    at debug level."""
     offset = 0.0
     last_rx = last_lag = math.nan
     for fix in fixes:
@@ -703,7 +704,8 @@ def rebase_receive_times(fixes: Iterable[GnssFix], name: str, counters: NmeaCoun
         if abs(jump) > LOG_JUMP_S and abs(rx - last_rx) > LOG_JUMP_S:
             offset -= jump
             counters.rebases += 1
-            log.warning(
+            log.log(
+                logging.WARNING if counters.rebases == 1 else logging.DEBUG,
                 "%s: the log's clock jumps by %+.3f s at %.3f: the fixes after it are re-based (%d so far)",
                 name,
                 jump,
