@@ -110,6 +110,21 @@ def test_fd_and_over_long_frames_of_classic_messages_in_a_candump_log_are_refuse
     assert (decoder.stats.fd_frames, decoder.stats.long_frames, decoder.stats.decoded) == (1, 2, 1)
 
 
+def test_sumhe_candump_reports_the_refused_frames(tmp_path):
+    good = bytes(speed_frame(0.0, 36.0, 0).data).hex().upper()
+    log = tmp_path / "drive.log"
+    log.write_text(
+        f"(1780300800.000000) can0 1A0#{good}\n(1780300800.010000) can0 1A0#{good + '00' * 56}\n"
+        f"(1780300800.020000) can0 1A0##1{good + '00' * 56}\n(1780300800.030000) can0 1A0##A{good}\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-m", "sumhe", "candump", str(log)], env=ENV, capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 0 and len(result.stdout.splitlines()) == 1
+    assert "FD frames on classic ids 1, too long for their message 1" in result.stderr
+    assert "malformed log lines 1" in result.stderr
+
+
 def test_fd_and_over_long_frames_in_an_mf4_log_are_refused(tmp_path):
     good = speed_frame(1780300800.0, 36.0, 0)
     long_payload = bytes(good.data) + bytes(56)
