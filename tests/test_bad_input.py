@@ -215,6 +215,41 @@ def test_a_host_clock_step_in_both_logs_is_re_based_in_both(drive, tmp_path):
     assert "drive.nmea: the log's clock jumps by +3600" in moved.stderr and "clock resets 0" in moved.stderr
 
 
+def test_a_pause_of_both_logs_keeps_its_times_and_restarts_the_estimator(drive, tmp_path):
+    """The logger and the receiver were off for 2 h (the receiver's UTC moved too): the CAN log's step is a pause,
+    not its clock jumping (the NMEA log resumes there as well), so no log is re-based and the second part's
+    estimates keep their own times, restarted once (the estimator starts over at the first fix after the gap)."""
+    later = tmp_path / "later"
+    text = (drive / "scenario.toml").read_text()
+    start = float(text.split("start_unix_s = ")[1].split()[0])
+    (tmp_path / "later.toml").write_text(
+        text.replace(
+            f"start_unix_s = {text.split('start_unix_s = ')[1].split()[0]}", f"start_unix_s = {start + 7200.0}"
+        )
+    )
+    subprocess.run(
+        [sys.executable, "-m", "sumhe", "simulate", "--settings", str(tmp_path / "later.toml"), "--out", str(later)],
+        check=True,
+        env=ENV,
+        capture_output=True,
+    )
+    for name in ("drive.log", "drive.nmea"):
+        (tmp_path / name).write_text((drive / name).read_text() + (later / name).read_text())
+    both = replay(drive, tmp_path / "drive.log", tmp_path / "drive.nmea")
+    first, second = (
+        replay(drive, drive / "drive.log", drive / "drive.nmea"),
+        replay(later, later / "drive.log", later / "drive.nmea"),
+    )
+    assert both.returncode == 0, both.stderr
+    t = [json.loads(x)["t"] for x in both.stdout.splitlines()]
+    t_first = [json.loads(x)["t"] for x in first.stdout.splitlines()]
+    t_second = [json.loads(x)["t"] for x in second.stdout.splitlines()]
+    assert t[: len(t_first)] == t_first  # the part before the pause as alone
+    assert t_second[0] - 1.0 <= t[len(t_first)] and t[-1] == t_second[-1]  # after it: on its own times
+    assert abs(len(t) - len(t_first) - len(t_second)) <= 20
+    assert "pauses kept 1" in both.stderr and "re-based 0 times" in both.stderr
+
+
 def fix_at(rx: float, utc: float) -> GnssFix:
     when = dt.datetime.fromtimestamp(utc, dt.timezone.utc)
     return GnssFix(t=rx, time_utc=when, lat_deg=48.0, lon_deg=11.0, alt_m=None, quality=1, valid=True)

@@ -371,6 +371,7 @@ def _input_counters(drive: RecordedDrive) -> dict[str, Any]:
         "long_frames": ds.long_frames,
         "malformed": ls.malformed,
         "clock_rebases": ls.rebases,
+        "pauses": ls.pauses,
         "ended_early": ls.error,
     }
     if drive.nmea_decoders:
@@ -398,7 +399,8 @@ def _input_lines(counters: Mapping[str, Any]) -> list[str]:
         f"CAN: {c['files']} files, {c['frames']} frames; unused {c['unused']}, other multiplexer values "
         f"{c['other_mux']}, flagged invalid {c['invalid']}, decode errors {c['decode_errors']}, FD frames on classic "
         f"ids {c['fd_frames']}, too long for their message {c['long_frames']}, malformed {c['malformed']}, clock "
-        f"re-based {c['clock_rebases']} times" + (f"; ended early: {c['ended_early']}" if c["ended_early"] else "")
+        f"re-based {c['clock_rebases']} times, pauses kept {c['pauses']}"
+        + (f"; ended early: {c['ended_early']}" if c["ended_early"] else "")
     ]
     if "nmea" in c:
         n = c["nmea"]

@@ -32,7 +32,7 @@ import os
 import re
 import time
 from collections import deque
-from collections.abc import Collection, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from os import PathLike
 from pathlib import Path
@@ -636,6 +636,8 @@ class LogStats:
     malformed: int = 0
     rebases: int = 0
     """Clock jumps inside a file that were re-based (:class:`LogClock`)."""
+    pauses: int = 0
+    """Steps of a file's clock kept as a pause of the bus (:class:`LogClock`'s ``is_pause``)."""
     error: str = ""
     first_t: float = math.nan
 
@@ -653,7 +655,9 @@ MF4_EXTRA = "pip install 'sumhe[mf4]'"
 """How to install what MF4 logs need (asammdf, which python-can's MF4 reader uses)."""
 
 
-def read_log(path: str | PathLike[str], stats: LogStats | None = None) -> Iterator[can.Message]:
+def read_log(
+    path: str | PathLike[str], stats: LogStats | None = None, is_pause: PauseJudge | None = None
+) -> Iterator[can.Message]:
     """Frames of a CAN log in any format python-can reads (by suffix, any case: candump -L ``.log``, ``.asc``,
     ``.blf``, ``.trc``, ``.csv``, each optionally ``.gz``; ASAM MDF 4 ``.mf4`` with the ``mf4`` extra).
 
@@ -686,7 +690,7 @@ def read_log(path: str | PathLike[str], stats: LogStats | None = None) -> Iterat
             raise SourceError(f"{p}: unsupported CAN log format ({e})") from e
         raise SourceError(f"{p}: cannot read CAN log: {type(e).__name__}: {e}") from e
     stats.files += 1
-    return _frames(reader, p, stats)
+    return _frames(reader, p, stats, is_pause)
 
 
 def _suffix(path: Path) -> str:
@@ -757,18 +761,25 @@ LOG_JUMP_S = 60.0
 """A step between consecutive frames of one log file larger than this (s, either way) is the logger's clock
 jumping (an NTP step, an RTC set), not the bus: :class:`LogClock` re-bases the frames after it."""
 
+PauseJudge = Callable[[float, float], bool]
+"""``judge(before, after) -> bool``: whether a step of a CAN log's clock from ``before`` to ``after`` (s) is time
+that really passed (a pause of the bus: kept) rather than the logger's clock jumping (re-based); the drive's other
+logs can tell (:meth:`sumhe.io.replay.RecordedDrive.can_pause`)."""
+
 
 class LogClock:
     """Re-bases one log file's timestamps across clock jumps: a frame more than :data:`LOG_JUMP_S` after (or
     before) the previous one continues the timeline one frame step after it, and so do the frames that follow.
 
-    A bus that fell silent for longer than that inside one file (a logger running through a parked hour) is
-    compressed the same way; the estimator restarts at the next fix either way (``TimeGuard``'s ``jump_s``). Each
-    jump is counted in ``stats.rebases`` and logged (a warning at most every 10 s, the others at debug level).
+    A bus that fell silent for longer than that inside one file (a logger running through a parked hour) looks
+    the same from the file alone: ``is_pause`` (the drive's NMEA logs, which ran on through the pause) tells the two
+    apart, and a pause keeps its times (the estimator restarts at the next fix, ``TimeGuard``'s ``jump_s``;
+    counted in ``stats.pauses``). Without it every step is re-based. Each re-based jump is counted in
+    ``stats.rebases`` and logged (a warning at most every 10 s, the others at debug level).
     """
 
-    def __init__(self, path: Path, stats: LogStats) -> None:
-        self.path, self.stats = path, stats
+    def __init__(self, path: Path, stats: LogStats, is_pause: PauseJudge | None = None) -> None:
+        self.path, self.stats, self.is_pause = path, stats, is_pause
         self._throttle = Throttle()
         self.offset = 0.0
         self._last = math.nan
@@ -777,7 +788,16 @@ class LogClock:
     def __call__(self, stamp: float) -> float:
         """The frame time on the file's continuous timeline (s)."""
         step = stamp - self._last
-        if abs(step) > LOG_JUMP_S:
+        if (
+            abs(step) > LOG_JUMP_S
+            and self.is_pause is not None
+            and self.is_pause(self._last + self.offset, stamp + self.offset)
+        ):
+            self.stats.pauses += 1
+            log.info(
+                "%s: the bus was silent for %.1f s at %.6f (the NMEA log ran on): times kept", self.path, step, stamp
+            )
+        elif abs(step) > LOG_JUMP_S:
             shifted = self._last + self.offset + self._step
             self.stats.rebases += 1
             log.log(
@@ -797,9 +817,9 @@ class LogClock:
 
 
 def _frames(
-    reader: can.io.generic.MessageReader | _CandumpReader, path: Path, stats: LogStats
+    reader: can.io.generic.MessageReader | _CandumpReader, path: Path, stats: LogStats, is_pause: PauseJudge | None
 ) -> Iterator[can.Message]:
-    clock = LogClock(path, stats)
+    clock = LogClock(path, stats, is_pause)
     with reader:
         frames = 0
         try:
@@ -823,7 +843,9 @@ def first_timestamp(path: str | PathLike[str]) -> float | None:
         frames.close()  # type: ignore[attr-defined]
 
 
-def read_logs(paths: Sequence[str | PathLike[str]], stats: LogStats | None = None) -> Iterator[can.Message]:
+def read_logs(
+    paths: Sequence[str | PathLike[str]], stats: LogStats | None = None, is_pause: PauseJudge | None = None
+) -> Iterator[can.Message]:
     """The frames of one drive's CAN logs (one file or several, in any order), as one stream in time order.
 
     The files are ordered by their first timestamps (read now: SourceError at once for a missing or unreadable
@@ -843,15 +865,17 @@ def read_logs(paths: Sequence[str | PathLike[str]], stats: LogStats | None = Non
     heads.sort()
     if heads:
         stats.first_t = heads[0][0]
-    return _merged(deque(heads), stats)
+    return _merged(deque(heads), stats, is_pause)
 
 
-def _merged(pending: deque[tuple[float, int, Path]], stats: LogStats) -> Iterator[can.Message]:
+def _merged(
+    pending: deque[tuple[float, int, Path]], stats: LogStats, is_pause: PauseJudge | None
+) -> Iterator[can.Message]:
     active: list[tuple[float, int, can.Message, Iterator[can.Message]]] = []
     order = itertools.count()
     while pending or active:
         while pending and (not active or pending[0][0] <= active[0][0]):
-            frames = read_log(pending.popleft()[2], stats)
+            frames = read_log(pending.popleft()[2], stats, is_pause)
             msg = next(frames, None)
             if msg is not None:
                 heapq.heappush(active, (msg.timestamp, next(order), msg, frames))

@@ -20,9 +20,11 @@ from collections.abc import AsyncIterator, Collection, Iterable, Iterator, Seque
 from os import PathLike
 from pathlib import Path
 
+import numpy as np
+
 from sumhe.config import Config
 from sumhe.errors import ConfigError, SourceError
-from sumhe.io.can import CanDecoder, LogStats, read_logs
+from sumhe.io.can import LOG_JUMP_S, CanDecoder, LogStats, read_logs
 from sumhe.io.fixtime import stamp_fix
 from sumhe.io.nmea import NmeaDecoder, iter_fixes, rebase_receive_times
 from sumhe.messages import GnssFix, Sample
@@ -126,7 +128,8 @@ class RecordedDrive:
                 raise SourceError(f"{p}: NMEA log not found")
         self.nmea_decoders = [NmeaDecoder() for _ in self.nmea_logs]
         self.log_stats = LogStats()
-        self._frames = read_logs(self.can_logs, self.log_stats) if self.can_logs else iter(())
+        self._nmea_times: np.ndarray | None = None
+        self._frames = read_logs(self.can_logs, self.log_stats, self.can_pause) if self.can_logs else iter(())
         self.decoder = CanDecoder.from_config(self.config, quantities=quantities) if self.can_logs else None
 
     @property
@@ -151,6 +154,25 @@ class RecordedDrive:
             )
             streams.append(stamp_fix(fix, gps) for fix in shift_fixes(fixes, self.offset_s))  # type: ignore[arg-type]
         return merge_by_time(*streams)
+
+    def can_pause(self, before: float, after: float) -> bool:
+        """Whether a CAN log's clock stepping from ``before`` to ``after`` (s) is time that passed (kept) rather than
+        the logger's clock jumping (re-based, :class:`~sumhe.io.can.LogClock`): with NMEA logs, a pause where their
+        (re-based) receive times reach ``after`` too (the receiver ran on, or both logs resumed there), a jump where
+        they do not (they went on near ``before``: only the CAN log's clock jumped); without, always a pause (the
+        fixes come in the same CAN logs, on the same clock). The NMEA logs are read for it at the first such step."""
+        if not self.nmea_logs:
+            return True
+        if self._nmea_times is None:
+            times = [
+                f.t
+                for p in self.nmea_logs
+                for f in rebase_receive_times(iter_fixes(p, NmeaDecoder()), str(p), NmeaDecoder().counters)
+            ]
+            self._nmea_times = np.sort(np.array(times, dtype=float))
+        t = self._nmea_times
+        i = int(np.searchsorted(t, after - LOG_JUMP_S))
+        return i < len(t) and t[i] <= after + LOG_JUMP_S
 
     def unusable(self, valid_fixes: int, can_samples: int) -> str | None:
         """Why a replay of this drive that gave ``valid_fixes`` valid fixes and ``can_samples`` CAN samples had
