@@ -19,7 +19,7 @@ import sys
 from collections.abc import Sequence
 
 from sumhe import __version__
-from sumhe.errors import SumheError
+from sumhe.errors import SumheError, printable
 
 COMMANDS: dict[str, tuple[str, str]] = {
     "nmea": ("sumhe.commands.nmea", "decode NMEA sentences into fixes (JSON lines)"),
@@ -93,7 +93,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SumheError as e:
         if args.debug:
             raise
-        print(f"error: {e}", file=sys.stderr)
+        text = "\n".join(printable(line, 4000) for line in str(e).splitlines())
+        print(f"error: {text}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         return 130

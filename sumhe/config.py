@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import ipaddress
 import logging
 import os
+import re
 import sys
 import types
 import typing
@@ -21,7 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Union
 
-from sumhe.errors import ConfigError
+from sumhe.errors import ConfigError, printable
 from sumhe.messages import CAN_QUANTITIES, GNSS_QUANTITIES
 from sumhe.settings import EstimationSettings, EstimatorSettings, SensorSettings, VehicleSettings
 from sumhe.settings.moved import MOVED
@@ -74,6 +76,8 @@ class CanSettings:
     bitrate: int | None = None
     dbc: str | tuple[str, ...] = DEFAULT_DBC
     dbc_strict: bool = True
+    dbc_max_mb: float = 32.0
+    """Largest database file read (MB): a wrong file (a log, a binary) named as the DBC is refused before parsing."""
     receive_timeout_s: float = 1.0
     queue_size: int = 2000
     reconnect_max_s: float = 5.0
@@ -82,7 +86,7 @@ class CanSettings:
     """Messages protected by CRC-8 in byte 0 and a 4-bit rolling counter (see :mod:`sumhe.io.can`)."""
 
     def __post_init__(self) -> None:
-        _positive(self, "receive_timeout_s", "queue_size", "reconnect_max_s")
+        _positive(self, "receive_timeout_s", "queue_size", "reconnect_max_s", "dbc_max_mb")
         if self.bitrate is not None and self.bitrate <= 0:
             raise ValueError("bitrate: must be positive")
         if not self.dbc_files or not all(self.dbc_files):
@@ -161,12 +165,17 @@ DEFAULT_JSON = ("127.0.0.1:5005",)
 
 @dataclass(frozen=True, slots=True)
 class OutputSettings:
-    """Sinks: one list of UDP destinations ``host:port`` per format (``json``, ``nmea``), and the status line."""
+    """Sinks: one list of UDP destinations ``host:port`` per format (``json``, ``nmea``), and the status line.
+
+    A destination is an IP address or a host name (resolved at start). Without ``allow_remote`` every destination
+    must be this host (loopback, an address of its own, an interface-local IPv6 multicast group); broadcast,
+    multicast beyond the host and other hosts need ``allow_remote = true`` (:mod:`sumhe.io.udp`)."""
 
     json: tuple[str, ...] = DEFAULT_JSON
     nmea: tuple[str, ...] = ()
     status_udp: str | None = None
     status_interval_s: float = 5.0
+    allow_remote: bool = False
 
     def __post_init__(self) -> None:
         for name in ("json", "nmea"):
@@ -289,11 +298,28 @@ def parse_host_port(text: str) -> tuple[str, int]:
     return host, int(port)
 
 
+_HOST_LABEL = re.compile(r"(?!-)[A-Za-z0-9-]{1,63}(?<!-)")
+
+
+def is_host(text: str) -> bool:
+    """Whether ``text`` is an IP address (IPv6 with an optional ``%zone``) or a host name (RFC 1123 labels)."""
+    try:
+        ipaddress.ip_address(text.partition("%")[0])
+    except ValueError:
+        labels = text.removesuffix(".").split(".")
+        return len(text) <= 253 and all(_HOST_LABEL.fullmatch(x) for x in labels) and not labels[-1].isdigit()
+    return True
+
+
 def _destination(key: str, text: str) -> None:
     try:
-        parse_host_port(text)
+        host, _ = parse_host_port(text)
     except ValueError as e:
         raise ValueError(f"{key}: {e}") from e
+    if not is_host(host):
+        raise ValueError(
+            f"{key}: '{printable(text, 80)}': '{printable(host, 80)}' is neither an IP address nor a host name"
+        )
 
 
 def _positive(obj: object, *names: str) -> None:
@@ -421,6 +447,60 @@ def build_section(cls: type, table: Mapping[str, Any], section: str, base: Any =
 
 ENV_PREFIX = "SUMHE_"
 
+MAX_DEPTH = 16
+"""Deepest nesting of tables and arrays a config value may have (sumhe's own go 3 deep)."""
+
+
+def _too_deep(value: Any, key: str) -> str | None:
+    """The dotted key of the first place in ``value`` (at ``key``) nested more than :data:`MAX_DEPTH` deep, or None
+    (walked without recursion)."""
+    stack = [(value, key, 0)]
+    while stack:
+        node, where, depth = stack.pop()
+        if depth > MAX_DEPTH:
+            return where
+        if isinstance(node, Mapping):
+            stack.extend((v, f"{where}.{k}" if where else str(k), depth + 1) for k, v in node.items())
+        elif isinstance(node, list):
+            stack.extend((v, where, depth + 1) for v in node)
+    return None
+
+
+def _check_depth(data: Any, origin: str, key: str = "") -> None:
+    where = _too_deep(data, key)
+    if where is not None:
+        raise ConfigError(f"{origin}: {printable(where, 80)}: nested more than {MAX_DEPTH} tables or arrays deep")
+
+
+def _loads(text: str, origin: str, key: str | None = None) -> dict[str, Any]:
+    """``tomllib.loads`` with nesting too deep for its recursive parser turned into a ConfigError naming ``key`` (or
+    the line and its key)."""
+    try:
+        return tomllib.loads(text)
+    except RecursionError:
+        if key is not None:
+            raise ConfigError(f"{origin}: {key}: nested more than {MAX_DEPTH} tables or arrays deep") from None
+        n, line = next(
+            ((n, line) for n, line in enumerate(text.splitlines(), 1) if _opens(line) > MAX_DEPTH), (0, text)
+        )
+        key = line.partition("=")[0].strip() if "=" in line else "?"
+        where = f"line {n}: " if n else ""
+        raise ConfigError(
+            f"{origin}: {where}{printable(key, 80)}: nested more than {MAX_DEPTH} tables or arrays deep"
+        ) from None
+
+
+def _opens(line: str) -> int:
+    """The most ``[`` / ``{`` a line opens without closing one (a rough nesting depth, strings not skipped)."""
+    depth = most = 0
+    for c in line:
+        if c in "[{":
+            depth += 1
+            most = max(most, depth)
+        elif c in "]}":
+            depth -= 1
+    return most
+
 
 def _env_overrides(env: Mapping[str, str]) -> dict[str, tuple[Any, str]]:
     """``SUMHE_<SECTION>__<KEY>[__<SUBKEY>]`` variables as dotted key -> (value, origin). A value is read as a
@@ -438,11 +518,13 @@ def _env_overrides(env: Mapping[str, str]) -> dict[str, tuple[Any, str]]:
                 hint = f"{ENV_PREFIX}{section.upper()}__{rest[len(section) + 1 :].upper()}"
                 raise ConfigError(f"{origin}: not a setting: write {ENV_PREFIX}<SECTION>__<KEY> (e.g. {hint})")
             continue
+        key = rest.replace("__", ".")
         try:
-            value: Any = tomllib.loads(f"v = {raw}")["v"]
+            value: Any = _loads(f"v = {raw}", origin, key)["v"]
         except tomllib.TOMLDecodeError:
             value = raw
-        out[rest.replace("__", ".")] = (value, origin)
+        _check_depth(value, origin, key)
+        out[key] = (value, origin)
     return out
 
 
@@ -510,13 +592,15 @@ def _legacy_output(table: Mapping[str, Any], origins: Mapping[str, str], source:
 def _read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
     source = str(path)
     try:
-        return tomllib.loads(Path(path).read_text(encoding="utf-8"))
+        data = _loads(Path(path).read_text(encoding="utf-8"), source)
     except FileNotFoundError as e:
         raise ConfigError(f"{source}: file not found") from e
     except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{source}: cannot read: {e}") from e
+        raise ConfigError(f"{source}: cannot read: {printable(str(e))}") from e
     except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"{source}: not valid TOML: {e}") from e
+        raise ConfigError(f"{source}: not valid TOML: {printable(str(e))}") from e
+    _check_depth(data, source)
+    return data
 
 
 def _merge(base: dict[str, Any], over: Mapping[str, Any]) -> None:

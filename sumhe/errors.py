@@ -1,4 +1,5 @@
-"""The error tree of sumhe: one root, multiply inheriting the builtins callers expect."""
+"""The error tree of sumhe: one root, multiply inheriting the builtins callers expect; :func:`printable` makes
+any text safe to put in an error message."""
 
 
 class SumheError(Exception):
@@ -27,3 +28,10 @@ class EstimatorInputError(SumheError, ValueError):
 
 class CalibrationError(SumheError, ValueError):
     """A recorded drive that cannot be calibrated (no valid fix, no CAN speed); the message says what is missing."""
+
+
+def printable(text: str, limit: int = 200) -> str:
+    """``text`` safe for a terminal and a log line: control (C0, C1) and other non-printable characters escaped as in
+    ``repr`` (no terminal escape sequence gets through), cut to ``limit`` characters."""
+    out = "".join(c if c.isprintable() else repr(c)[1:-1] for c in text[:limit])
+    return out + ("..." if len(text) > limit else "")

@@ -3,6 +3,7 @@ after the command, ``sumhe listen`` and ``sumhe can-up``. Real processes, a real
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -12,6 +13,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -44,31 +46,39 @@ def _free_udp_port() -> int:
         return s.getsockname()[1]
 
 
-@pytest.mark.slow
-def test_the_daemon_says_starting_ready_status_and_stopped_at_the_default_level(tmp_path):
-    """No ``-v``: the lifecycle lines show; a CAN bus with no traffic and a receiver that says nothing are warned
-    about; SIGTERM stops it with exit 0 and a stopped line with the counters."""
+@contextlib.contextmanager
+def _daemon(tmp_path: Path, channel: str) -> Iterator[tuple[subprocess.Popen, socket.socket]]:
+    """``sumhe run`` on a virtual bus and a pty receiver that stay silent, its JSON status every 0.5 s to the
+    socket given; killed and closed after the block if still running."""
     pty = Pty(tmp_path / "gps")
     status_rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     status_rx.bind(("127.0.0.1", 0))
     status_rx.settimeout(10)
     config = tmp_path / "c.toml"
     config.write_text(
-        f'[can]\ninterface = "virtual"\nchannel = "sumhe-cli-test"\n{SIGNALS}[gps]\nport = "{tmp_path / "gps"}"\n'
+        f'[can]\ninterface = "virtual"\nchannel = "{channel}"\n{SIGNALS}[gps]\nport = "{tmp_path / "gps"}"\n'
         f'[output]\njson = ["127.0.0.1:{_free_udp_port()}"]\nstatus_interval_s = 0.5\n'
         f'status_udp = "127.0.0.1:{status_rx.getsockname()[1]}"\n'
     )
     proc = _sumhe("run", "--config", str(config))
     try:
-        status = json.loads(status_rx.recv(65535))
-        time.sleep(0.6)
-        proc.send_signal(signal.SIGTERM)
-        _, err = proc.communicate(timeout=20)
+        yield proc, status_rx
     finally:
         if proc.poll() is None:
             proc.kill()
         pty.close()
         status_rx.close()
+
+
+@pytest.mark.slow
+def test_the_daemon_says_starting_ready_status_and_stopped_at_the_default_level(tmp_path):
+    """No ``-v``: the lifecycle lines show; a CAN bus with no traffic and a receiver that says nothing are warned
+    about; SIGTERM stops it with exit 0 and a stopped line with the counters."""
+    with _daemon(tmp_path, "sumhe-cli-test") as (proc, status_rx):
+        status = json.loads(status_rx.recv(65535))
+        time.sleep(0.6)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=20)
     assert proc.returncode == 0, err
     assert status["class"] == "STATUS" and status["sources"]["can"]["connected"] is True
     assert {"fd_frames", "error_frames", "reconnects"} <= set(status["sources"]["can"])
@@ -180,3 +190,15 @@ def test_link_commands_for_real_and_virtual_interfaces():
         ["ip", "link", "set", "can0", "down"],
         ["ip", "link", "set", "can0", "up", "type", "can", "bitrate", "500000", "restart-ms", "100"],
     ]
+
+
+@pytest.mark.slow
+def test_sighup_stops_the_daemon_cleanly_with_the_stopped_line(tmp_path):
+    """SIGHUP (the terminal hung up) stops the daemon as SIGTERM does: exit 0 and the stopped line (it used to kill
+    it with exit 129 and no line); it does not re-read the config (README)."""
+    with _daemon(tmp_path, "sumhe-sighup-test") as (proc, status_rx):
+        status_rx.recv(65535)  # running
+        proc.send_signal(signal.SIGHUP)
+        _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err
+    assert re.search(r"sumhe stopped after \d+\.\d s:", err), err

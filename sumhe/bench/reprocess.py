@@ -367,9 +367,18 @@ def _input_counters(drive: RecordedDrive) -> dict[str, Any]:
         "other_mux": ds.other_mux,
         "invalid": ds.invalid,
         "decode_errors": ds.decode_errors,
+        "fd_frames": ds.fd_frames,
+        "long_frames": ds.long_frames,
         "malformed": ls.malformed,
+        "clock_rebases": ls.rebases,
+        "pauses": ls.pauses,
         "ended_early": ls.error,
     }
+    if drive.nmea_decoders:
+        out["nmea"] = {
+            k: sum(getattr(d.counters, k) for d in drive.nmea_decoders)
+            for k in ("lines", "fixes", "checksum_errors", "garbled", "implausible", "backwards", "rebases")
+        }
     if drive.decoder.gnss is not None:
         gs = drive.decoder.gnss.stats
         out["gnss"] = {
@@ -388,9 +397,18 @@ def _input_lines(counters: Mapping[str, Any]) -> list[str]:
     c = counters
     out = [
         f"CAN: {c['files']} files, {c['frames']} frames; unused {c['unused']}, other multiplexer values "
-        f"{c['other_mux']}, flagged invalid {c['invalid']}, decode errors {c['decode_errors']}, malformed "
-        f"{c['malformed']}" + (f"; ended early: {c['ended_early']}" if c["ended_early"] else "")
+        f"{c['other_mux']}, flagged invalid {c['invalid']}, decode errors {c['decode_errors']}, FD frames on classic "
+        f"ids {c['fd_frames']}, too long for their message {c['long_frames']}, malformed {c['malformed']}, clock "
+        f"re-based {c['clock_rebases']} times, pauses kept {c['pauses']}"
+        + (f"; ended early: {c['ended_early']}" if c["ended_early"] else "")
     ]
+    if "nmea" in c:
+        n = c["nmea"]
+        out.append(
+            f"NMEA: {n['lines']} lines, {n['fixes']} fixes; checksum errors {n['checksum_errors']}, garbled "
+            f"{n['garbled']}, implausible values {n['implausible']}, time going back {n['backwards']}, clock "
+            f"re-based {n['rebases']} times"
+        )
     if "gnss" in c:
         g = c["gnss"]
         out.append(

@@ -1,6 +1,7 @@
 """``sumhe bench [NAME]``: the benchmarks, one sub-benchmark each: ``peers`` (every estimator side by side,
 :mod:`sumhe.bench.peers`; what ``sumhe bench`` without a NAME runs), ``mhe`` (:mod:`sumhe.bench.mhe`),
-``protocol`` (paper 000's protocol, the same as ``sumhe protocol``) and ``tune`` (the peers' noise tuning,
+``protocol`` (paper 000's protocol, the same as ``sumhe protocol``), ``fuzz`` (the input decoders on fuzzed
+lines, :mod:`sumhe.bench.fuzz`) and ``tune`` (the peers' noise tuning,
 :mod:`sumhe.bench.tune`).
 
 A benchmark prints figures (latency percentiles, errors, speed) and how it ran; it asserts nothing. BLAS is
@@ -48,6 +49,11 @@ BENCHMARKS: dict[str, tuple[str, str, str]] = {
         "sumhe.commands.protocol:add_arguments",
         "sumhe.commands.protocol:run",
     ),
+    "fuzz": (
+        "the NMEA and candump decoders on 10^6 fuzzed lines: lines/s, crashes (none expected)",
+        "sumhe.commands.bench:add_fuzz_arguments",
+        "sumhe.commands.bench:run_fuzz",
+    ),
     "tune": (
         "the peers' noise tuning: grid search on training drives, evaluation on test drives",
         "sumhe.bench.tune:add_arguments",
@@ -74,6 +80,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     return int(_load(args._bench)(args))
+
+
+def add_fuzz_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--lines", type=int, default=1_000_000, metavar="N", help="lines in all (default 10^6)")
+    parser.add_argument("--seed", type=int, default=0, metavar="N", help="random seed (default 0)")
+
+
+def run_fuzz(args: argparse.Namespace) -> int:
+    from sumhe.bench import fuzz
+
+    report = fuzz.run(args.lines, args.seed, progress=lambda text: print(text, file=sys.stderr, flush=True))
+    print("\n".join(fuzz.lines(report, args.seed)))
+    return 1 if report.crashes or report.problems else 0
 
 
 def add_mhe_arguments(parser: argparse.ArgumentParser) -> None:

@@ -88,8 +88,10 @@ def summary(stats: DecodeStats, log_stats: LogStats, silent: Iterable[str] = ())
         f"frames: {stats.frames} over {duration_s:.3f} s; decoded {stats.decoded}, unused {stats.unused}, "
         f"decode errors {stats.decode_errors}, CRC errors {stats.crc_errors}, stale {stats.stale}, "
         f"counter jumps {stats.counter_jumps} ({stats.frames_lost} frames lost), error frames {stats.error_frames}, "
-        f"remote frames {stats.remote_frames}, other multiplexer values {stats.other_mux}, "
-        f"flagged invalid {stats.invalid}, malformed log lines {log_stats.malformed}"
+        f"remote frames {stats.remote_frames}, FD frames on classic ids {stats.fd_frames}, too long for their "
+        f"message {stats.long_frames}, other multiplexer values {stats.other_mux}, "
+        f"flagged invalid {stats.invalid}, malformed log lines {log_stats.malformed}, log clock re-based "
+        f"{log_stats.rebases} times"
     ]
     if log_stats.files > 1 or len(stats.channels) > 1:
         lines.append(

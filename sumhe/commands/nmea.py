@@ -69,7 +69,7 @@ def summary(c: NmeaCounters) -> str:
     """The stderr summary: what was read and what became of it."""
     return (
         f"lines: {c.lines} ({c.comments} comments); sentences: {c.sentences} ({c.unknown} of unused types); "
-        f"checksum errors: {c.checksum_errors}; garbled: {c.garbled}\n"
+        f"checksum errors: {c.checksum_errors}; garbled: {c.garbled}; implausible values ignored: {c.implausible}\n"
         f"fixes: {c.fixes} ({c.no_fix} without a position); dropped: {c.late} late sentences, "
         f"{c.backwards} epochs with time going backwards, {c.undated} fixes without a date\n"
     )

@@ -6,7 +6,8 @@ the same JSON objects the UDP output sends, one line per estimate, to ``--out`` 
 stderr: samples, estimates, dropped samples, solve times, speed against real time, the estimates' modes (share of
 epochs solved on widened bounds and of solver failures), the estimator's counters, and with ``--outage
 START+LEN ...`` the errors against the fixes removed in those windows (START in seconds from the drive's first
-CAN frame; :mod:`sumhe.bench.outages`).
+CAN frame; :mod:`sumhe.bench.outages`). A drive without a valid fix or without CAN samples of the mapped signals
+exits 1 with the reason (the log and its counters).
 """
 
 from __future__ import annotations
@@ -61,4 +62,8 @@ def run(args: argparse.Namespace) -> int:
     with out_ctx as out:
         summary = replay_drive(drive, estimator, args.outage, out)
     print("\n".join(summary.lines()), file=sys.stderr)
+    reason = drive.unusable(summary.valid_fixes, summary.can_samples)
+    if reason is not None:
+        print(f"error: nothing to estimate from: {reason}", file=sys.stderr)
+        return 1
     return 0

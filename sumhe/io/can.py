@@ -28,10 +28,11 @@ import io
 import itertools
 import logging
 import math
+import os
 import re
 import time
 from collections import deque
-from collections.abc import Collection, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from os import PathLike
 from pathlib import Path
@@ -42,7 +43,7 @@ import cantools
 from cantools.database.can import Database, Message
 
 from sumhe.config import Config, SignalSpec, load_config
-from sumhe.errors import ConfigError, SourceError
+from sumhe.errors import ConfigError, SourceError, printable
 from sumhe.io.can_gnss import GnssAssembler
 from sumhe.io.checksum import is_intact, rolling_counter
 from sumhe.messages import CAN_QUANTITIES, GNSS_QUANTITIES, CanSample, GnssFix, Sample
@@ -139,21 +140,28 @@ def si_factor(unit: str | None, quantity: str) -> float | None:
     return _UNITS[_KIND_OF[quantity]].get((unit or "").strip().lower().replace(" ", ""))
 
 
-def load_dbc(path: str | PathLike[str], strict: bool = True) -> Database:
-    """Load a CAN database (DBC, KCD, SYM, ARXML by suffix); ConfigError naming the file on any failure.
+def load_dbc(path: str | PathLike[str], strict: bool = True, max_mb: float = 32.0) -> Database:
+    """Load a CAN database (DBC, KCD, SYM, ARXML by suffix); ConfigError naming the file on any failure, its text
+    safe for a terminal (:func:`~sumhe.config.printable`: a binary file's bytes come out escaped).
 
     ``strict=False`` accepts databases with overlapping signals or signals past the message end, which
-    several public DBCs have.
+    several public DBCs have. A file larger than ``max_mb`` MB (``can.dbc_max_mb``) is refused unread.
     """
     try:
+        size = os.stat(path).st_size
+        if size > max_mb * 1e6:
+            raise ConfigError(
+                f"{path}: {size / 1e6:.1f} MB, larger than can.dbc_max_mb = {max_mb:g} MB: not a CAN database? "
+                "(raise can.dbc_max_mb for a database this large)"
+            )
         db = cantools.database.load_file(str(path), strict=strict)
     except FileNotFoundError as e:
         raise ConfigError(f"{path}: DBC file not found") from e
     except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{path}: cannot read DBC: {e}") from e
+        raise ConfigError(f"{path}: cannot read DBC: {printable(str(e))}") from e
     except cantools.database.Error as e:
         hint = " (can.dbc_strict = false accepts it)" if strict and _loads_leniently(path) else ""
-        raise ConfigError(f"{path}: not a valid CAN database: {e}{hint}") from e
+        raise ConfigError(f"{path}: not a valid CAN database: {printable(str(e))}{hint}") from e
     if not isinstance(db, Database):
         raise ConfigError(f"{path}: not a CAN database")
     return db
@@ -207,6 +215,9 @@ class DecodeStats:
     error_frames: int = 0
     fd_frames: int = 0
     """CAN FD frames on ids of classic messages (or unused ids): ignored."""
+    long_frames: int = 0
+    """Frames of a classic message with a longer payload than its DBC length (e.g. a 64-byte FD payload from a log
+    or an MF4 record without the FD flag): refused, never decoded from their first bytes."""
     remote_frames: int = 0
     other_mux: int = 0
     invalid: int = 0
@@ -345,7 +356,7 @@ class CanDecoder:
         """Load ``can.dbc`` (honouring ``can.dbc_strict``) and resolve ``can.signals``, ``can.e2e`` and, with
         ``gps.source = "can"``, ``gps.signals``. ``quantities`` keeps only those CAN quantities of the mapping (a
         replay decodes nothing its estimator does not read); None keeps all."""
-        dbs = [load_dbc(path, config.can.dbc_strict) for path in config.dbc_paths]
+        dbs = [load_dbc(path, config.can.dbc_strict, config.can.dbc_max_mb) for path in config.dbc_paths]
         gnss = config.gps.signals if config.gps.source == "can" else None
         signals = {q: s for q, s in config.can.signals.items() if quantities is None or q in quantities}
         return cls(dbs, signals, config.can.e2e, config.source, every_message, gnss, config.gps.epoch_span_s)
@@ -509,11 +520,16 @@ class CanDecoder:
         return route
 
     def _data(self, route: _Route, msg: can.Message) -> bytes | None:
-        """The payload, or None (counted) when it is short or fails its E2E check."""
+        """The payload, or None (counted) when it is short, longer than a classic message's DBC length, or fails
+        its E2E check."""
         data = bytes(msg.data)
         if len(data) < route.length:
             self.stats.decode_errors += 1
             self._warn("%s: short payload (%d of %d bytes)", route.name, len(data), route.length)
+            return None
+        if len(data) > route.length and not route.message.is_fd:
+            self.stats.long_frames += 1
+            self._warn("%s: %d-byte payload on a %d-byte classic message: refused", route.name, len(data), route.length)
             return None
         if route.e2e and not self._check_e2e(route, data):
             return None
@@ -618,6 +634,10 @@ class LogStats:
     files: int = 0
     frames: int = 0
     malformed: int = 0
+    rebases: int = 0
+    """Clock jumps inside a file that were re-based (:class:`LogClock`)."""
+    pauses: int = 0
+    """Steps of a file's clock kept as a pause of the bus (:class:`LogClock`'s ``is_pause``)."""
     error: str = ""
     first_t: float = math.nan
 
@@ -635,7 +655,9 @@ MF4_EXTRA = "pip install 'sumhe[mf4]'"
 """How to install what MF4 logs need (asammdf, which python-can's MF4 reader uses)."""
 
 
-def read_log(path: str | PathLike[str], stats: LogStats | None = None) -> Iterator[can.Message]:
+def read_log(
+    path: str | PathLike[str], stats: LogStats | None = None, is_pause: PauseJudge | None = None
+) -> Iterator[can.Message]:
     """Frames of a CAN log in any format python-can reads (by suffix, any case: candump -L ``.log``, ``.asc``,
     ``.blf``, ``.trc``, ``.csv``, each optionally ``.gz``; ASAM MDF 4 ``.mf4`` with the ``mf4`` extra).
 
@@ -668,7 +690,7 @@ def read_log(path: str | PathLike[str], stats: LogStats | None = None) -> Iterat
             raise SourceError(f"{p}: unsupported CAN log format ({e})") from e
         raise SourceError(f"{p}: cannot read CAN log: {type(e).__name__}: {e}") from e
     stats.files += 1
-    return _frames(reader, p, stats)
+    return _frames(reader, p, stats, is_pause)
 
 
 def _suffix(path: Path) -> str:
@@ -721,8 +743,13 @@ class _CandumpReader:
                     )
                     continue
             if general(stripped):
-                yield from can.CanutilsLogReader(io.StringIO(stripped))
-                continue
+                try:
+                    frames = list(can.CanutilsLogReader(io.StringIO(stripped)))
+                except ValueError:  # python-can reads the FD flags digit as decimal: ``##A`` to ``##F`` fail
+                    frames = []
+                if frames:
+                    yield from frames
+                    continue
             self.stats.malformed += 1
             if throttle.ready():
                 log.warning(
@@ -730,15 +757,76 @@ class _CandumpReader:
                 )
 
 
+LOG_JUMP_S = 60.0
+"""A step between consecutive frames of one log file larger than this (s, either way) is the logger's clock
+jumping (an NTP step, an RTC set), not the bus: :class:`LogClock` re-bases the frames after it."""
+
+PauseJudge = Callable[[float, float], bool]
+"""``judge(before, after) -> bool``: whether a step of a CAN log's clock from ``before`` to ``after`` (s) is time
+that really passed (a pause of the bus: kept) rather than the logger's clock jumping (re-based); the drive's other
+logs can tell (:meth:`sumhe.io.replay.RecordedDrive.can_pause`)."""
+
+
+class LogClock:
+    """Re-bases one log file's timestamps across clock jumps: a frame more than :data:`LOG_JUMP_S` after (or
+    before) the previous one continues the timeline one frame step after it, and so do the frames that follow.
+
+    A bus that fell silent for longer than that inside one file (a logger running through a parked hour) looks
+    the same from the file alone: ``is_pause`` (the drive's NMEA logs, which ran on through the pause) tells the two
+    apart, and a pause keeps its times (the estimator restarts at the next fix, ``TimeGuard``'s ``jump_s``;
+    counted in ``stats.pauses``). Without it every step is re-based. Each re-based jump is counted in
+    ``stats.rebases`` and logged (a warning at most every 10 s, the others at debug level).
+    """
+
+    def __init__(self, path: Path, stats: LogStats, is_pause: PauseJudge | None = None) -> None:
+        self.path, self.stats, self.is_pause = path, stats, is_pause
+        self._throttle = Throttle()
+        self.offset = 0.0
+        self._last = math.nan
+        self._step = 0.0
+
+    def __call__(self, stamp: float) -> float:
+        """The frame time on the file's continuous timeline (s)."""
+        step = stamp - self._last
+        if (
+            abs(step) > LOG_JUMP_S
+            and self.is_pause is not None
+            and self.is_pause(self._last + self.offset, stamp + self.offset)
+        ):
+            self.stats.pauses += 1
+            log.info(
+                "%s: the bus was silent for %.1f s at %.6f (the NMEA log ran on): times kept", self.path, step, stamp
+            )
+        elif abs(step) > LOG_JUMP_S:
+            shifted = self._last + self.offset + self._step
+            self.stats.rebases += 1
+            log.log(
+                logging.WARNING if self._throttle.ready() else logging.DEBUG,
+                "%s: the log's clock jumps by %+.3f s at %.6f: the frames after it are re-based to %.6f (%d so far)",
+                self.path,
+                step,
+                stamp,
+                shifted,
+                self.stats.rebases,
+            )
+            self.offset = shifted - stamp
+        elif step >= 0.0:
+            self._step = step
+        self._last = stamp
+        return stamp + self.offset
+
+
 def _frames(
-    reader: can.io.generic.MessageReader | _CandumpReader, path: Path, stats: LogStats
+    reader: can.io.generic.MessageReader | _CandumpReader, path: Path, stats: LogStats, is_pause: PauseJudge | None
 ) -> Iterator[can.Message]:
+    clock = LogClock(path, stats, is_pause)
     with reader:
         frames = 0
         try:
             for msg in reader:
                 frames += 1
                 stats.frames += 1
+                msg.timestamp = clock(msg.timestamp)
                 yield msg
         except Exception as e:  # a corrupt file must end the read, never the program
             stats.malformed += 1
@@ -755,7 +843,9 @@ def first_timestamp(path: str | PathLike[str]) -> float | None:
         frames.close()  # type: ignore[attr-defined]
 
 
-def read_logs(paths: Sequence[str | PathLike[str]], stats: LogStats | None = None) -> Iterator[can.Message]:
+def read_logs(
+    paths: Sequence[str | PathLike[str]], stats: LogStats | None = None, is_pause: PauseJudge | None = None
+) -> Iterator[can.Message]:
     """The frames of one drive's CAN logs (one file or several, in any order), as one stream in time order.
 
     The files are ordered by their first timestamps (read now: SourceError at once for a missing or unreadable
@@ -775,15 +865,17 @@ def read_logs(paths: Sequence[str | PathLike[str]], stats: LogStats | None = Non
     heads.sort()
     if heads:
         stats.first_t = heads[0][0]
-    return _merged(deque(heads), stats)
+    return _merged(deque(heads), stats, is_pause)
 
 
-def _merged(pending: deque[tuple[float, int, Path]], stats: LogStats) -> Iterator[can.Message]:
+def _merged(
+    pending: deque[tuple[float, int, Path]], stats: LogStats, is_pause: PauseJudge | None
+) -> Iterator[can.Message]:
     active: list[tuple[float, int, can.Message, Iterator[can.Message]]] = []
     order = itertools.count()
     while pending or active:
         while pending and (not active or pending[0][0] <= active[0][0]):
-            frames = read_log(pending.popleft()[2], stats)
+            frames = read_log(pending.popleft()[2], stats, is_pause)
             msg = next(frames, None)
             if msg is not None:
                 heapq.heappush(active, (msg.timestamp, next(order), msg, frames))

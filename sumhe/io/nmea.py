@@ -34,6 +34,14 @@ If any verdict says no fix, or there is no position, the fix has ``valid=False``
 longitude or altitude, so it can never be used as a position. Sentences
 that report no fix contribute no position, speed or course.
 
+Plausibility. A value outside what a GNSS receiver can report (:data:`LIMITS`: speed above the 1000 kn export
+limit, altitude outside [-1 km, 18 km], DOP above 100, ...) is counted ``implausible`` and ignored: that field is
+dropped as if it were empty, the rest of the sentence is used (a position is range-checked already: a bad one makes
+the sentence ``garbled``). A date (RMC or ZDA) more than :data:`MAX_DATE_OFFSET_S` from both the line's receive
+time and the previous epoch's time (before any: ahead of the host clock by more) is ``implausible`` too: the epoch
+takes its date as if the sentence had none, until :data:`RESYNC_AFTER` epochs in a row bring such dates (the
+receiver's date really changed). The first of each kind is logged as a warning, the rest at debug level.
+
 Time. ``time_utc`` is the epoch's time of day on a date from RMC or ZDA; once a date is known, later
 epochs take the date nearest to the previous epoch, which rolls over at midnight. Before any date is
 known the decoder uses the ``date`` it was given; without one, a fix with a receive time is emitted with
@@ -51,6 +59,7 @@ import logging
 import math
 import os
 import re
+import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
@@ -70,6 +79,20 @@ MAX_HELD = 64
 """Epochs held while waiting for a date (no receive time, no date yet)."""
 RESYNC_AFTER = 3
 """Consecutive backwards epochs after which the decoder follows the receiver's new time."""
+
+LIMITS: Mapping[str, tuple[float, float]] = {
+    "speed_mps": (0.0, 1000.0 * KNOT_MPS),
+    "alt_m": (-1000.0, 18000.0),
+    "hdop": (0.0, 100.0),
+    "sats": (0, 255),
+    "sigma_lat_m": (0.0, 1e6),
+    "sigma_lon_m": (0.0, 1e6),
+    "sigma_alt_m": (0.0, 1e6),
+}
+"""Physical limits [low, high] of the values a GNSS receiver reports (the COCOM limits of 1000 kn and 18 km bound
+what any civil receiver outputs); a value outside is ignored and counted ``implausible``."""
+MAX_DATE_OFFSET_S = 86400.0
+"""A date of fix further than this from the previous epoch (or ahead of the host clock) is not believed (s)."""
 
 GOOD_QUALITY = range(1, 6)
 """GGA fix qualities that are GNSS positions: GPS, DGPS, PPS, RTK fixed, RTK float."""
@@ -109,6 +132,9 @@ class NmeaCounters:
     no_fix: int = 0
     backwards: int = 0
     undated: int = 0
+    implausible: int = 0
+    rebases: int = 0
+    """Jumps of a log's receive clock re-based (:func:`rebase_receive_times`)."""
 
     def summary(self) -> str:
         """One line ``name=value ...`` of every counter."""
@@ -412,8 +438,11 @@ class NmeaDecoder:
         self._ender: tuple[str, int] | None = None
         self._ender_seen: tuple[str, int] | None = None
         self._ref: dt.datetime | None = None
+        self._input_dated = False
+        """Whether a date has come from the input (not only the ``date`` given): then dates are judged against it."""
         self._last_when: dt.datetime | None = None
         self._behind = 0
+        self._odd_dates = 0
         self._held: deque[_Epoch] = deque()
         self._warned: set[str] = set()
 
@@ -486,7 +515,18 @@ class NmeaDecoder:
         except _BAD_FIELD_ERRORS as e:
             return self._bad("garbled", "bad field (%s): %r", e, fragment[:80])
         self.counters.sentences += 1
-        return part
+        return self._plausible(part, fragment)
+
+    def _plausible(self, part: _Part, fragment: str) -> _Part:
+        """``part`` without the values outside :data:`LIMITS` (each counted ``implausible``)."""
+        bad = [k for k, v in part.values.items() if k in LIMITS and not LIMITS[k][0] <= v <= LIMITS[k][1]]
+        if not bad:
+            return part
+        for k in bad:
+            self._bad(
+                "implausible", "%s = %g outside %s; field ignored: %r", k, part.values[k], LIMITS[k], fragment[:80]
+            )
+        return dataclasses.replace(part, values={k: v for k, v in part.values.items() if k not in bad})
 
     def _bad(self, counter: str, fmt: str, *args: object) -> None:
         """Count one bad input; the first of each kind is logged as a warning, the rest at debug level."""
@@ -552,8 +592,11 @@ class NmeaDecoder:
         if epoch.tod is None:
             return None
         date = next((p.date for p in reversed(epoch.parts) if p.date is not None), None)
+        if date is not None and not self._date_plausible(date, epoch):
+            date = None
         if date is not None:
             when = _utc(date, epoch.tod)
+            self._input_dated = True
         elif self._ref is not None:
             when = _nearest_day(self._ref, epoch.tod)
         elif self.date is not None:
@@ -562,6 +605,25 @@ class NmeaDecoder:
             return None
         self._ref = when
         return when
+
+    def _date_plausible(self, date: dt.date, epoch: _Epoch) -> bool:
+        """Whether the epoch's date of fix lies within :data:`MAX_DATE_OFFSET_S` of its receive time or of the
+        previous epoch's time dated by the input (before any: not ahead of the host clock by more); else
+        ``implausible``, until :data:`RESYNC_AFTER` epochs in a row say so (the receiver's date really changed)."""
+        assert epoch.tod is not None
+        when = _utc(date, epoch.tod)
+        if epoch.rx is not None and abs(when.timestamp() - epoch.rx) <= MAX_DATE_OFFSET_S:
+            ok, clock = True, "the receive time"
+        elif self._ref is not None and self._input_dated:
+            ok, clock = abs((when - self._ref).total_seconds()) <= MAX_DATE_OFFSET_S, "the last epoch"
+        else:
+            ok, clock = when.timestamp() <= time.time() + MAX_DATE_OFFSET_S, "the host clock"
+        self._odd_dates = 0 if ok else self._odd_dates + 1
+        if ok or self._odd_dates >= RESYNC_AFTER:
+            self._odd_dates = 0
+            return True
+        self._bad("implausible", "date %s more than %g s from %s; date ignored", date, MAX_DATE_OFFSET_S, clock)
+        return False
 
     def _hold(self, epoch: _Epoch) -> None:
         if len(self._held) >= MAX_HELD:
@@ -618,6 +680,42 @@ def iter_fixes(
     for line in source:
         yield from dec.feed(line)
     yield from dec.flush()
+
+
+LOG_JUMP_S = 60.0
+"""A log's receive clock moving this far (s) against the receiver's UTC (or, without a UTC date, between
+consecutive fixes) has jumped: :func:`rebase_receive_times`."""
+
+
+def rebase_receive_times(fixes: Iterable[GnssFix], name: str, counters: NmeaCounters) -> Iterator[GnssFix]:
+    """The fixes of a logged NMEA stream with their receive times re-based across jumps of the logger's clock (an
+    NTP step, an RTC set): where ``receive time - UTC`` changes by more than :data:`LOG_JUMP_S` from one fix to the
+    next while the receive time itself steps by as much, the fixes after keep the old difference (counted in
+    ``counters.rebases``, logged). A pause of the log (receiver or logger off) moves both clocks alike and is kept;
+    a jump of the receiver's own UTC leaves the receive times steady and is left to the decoder. Fixes without a
+    UTC date are judged by the step between receive times alone. The first jump is logged as a warning, the others
+    at debug level."""
+    offset = 0.0
+    last_rx = last_lag = math.nan
+    for fix in fixes:
+        rx = fix.t
+        lag = rx - fix.time_utc.timestamp() if fix.time_utc is not None else math.nan
+        jump = lag - last_lag if math.isfinite(lag) and math.isfinite(last_lag) else rx - last_rx
+        if abs(jump) > LOG_JUMP_S and abs(rx - last_rx) > LOG_JUMP_S:
+            offset -= jump
+            counters.rebases += 1
+            log.log(
+                logging.WARNING if counters.rebases == 1 else logging.DEBUG,
+                "%s: the log's clock jumps by %+.3f s at %.3f: the fixes after it are re-based (%d so far)",
+                name,
+                jump,
+                rx,
+                counters.rebases,
+            )
+        last_rx = rx
+        if math.isfinite(lag):
+            last_lag = lag
+        yield fix if offset == 0.0 else dataclasses.replace(fix, t=rx + offset)
 
 
 def format_log_line(t: float, raw: bytes) -> bytes:

@@ -26,7 +26,7 @@ def signal_quanta(config: Config) -> dict[str, float]:
     mapped = {q: spec for q, spec in config.can.signals.items() if q in RESOLUTION_KEYS}
     if not mapped:
         return {}
-    dbs = [load_dbc(path, config.can.dbc_strict) for path in config.dbc_paths]
+    dbs = [load_dbc(path, config.can.dbc_strict, config.can.dbc_max_mb) for path in config.dbc_paths]
     out = {}
     for quantity, spec in mapped.items():
         key = f"{config.source}: can.signals.{quantity}"

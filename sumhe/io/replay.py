@@ -20,11 +20,13 @@ from collections.abc import AsyncIterator, Collection, Iterable, Iterator, Seque
 from os import PathLike
 from pathlib import Path
 
+import numpy as np
+
 from sumhe.config import Config
 from sumhe.errors import ConfigError, SourceError
-from sumhe.io.can import CanDecoder, LogStats, read_logs
+from sumhe.io.can import LOG_JUMP_S, CanDecoder, LogStats, read_logs
 from sumhe.io.fixtime import stamp_fix
-from sumhe.io.nmea import iter_fixes
+from sumhe.io.nmea import NmeaDecoder, iter_fixes, rebase_receive_times
 from sumhe.messages import GnssFix, Sample
 
 REORDER_MARGIN_S = 0.1
@@ -105,7 +107,8 @@ class RecordedDrive:
     ConfigError for a mapping the DBCs do not hold. ``quantities`` limits the CAN quantities decoded (None: all
     mapped). ``config`` is the given one with the logs' folders added to
     :attr:`~sumhe.config.Config.log_dirs`; ``decoder`` (None without CAN logs) and ``log_stats`` hold the counters
-    of the CAN side, ``first_t`` the timestamp of the drive's first CAN frame (s; NaN without CAN logs).
+    of the CAN side, ``nmea_decoders`` (one per NMEA log) those of the NMEA side, ``first_t`` the timestamp of the
+    drive's first CAN frame (s; NaN without CAN logs).
     """
 
     def __init__(
@@ -123,8 +126,10 @@ class RecordedDrive:
         for p in self.nmea_logs:
             if not p.is_file():
                 raise SourceError(f"{p}: NMEA log not found")
+        self.nmea_decoders = [NmeaDecoder() for _ in self.nmea_logs]
         self.log_stats = LogStats()
-        self._frames = read_logs(self.can_logs, self.log_stats) if self.can_logs else iter(())
+        self._nmea_times: np.ndarray | None = None
+        self._frames = read_logs(self.can_logs, self.log_stats, self.can_pause) if self.can_logs else iter(())
         self.decoder = CanDecoder.from_config(self.config, quantities=quantities) if self.can_logs else None
 
     @property
@@ -133,16 +138,56 @@ class RecordedDrive:
 
     def samples(self) -> Iterator[Sample]:
         """Every decoded sample of the drive in time order; fixes stamped with their measurement time
-        (:func:`~sumhe.io.fixtime.stamp_fix`; NMEA receive times moved by ``offset_s`` first)."""
+        (:func:`~sumhe.io.fixtime.stamp_fix`; NMEA receive times re-based across jumps of the log's clock
+        (:func:`~sumhe.io.nmea.rebase_receive_times`) and moved by ``offset_s`` first)."""
         gps = self.config.gps
         streams: list[Iterable[Sample]] = []
         if self.decoder is not None:
             can_samples = self._can_samples(self.decoder)
             streams.append(time_ordered(can_samples, reorder_hold_s(self.config)) if self.decoder.gnss else can_samples)
         if self.nmea_logs:
-            fixes = merge_by_time(*(iter_fixes(p) for p in self.nmea_logs))
+            fixes = merge_by_time(
+                *(
+                    rebase_receive_times(iter_fixes(p, d), str(p), d.counters)
+                    for p, d in zip(self.nmea_logs, self.nmea_decoders, strict=True)
+                )
+            )
             streams.append(stamp_fix(fix, gps) for fix in shift_fixes(fixes, self.offset_s))  # type: ignore[arg-type]
         return merge_by_time(*streams)
+
+    def can_pause(self, before: float, after: float) -> bool:
+        """Whether a CAN log's clock stepping from ``before`` to ``after`` (s) is time that passed (kept) rather than
+        the logger's clock jumping (re-based, :class:`~sumhe.io.can.LogClock`): with NMEA logs, a pause where their
+        (re-based) receive times reach ``after`` too (the receiver ran on, or both logs resumed there), a jump where
+        they do not (they went on near ``before``: only the CAN log's clock jumped); without, always a pause (the
+        fixes come in the same CAN logs, on the same clock). The NMEA logs are read for it at the first such step."""
+        if not self.nmea_logs:
+            return True
+        if self._nmea_times is None:
+            times = [
+                f.t
+                for p in self.nmea_logs
+                for f in rebase_receive_times(iter_fixes(p, NmeaDecoder()), str(p), NmeaDecoder().counters)
+            ]
+            self._nmea_times = np.sort(np.array(times, dtype=float))
+        t = self._nmea_times
+        i = int(np.searchsorted(t, after - LOG_JUMP_S))
+        return i < len(t) and t[i] <= after + LOG_JUMP_S
+
+    def unusable(self, valid_fixes: int, can_samples: int) -> str | None:
+        """Why a replay of this drive that gave ``valid_fixes`` valid fixes and ``can_samples`` CAN samples had
+        nothing to estimate from (the logs, their counters and what to check), or None when it had both."""
+        if valid_fixes and can_samples:
+            return None
+        if not valid_fixes and self.nmea_logs:
+            return "; ".join(
+                f"{p}: no valid fix in the NMEA log ({d.counters.summary()})"
+                for p, d in zip(self.nmea_logs, self.nmea_decoders, strict=True)
+            )
+        if not valid_fixes:
+            return f"{' '.join(map(str, self.can_logs))}: no valid fix from the gps.signals mapping"
+        logs = " ".join(map(str, self.can_logs)) or "no CAN log given"
+        return f"{logs}: no CAN samples of the mapped signals (can.signals) in {self.log_stats.frames} frames"
 
     def _can_samples(self, decoder: CanDecoder) -> Iterator[Sample]:
         gps = self.config.gps

@@ -1,5 +1,10 @@
 """UDP output: each estimate as one JSON object per datagram and/or as NMEA GGA + RMC sentences.
 
+Destinations (:func:`remote_reason`): without ``output.allow_remote`` each must be this host: a loopback address, an
+address of one of its interfaces, or an interface-local IPv6 multicast group (``ff01::/16``, ``ff11::/16``); a name
+is resolved once, at start, and judged by its address. Broadcast, multicast beyond the host and other hosts are a
+ConfigError naming the key unless ``output.allow_remote = true`` (which also lets IPv4 sockets broadcast).
+
 Sending never blocks (non-blocking sockets; a full socket buffer drops the datagram and counts it) and a missing
 receiver is not an error (counted, logged once per destination). JSON keys are documented in the README.
 """
@@ -7,6 +12,7 @@ receiver is not an error (counted, logged once per destination). JSON keys are d
 from __future__ import annotations
 
 import datetime as dt
+import ipaddress
 import json
 import logging
 import math
@@ -84,6 +90,35 @@ def encode_nmea(est: Estimate) -> bytes:
     return f"{gga}\r\n{rmc}\r\n".encode("ascii")
 
 
+LIMITED_BROADCAST = ipaddress.IPv4Address("255.255.255.255")
+
+
+def _is_own_address(family: int, addr: tuple[Any, ...]) -> bool:
+    """Whether ``addr`` is an address of this host (a socket can be bound to it)."""
+    with socket.socket(family, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.bind((addr[0], 0, *addr[2:]))
+        except OSError:
+            return False
+    return True
+
+
+def remote_reason(family: int, addr: tuple[Any, ...]) -> str | None:
+    """What the resolved destination ``addr`` is when it is not this host (``"broadcast"``, ``"another host"``,
+    ...), None when it is: loopback, an address of the host's own, an interface-local IPv6 multicast group."""
+    ip = ipaddress.ip_address(str(addr[0]).partition("%")[0])
+    if ip.is_loopback:
+        return None
+    if ip.is_multicast:
+        interface_local = ip.version == 6 and ip.packed[1] & 0x0F == 1
+        return None if interface_local else "a multicast group reaching beyond this host"
+    if ip == LIMITED_BROADCAST:
+        return "broadcast"
+    if ip.is_unspecified:
+        return "the unspecified address"
+    return None if _is_own_address(family, addr) else "another host"
+
+
 @dataclass
 class UdpStats:
     sent: int = 0
@@ -95,11 +130,13 @@ class UdpStats:
 class UdpSender:
     """Fire-and-forget datagrams to fixed ``host:port`` destinations (IPv4 or IPv6).
 
-    Names are resolved once, here; one that does not resolve is a ConfigError naming ``key`` (and ``origin``,
-    where it was set).
+    Names are resolved once, here; one that does not resolve, and without ``allow_remote`` one that is not this
+    host (:func:`remote_reason`), is a ConfigError naming ``key`` (and ``origin``, where it was set).
     """
 
-    def __init__(self, destinations: Iterable[str], key: str = "output", origin: str = "<config>") -> None:
+    def __init__(
+        self, destinations: Iterable[str], key: str = "output", origin: str = "<config>", allow_remote: bool = False
+    ) -> None:
         self.stats = UdpStats()
         self._dests: list[tuple[socket.socket, tuple[Any, ...], str]] = []
         self._socks: dict[int, socket.socket] = {}
@@ -108,13 +145,23 @@ class UdpSender:
             host, port = parse_host_port(text)
             try:
                 family, _, _, _, addr = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)[0]
-            except socket.gaierror as e:
+            except (socket.gaierror, UnicodeError) as e:
                 self.close()
-                raise ConfigError(f"{origin}: {key}: cannot resolve {host!r} ({e.strerror})") from e
+                why = e.strerror if isinstance(e, socket.gaierror) else str(e)
+                raise ConfigError(f"{origin}: {key}: cannot resolve {host!r} ({why})") from e
+            remote = None if allow_remote else remote_reason(family, addr)
+            if remote is not None:
+                self.close()
+                raise ConfigError(
+                    f"{origin}: {key}: {text} ({addr[0]}) is {remote}, not this host: set output.allow_remote = true "
+                    "to send there"
+                )
             sock = self._socks.get(family)
             if sock is None:
                 sock = socket.socket(family, socket.SOCK_DGRAM)
                 sock.setblocking(False)
+                if allow_remote and family == socket.AF_INET:
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
                 self._socks[family] = sock
             self._dests.append((sock, addr, text))
 
@@ -165,7 +212,7 @@ class UdpSink:
         for fmt, dests in settings.formats.items():
             key = f"output.{fmt}"
             try:
-                self.senders[fmt] = UdpSender(dests, key, blame(key) if blame else "<config>")
+                self.senders[fmt] = UdpSender(dests, key, blame(key) if blame else "<config>", settings.allow_remote)
             except ConfigError:
                 self.close()
                 raise

@@ -153,7 +153,9 @@ class Service:
         self._udp = UdpSink(config.output, config.blame)
         status_udp = config.output.status_udp
         self._status_udp = (
-            UdpSender([status_udp], "output.status_udp", config.blame("output.status_udp")) if status_udp else None
+            UdpSender([status_udp], "output.status_udp", config.blame("output.status_udp"), config.output.allow_remote)
+            if status_udp
+            else None
         )
         self._extra_sink = sink
 
@@ -345,8 +347,10 @@ def _counters(source: object) -> dict[str, Any]:
 
 
 def install_signal_handlers(stop: asyncio.Event) -> None:
-    """SIGINT and SIGTERM set ``stop`` (where the platform allows it)."""
+    """SIGINT, SIGTERM and SIGHUP set ``stop`` (where the platform allows it). SIGHUP (the terminal hung up) stops
+    cleanly as the others do; it does not re-read the config: a new config means new sources and a new estimator,
+    which a restart gives (``systemctl restart sumhe``)."""
     loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    for sig in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", signal.SIGTERM)):
         with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
             loop.add_signal_handler(sig, stop.set)
