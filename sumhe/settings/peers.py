@@ -1,5 +1,5 @@
 """The peers' tables (``[estimator.ekf]``, ``[estimator.ukf]``, ``[estimator.rts]``, ``[estimator.pf]``,
-``[estimator.imm]``, ``[estimator.gtsam_fls]``) with their tuned defaults.
+``[estimator.imm]``, ``[estimator.gtsam_fls]``, ``[estimator.mskf_em]``) with their tuned defaults.
 
 The defaults come from ``sumhe bench tune`` (:mod:`sumhe.bench.tune`: a coordinate-wise grid search on training
 drives, seeds 100-105, never the test seeds; ``docs/baselines.md``). ``rts`` and ``ukf`` run the EKF's values.
@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, fields
 
-from sumhe.settings.checks import at_least, positive
+from sumhe.settings.checks import at_least, non_negative, positive
 
 
 @dataclass(frozen=True, slots=True)
@@ -71,22 +71,11 @@ PF_TUNED = NoiseSettings(
     scale_rw=0.00032,
     gps_scale=2.0,
 )
-IMM_STRAIGHT_TUNED = NoiseSettings(
-    pos_rw=0.00078125,
-    heading_rw=0.000125,
-    speed_rw=0.5,
-    yaw_rate_rw=0.0046875,
-    bias_rw=2.5e-05,
-    gps_scale=2.0,
-)
-IMM_TURN_TUNED = NoiseSettings(
-    pos_rw=0.003125,
-    heading_rw=0.000125,
-    speed_rw=0.5,
-    yaw_rate_rw=0.0375,
-    bias_rw=2.5e-05,
-    gps_scale=2.0,
-)
+IMM_STRAIGHT_TUNED = EKF_TUNED
+IMM_TURN_TUNED = EKF_TUNED
+IMM_STRAIGHT_YAW_RATE_RPS = 0.01
+"""The IMM's cells: the curved one is the EKF (the same model); the straight one holds its azimuth and draws its yaw
+rate about zero with this sigma (rad/s)."""
 GTSAM_TUNED = EKF_TUNED
 """The fixed-lag smoother's noise: the EKF's (its odometry model is the EKF's process model)."""
 
@@ -105,17 +94,20 @@ class ParticleSettings:
 
 @dataclass(frozen=True, slots=True)
 class ImmSettings:
-    """``[estimator.imm]``: the straight and turning cells' noise (``[estimator.imm.straight]``,
-    ``[estimator.imm.turn]``; measurement noise, gate and priors come from the straight one) and the mean time
-    (s) the vehicle stays in each model."""
+    """``[estimator.imm]``: the straight and curved cells' noise (``[estimator.imm.straight]``,
+    ``[estimator.imm.turn]``; measurement noise, gate and priors come from the straight one), the straight model's
+    yaw-rate sigma about zero (rad/s; its ``yaw_rate_rw`` is not used) and the mean time (s) the vehicle stays in
+    each model: paper 002's transition matrix per 1 s, ``-1 / ln(0.9168)`` and ``-1 / ln(0.7672)``."""
 
     straight: NoiseSettings = field(default_factory=lambda: IMM_STRAIGHT_TUNED)
     turn: NoiseSettings = field(default_factory=lambda: IMM_TURN_TUNED)
-    sojourn_straight_s: float = 10.0
-    sojourn_turn_s: float = 0.75
+    straight_yaw_rate_rps: float = IMM_STRAIGHT_YAW_RATE_RPS
+    sojourn_straight_s: float = -1.0 / math.log(0.9168)
+    sojourn_turn_s: float = -1.0 / math.log(0.7672)
 
     def __post_init__(self) -> None:
         positive(self, "sojourn_straight_s", "sojourn_turn_s")
+        non_negative(self, "straight_yaw_rate_rps")
 
     @property
     def sojourn_s(self) -> tuple[float, float]:
@@ -140,3 +132,25 @@ class GtsamSettings:
     def __post_init__(self) -> None:
         positive(self, "lag_s", "relinearize_threshold")
         at_least(self, 1, "relinearize_skip")
+
+
+@dataclass(frozen=True, slots=True)
+class MskfSettings:
+    """``[estimator.mskf_em]``: paper 002's multi-stage Kalman filter with on-line EM (:mod:`sumhe.baseline.mskf_em`).
+
+    ``noise`` (``[estimator.mskf_em.noise]``): the start values of the re-estimated scales (``heading_rw``,
+    ``pos_rw``, ``gps_scale``) and the fixed noises (CAN, bias, scale), gate, priors; ``block_s``: the EM's block
+    (s; 002: 2-6 s); ``r_window_s``: the GNSS noise is re-estimated over the blocks of the last this many seconds
+    (002: 30-40 s); ``em_iterations``: EM iterations per block at most; ``scale_limit``: the re-estimated
+    covariances stay within this factor of their start values."""
+
+    noise: NoiseSettings = field(default_factory=lambda: EKF_TUNED)
+    block_s: float = 5.0
+    r_window_s: float = 30.0
+    em_iterations: int = 3
+    scale_limit: float = 100.0
+
+    def __post_init__(self) -> None:
+        positive(self, "block_s", "r_window_s")
+        at_least(self, 1, "em_iterations")
+        at_least(self, 1.0, "scale_limit")
