@@ -34,6 +34,7 @@ from sumhe.baseline.imm import Imm
 from sumhe.baseline.mskf_em import MskfEm
 from sumhe.baseline.particle import ParticleFilter
 from sumhe.baseline.rts import Rts
+from sumhe.baseline.sr_upf import SrUpf
 from sumhe.baseline.stream import RecursiveEstimator
 from sumhe.baseline.ukf import Ukf
 from sumhe.config import DatumSettings, GpsSettings
@@ -175,6 +176,7 @@ SEARCH_PARAMETERS: dict[str, tuple[str, ...]] = {
     "pf": ("pos_rw", "heading_rw", "bias_rw", "scale_rw", "gps_scale", "course_rad"),
     "gtsam-fls": ("pos_rw", "heading_rw", "bias_rw", "scale_rw", "gps_scale", "course_rad"),
     "mskf-em": ("pos_rw", "heading_rw", "bias_rw", "scale_rw", "gps_scale", "course_rad"),
+    "sr-upf": ("pos_rw", "heading_rw", "bias_rw", "scale_rw", "gps_scale", "course_rad"),
     "imm": ("straight_yaw_rate_rps", "straight.heading_rw", "straight.pos_rw", "turn.yaw_rate_rw", "turn.heading_rw"),
 }
 """What the search tunes per estimator (an estimator not tuned yet starts from the EKF's values)."""
@@ -199,6 +201,7 @@ def start_values(name: str, settings: EstimationSettings | None = None) -> dict[
         "rts": table.rts,
         "gtsam-fls": table.gtsam_fls.noise,
         "mskf-em": table.mskf_em.noise,
+        "sr-upf": table.sr_upf.noise,
     }
     return {"noise": noise.get(name, table.ekf)}
 
@@ -244,6 +247,7 @@ def build(name: str, settings: EstimationSettings, values: dict[str, Any] | None
         "pf": ParticleFilter,
         "gtsam-fls": _gtsam_fls,
         "mskf-em": _mskf_em,
+        "sr-upf": _sr_upf,
     }
     return classes[name](settings, noise=values["noise"])
 
@@ -258,6 +262,11 @@ def _gtsam_fls(settings: EstimationSettings, noise: NoiseSettings) -> RecursiveE
 def _mskf_em(settings: EstimationSettings, noise: NoiseSettings) -> RecursiveEstimator:
     """``mskf-em`` with ``noise`` as the start of its EM."""
     return MskfEm(settings, dataclasses.replace(settings.estimator.mskf_em, noise=noise))
+
+
+def _sr_upf(settings: EstimationSettings, noise: NoiseSettings) -> RecursiveEstimator:
+    """``sr-upf`` with ``noise``."""
+    return SrUpf(settings, dataclasses.replace(settings.estimator.sr_upf, noise=noise))
 
 
 def score(name: str, values: dict[str, Any], cases: Sequence[Case]) -> float:

@@ -35,6 +35,7 @@ ESTIMATORS: dict[str, tuple[str, str]] = {
     "pf": ("sumhe.baseline.particle", "ParticleFilter"),
     "imm": ("sumhe.baseline.imm", "Imm"),
     "mskf-em": ("sumhe.baseline.mskf_em", "MskfEm"),
+    "sr-upf": ("sumhe.baseline.sr_upf", "SrUpf"),
     "gtsam-fls": ("sumhe.baseline.gtsam_fls", "GtsamFls"),
 }
 """Built-in estimators: name -> (module, class). Adding one is one line here."""

@@ -9,7 +9,7 @@ from sumhe.settings.estimators import (
     EstimatorSettings,
     MheSettings,
 )
-from sumhe.settings.peers import GtsamSettings, ImmSettings, MskfSettings, NoiseSettings, ParticleSettings
+from sumhe.settings.peers import GtsamSettings, ImmSettings, MskfSettings, NoiseSettings, ParticleSettings, UpfSettings
 from sumhe.settings.sensors import CanModel, GnssModel, SensorSettings, VehicleSettings
 
 __all__ = [
@@ -25,6 +25,7 @@ __all__ = [
     "NoiseSettings",
     "ParticleSettings",
     "SensorSettings",
+    "UpfSettings",
     "VehicleSettings",
     "with_changes",
 ]

@@ -17,6 +17,7 @@ from sumhe.settings.peers import (
     MskfSettings,
     NoiseSettings,
     ParticleSettings,
+    UpfSettings,
 )
 from sumhe.settings.sensors import CanModel, GnssModel, SensorSettings, VehicleSettings
 
@@ -121,6 +122,7 @@ class EstimatorSettings:
     imm: ImmSettings = field(default_factory=ImmSettings)
     gtsam_fls: GtsamSettings = field(default_factory=GtsamSettings)
     mskf_em: MskfSettings = field(default_factory=MskfSettings)
+    sr_upf: UpfSettings = field(default_factory=UpfSettings)
 
     def __post_init__(self) -> None:
         one_of(self, "model", MODELS)

@@ -1,5 +1,6 @@
 """The peers' tables (``[estimator.ekf]``, ``[estimator.ukf]``, ``[estimator.rts]``, ``[estimator.pf]``,
-``[estimator.imm]``, ``[estimator.gtsam_fls]``, ``[estimator.mskf_em]``) with their tuned defaults.
+``[estimator.imm]``, ``[estimator.gtsam_fls]``, ``[estimator.mskf_em]``, ``[estimator.sr_upf]``) with their tuned
+defaults.
 
 The defaults come from ``sumhe bench tune`` (:mod:`sumhe.bench.tune`: a coordinate-wise grid search on training
 drives, seeds 100-105, never the test seeds; ``docs/baselines.md``). ``rts`` and ``ukf`` run the EKF's values.
@@ -7,6 +8,7 @@ drives, seeds 100-105, never the test seeds; ``docs/baselines.md``). ``rts`` and
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field, fields
 
@@ -71,11 +73,11 @@ PF_TUNED = NoiseSettings(
     scale_rw=0.00032,
     gps_scale=2.0,
 )
-IMM_STRAIGHT_TUNED = EKF_TUNED
-IMM_TURN_TUNED = EKF_TUNED
+IMM_STRAIGHT_TUNED = dataclasses.replace(EKF_TUNED, heading_rw=0.0005)
+IMM_TURN_TUNED = dataclasses.replace(EKF_TUNED, heading_rw=0.00025, yaw_rate_rw=0.0375)
 IMM_STRAIGHT_YAW_RATE_RPS = 0.01
-"""The IMM's cells: the curved one is the EKF (the same model); the straight one holds its azimuth and draws its yaw
-rate about zero with this sigma (rad/s)."""
+"""The IMM's cells, searched from the EKF's values (``sumhe bench tune search imm``): the curved one is the EKF's
+model, the straight one holds its azimuth and draws its yaw rate about zero with this sigma (rad/s)."""
 GTSAM_TUNED = EKF_TUNED
 """The fixed-lag smoother's noise: the EKF's (its odometry model is the EKF's process model)."""
 
@@ -154,3 +156,35 @@ class MskfSettings:
         positive(self, "block_s", "r_window_s")
         at_least(self, 1, "em_iterations")
         at_least(self, 1.0, "scale_limit")
+
+
+@dataclass(frozen=True, slots=True)
+class UpfSettings:
+    """``[estimator.sr_upf]``: paper 004's square-root unscented particle filter (:mod:`sumhe.baseline.sr_upf`).
+
+    ``noise`` (``[estimator.sr_upf.noise]``): the particle filter's tuned noise (``pf``'s) plus the CAN sigmas as
+    the inputs' noise; ``particles`` and ``seed``; the GNSS noise's sparse kernel density: fitted on the normalised
+    innovations of the last ``kde_samples`` fixes, once ``kde_min_samples`` exist, again every ``kde_refit`` fixes,
+    LASSO regularisation ``kde_lasso`` (times the largest density) and weights below ``kde_threshold`` times the
+    largest dropped (004: 0.1 and 0.2)."""
+
+    noise: NoiseSettings = field(default_factory=lambda: PF_TUNED)
+    particles: int = 100
+    seed: int = 0
+    kde_samples: int = 200
+    kde_min_samples: int = 30
+    kde_refit: int = 50
+    kde_lasso: float = 0.1
+    kde_threshold: float = 0.2
+
+    def __post_init__(self) -> None:
+        at_least(self, 10, "particles")
+        at_least(self, 2, "kde_min_samples")
+        at_least(self, 1, "kde_refit")
+        if self.kde_samples < self.kde_min_samples:
+            raise ValueError(
+                f"kde_samples: must be >= kde_min_samples ({self.kde_min_samples}), got {self.kde_samples!r}"
+            )
+        non_negative(self, "kde_lasso")
+        if not 0 <= self.kde_threshold < 1:
+            raise ValueError(f"kde_threshold: must be within [0, 1), got {self.kde_threshold!r}")
