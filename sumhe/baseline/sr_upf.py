@@ -29,8 +29,8 @@ Where it deviates from 004 and why:
   are specific to its data);
 * the LASSO is a short coordinate descent written here (the weights are at most ``kde_samples``, the fit runs
   once per ``kde_refit`` fixes): scikit-learn would add a large dependency for one call;
-* ``particles`` = 100 (004: 1,000): each particle runs a UKF of 2n + 1 sigma points at CAN rate; in Python 1,000
-  are 10x slower than real time;
+* ``particles`` = 100 (004: 1,000): each particle runs a UKF of 2n + 1 sigma points at CAN rate; with 100 the
+  realistic bench ran at 4x real time on the shared machine, 1,000 would fall below real time;
 * the CAN yaw-rate gain is not a state (``gain0`` is ignored), as ``pf``.
 """
 
