@@ -124,9 +124,9 @@ def as_array(estimates: list[StateEstimate]) -> np.ndarray:
         lambda: Ekf(LINEAR_SETTINGS, LINEAR_NOISE),
         lambda: Rts(LINEAR_SETTINGS, LINEAR_NOISE),
         lambda: Ukf(LINEAR_SETTINGS, LINEAR_NOISE),
-        lambda: Imm(LINEAR_SETTINGS, models=(LINEAR_NOISE, LINEAR_NOISE)),
+        lambda: Imm(LINEAR_SETTINGS, models=(LINEAR_NOISE, LINEAR_NOISE), straight_yaw_rate_rps=0.0),
     ],
-    ids=["ekf", "rts", "ukf", "imm-equal-models"],
+    ids=["ekf", "rts", "ukf", "imm-no-yaw-rate"],
 )
 def test_filters_match_the_closed_form_kalman_filter(make) -> None:  # type: ignore[no-untyped-def]
     samples = linear_stream()
@@ -379,3 +379,47 @@ def test_absurd_fix_sigmas_do_not_break_a_filter(name: str, sigma: float) -> Non
     out = [e for s in samples[100:] for e in est.push(s)]
     out += est.finish() if hasattr(est, "finish") else []  # type: ignore[attr-defined]
     assert out and all(math.isfinite(e.east_m) and math.isfinite(e.north_m) for e in out)
+
+
+def straight_then_turn(
+    seconds: float = 20.0, turn_at: float = 10.0, yaw_rate: float = 0.2
+) -> list[LocalFix | CanSample]:
+    """10 m/s north, then a left turn at ``yaw_rate`` (rad/s) from ``turn_at``: CAN 50/100 Hz, fixes 10 Hz."""
+    rng = np.random.default_rng(2)
+    t0, h = 50.0, 0.01
+    samples: list[LocalFix | CanSample] = []
+    e = n = phi = 0.0
+    for k in range(int(seconds / h)):
+        t = k * h
+        omega = yaw_rate if t >= turn_at else 0.0
+        if k % 2 == 0:
+            samples.append(CanSample(t0 + t, "speed", 10.0 + rng.normal(0, 0.02)))
+        samples.append(CanSample(t0 + t + 0.001, "yaw_rate", omega + rng.normal(0, 0.002)))
+        if k % 10 == 5:
+            samples.append(
+                LocalFix(
+                    t=t0 + t + 0.002,
+                    valid=True,
+                    east_m=e + rng.normal(0, 0.3),
+                    north_m=n + rng.normal(0, 0.3),
+                    gst_sigma_east_m=0.3,
+                    gst_sigma_north_m=0.3,
+                    speed_mps=10.0,
+                    course_rad=phi % (2 * math.pi),
+                )
+            )
+        e, n, phi = e + 10.0 * h * math.sin(phi), n + 10.0 * h * math.cos(phi), phi - omega * h
+    return samples
+
+
+def test_imm_model_probabilities_follow_the_manoeuvre() -> None:
+    """The straight model holds on the straight, the curved one takes over within 1 s of the turn."""
+    imm = Imm(straight_yaw_rate_rps=0.002)
+    p_turn = []
+    for s in straight_then_turn():
+        imm.push(s)
+        p_turn.append((s.t - 50.0, float(imm.stats()["p_turn"])))
+    straight = [p for t, p in p_turn if 5.0 <= t < 10.0]
+    turning = [p for t, p in p_turn if 11.0 <= t < 20.0]
+    assert max(straight) < 0.5 and np.mean(straight) < 0.2
+    assert min(turning) > 0.9

@@ -1,12 +1,23 @@
-"""Interacting multiple models (``imm``): two EKF cells on the shared model, "straight" and "turning".
+"""Interacting multiple models (``imm``): two EKF cells on the shared state, a straight and a curved model.
 
-As in papers 002-003, the vehicle switches between a non-manoeuvring and a manoeuvring motion model. With CAN
-yaw rate measured at 100 Hz, the two models differ in their process noise: the straight model keeps speed,
-yaw rate and azimuth nearly constant (small random walks), the turning model lets yaw rate and azimuth change
-fast and the position slip sideways (large ones). A two-state Markov chain with mean sojourn times
-``sojourn_s`` switches them; each predict step mixes the cells (interaction), each update (CAN rows, GNSS)
-weighs the models by the likelihood of its innovation, and the output is the probability-weighted mean.
-Measurement noise, gate and priors come from the straight model's :class:`~sumhe.baseline.kinematics.NoiseSettings`.
+Paper 003's IMM switches between a non-manoeuvring ("straight") and a manoeuvring ("curved") kinematic model of
+the vehicle; the models differ in their dynamics, not only in their noise:
+
+* straight (constant velocity and heading): ``east' = v sin phi, north' = v cos phi, phi' = 0``, and the yaw rate
+  is about zero, ``omega_k+1 = w, w ~ N(0, straight_yaw_rate_rps^2)`` (white, not a random walk): the azimuth
+  does not integrate the yaw rate, mild curves are the azimuth's random walk ``heading_rw``;
+* curved (coordinated turn): the shared su5 step, the azimuth turning with the yaw rate (``phi' = -omega``),
+  ``omega`` a random walk, as the EKF.
+
+The CAN yaw rate (``omega + b``, every CAN speed sample) is what tells them apart: in a turn the straight cell's
+innovation ``z - b`` is the turn's yaw rate, its likelihood (003 eq. 20, ``exp(-d^2/2) / sqrt((2 pi)^M |S|)``
+with ``d^2 = nu' S^-1 nu``, eq. 19) collapses and the curved model takes over; on a straight road both predict the
+CAN data alike and the straight cell, whose azimuth ignores the CAN yaw rate's noise and bias error, is kept.
+Model probabilities follow Bayes' rule (eq. 21) after the interaction (mixing) of the cells; the switching is a
+two-state Markov chain, ``Pi[i, j] = P(model j after dt | model i before)``, with mean sojourn times whose 1 s
+transition matrix is paper 002's, trained on real driving data (its Sigma = [[0.9168, 0.0832], [0.2328,
+0.7672]] per 1 s GPS epoch: 11.5 s straight, 3.8 s manoeuvring). Measurement noise, gate and priors come from the
+straight model's :class:`~sumhe.settings.NoiseSettings`; the output is the probability-weighted mean.
 """
 
 from __future__ import annotations
@@ -26,7 +37,7 @@ from sumhe.baseline.ekf import (
     kf_update,
     set_heading,
 )
-from sumhe.baseline.kinematics import FloatArray
+from sumhe.baseline.kinematics import OMEGA, FloatArray
 from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
 from sumhe.config import Config
 from sumhe.settings import EstimationSettings, NoiseSettings
@@ -39,6 +50,21 @@ def transition_matrix(dt: float, sojourn_s: tuple[float, float]) -> FloatArray:
     """Markov switching probabilities over ``dt`` seconds: ``Pi[i, j]`` = P(model j after | model i before)."""
     leave = [1.0 - math.exp(-dt / s) for s in sojourn_s]
     return np.array([[1.0 - leave[0], leave[0]], [leave[1], 1.0 - leave[1]]])
+
+
+def straight_predict(
+    x: FloatArray, P: FloatArray, dt: float, noise: NoiseSettings, layout: kin.Layout, yaw_rate_sigma: float
+) -> tuple[FloatArray, FloatArray]:
+    """The straight model's EKF time update: the su5 step at zero yaw rate (the azimuth held), and the yaw rate
+    drawn anew about zero with sigma ``yaw_rate_sigma`` (rad/s); the other states as the shared model."""
+    x0 = x.copy()
+    x0[OMEGA] = 0.0
+    F = kin.step_jacobian(x0, dt)
+    F[:, OMEGA] = 0.0  # the step ignores the yaw rate ...
+    F[OMEGA, :] = 0.0  # ... which starts again from zero
+    Q = kin.process_noise(dt, noise, layout)
+    Q[OMEGA, OMEGA] = yaw_rate_sigma**2
+    return kin.wrap_state(kin.step(x0, dt)), F @ P @ F.T + Q
 
 
 def mix(
@@ -57,7 +83,7 @@ def mix(
 
 
 class Imm(RecursiveEstimator):
-    """IMM of a straight and a turning EKF cell (``imm``)."""
+    """IMM of a straight and a curved EKF cell (``imm``)."""
 
     name = "imm"
 
@@ -66,6 +92,7 @@ class Imm(RecursiveEstimator):
         settings: EstimationSettings | None = None,
         models: tuple[NoiseSettings, NoiseSettings] | None = None,
         sojourn_s: tuple[float, float] | None = None,
+        straight_yaw_rate_rps: float | None = None,
     ) -> None:
         settings = settings or EstimationSettings()
         table = settings.estimator.imm
@@ -74,6 +101,10 @@ class Imm(RecursiveEstimator):
         if len(sojourn_s) != 2 or not all(math.isfinite(s) and s > 0 for s in sojourn_s):
             raise ValueError(f"sojourn_s: two positive times (s), got {sojourn_s!r}")
         self.sojourn_s = sojourn_s
+        sigma = table.straight_yaw_rate_rps if straight_yaw_rate_rps is None else straight_yaw_rate_rps
+        if not (math.isfinite(sigma) and sigma >= 0):
+            raise ValueError(f"straight_yaw_rate_rps: must be a finite number >= 0, got {sigma!r}")
+        self.straight_yaw_rate_rps = sigma
         super().__init__(settings, self.models[0])
 
     @classmethod
@@ -101,8 +132,11 @@ class Imm(RecursiveEstimator):
 
     def _predict(self, dt: float, inputs: Inputs) -> None:
         self.xs, self.Ps, self.mu = mix(self.xs, self.Ps, self.mu, transition_matrix(dt, self.sojourn_s))
-        for j, noise in enumerate(self.models):
-            self.xs[j], self.Ps[j] = ekf_predict(self.xs[j], self.Ps[j], dt, noise, self.layout)
+        straight, curved = self.models
+        self.xs[0], self.Ps[0] = straight_predict(
+            self.xs[0], self.Ps[0], dt, straight, self.layout, self.straight_yaw_rate_rps
+        )
+        self.xs[1], self.Ps[1] = ekf_predict(self.xs[1], self.Ps[1], dt, curved, self.layout)
 
     def _can_update(self, inputs: Inputs) -> None:
         loglik = []

@@ -31,8 +31,10 @@ import numpy as np
 from sumhe.baseline.dead_reckoning import DeadReckoning
 from sumhe.baseline.ekf import Ekf
 from sumhe.baseline.imm import Imm
+from sumhe.baseline.mskf_em import MskfEm
 from sumhe.baseline.particle import ParticleFilter
 from sumhe.baseline.rts import Rts
+from sumhe.baseline.sr_upf import SrUpf
 from sumhe.baseline.stream import RecursiveEstimator
 from sumhe.baseline.ukf import Ukf
 from sumhe.config import DatumSettings, GpsSettings
@@ -173,38 +175,22 @@ SEARCH_PARAMETERS: dict[str, tuple[str, ...]] = {
     "ukf": ("pos_rw", "heading_rw", "yaw_rate_rw", "gps_scale"),
     "pf": ("pos_rw", "heading_rw", "bias_rw", "scale_rw", "gps_scale", "course_rad"),
     "gtsam-fls": ("pos_rw", "heading_rw", "bias_rw", "scale_rw", "gps_scale", "course_rad"),
-    "imm": (
-        "straight.yaw_rate_rw",
-        "straight.heading_rw",
-        "turn.yaw_rate_rw",
-        "turn.heading_rw",
-        "turn.pos_rw",
-        "sojourn_turn_s",
-    ),
+    "mskf-em": ("pos_rw", "heading_rw", "bias_rw", "scale_rw", "gps_scale", "course_rad"),
+    "sr-upf": ("pos_rw", "heading_rw", "bias_rw", "scale_rw", "gps_scale", "course_rad"),
+    "imm": ("straight_yaw_rate_rps", "straight.heading_rw", "straight.pos_rw", "turn.yaw_rate_rw", "turn.heading_rw"),
 }
 """What the search tunes per estimator (an estimator not tuned yet starts from the EKF's values)."""
 
 
-IMM_TURN_FIELDS = ("pos_rw", "heading_rw", "yaw_rate_rw")
-"""Where the IMM's turning model is at least as loud as its straight one (the search keeps it so) ..."""
-IMM_MIN_CONTRAST = 2.0
-"""... with at least this multiple of its yaw-rate noise (without it the search makes the two models equal:
-an EKF) ..."""
-IMM_TURN_START = 4.0
-"""... and this multiple of all three when the search starts."""
-
-
 def start_values(name: str, settings: EstimationSettings | None = None) -> dict[str, Any]:
-    """Where the search of ``name`` starts: the current defaults of its table (for the IMM, its two models and
-    sojourn times; the turning model :data:`IMM_TURN_START` times louder than the straight one when it is not)."""
+    """Where the search of ``name`` starts: the current defaults of its table (for the IMM, its two models, the
+    straight model's yaw-rate sigma and the sojourn times, which are paper 002's and not searched)."""
     table = (settings or EstimationSettings()).estimator
     if name == "imm":
-        straight, turn = table.imm.straight, table.imm.turn
-        if turn == straight:
-            turn = dataclasses.replace(straight, **{f: IMM_TURN_START * getattr(straight, f) for f in IMM_TURN_FIELDS})
         return {
-            "straight": straight,
-            "turn": turn,
+            "straight": table.imm.straight,
+            "turn": table.imm.turn,
+            "straight_yaw_rate_rps": table.imm.straight_yaw_rate_rps,
             "sojourn_straight_s": table.imm.sojourn_straight_s,
             "sojourn_turn_s": table.imm.sojourn_turn_s,
         }
@@ -214,6 +200,8 @@ def start_values(name: str, settings: EstimationSettings | None = None) -> dict[
         "ukf": table.ukf,
         "rts": table.rts,
         "gtsam-fls": table.gtsam_fls.noise,
+        "mskf-em": table.mskf_em.noise,
+        "sr-upf": table.sr_upf.noise,
     }
     return {"noise": noise.get(name, table.ekf)}
 
@@ -245,12 +233,12 @@ def build(name: str, settings: EstimationSettings, values: dict[str, Any] | None
     if values is None:
         values = start_values(name, settings)
     if name == "imm":
-        models = (values["straight"], values["turn"])
-        if any(getattr(models[1], f) < getattr(models[0], f) for f in IMM_TURN_FIELDS) or (
-            models[1].yaw_rate_rw < IMM_MIN_CONTRAST * models[0].yaw_rate_rw
-        ):
-            raise ValueError(f"turning model quieter than the straight one ({IMM_MIN_CONTRAST:g}x in yaw rate)")
-        return Imm(settings, models=models, sojourn_s=(values["sojourn_straight_s"], values["sojourn_turn_s"]))
+        return Imm(
+            settings,
+            models=(values["straight"], values["turn"]),
+            sojourn_s=(values["sojourn_straight_s"], values["sojourn_turn_s"]),
+            straight_yaw_rate_rps=values["straight_yaw_rate_rps"],
+        )
     classes: dict[str, Callable[..., RecursiveEstimator]] = {
         "dead-reckoning": DeadReckoning,
         "ekf": Ekf,
@@ -258,6 +246,8 @@ def build(name: str, settings: EstimationSettings, values: dict[str, Any] | None
         "ukf": Ukf,
         "pf": ParticleFilter,
         "gtsam-fls": _gtsam_fls,
+        "mskf-em": _mskf_em,
+        "sr-upf": _sr_upf,
     }
     return classes[name](settings, noise=values["noise"])
 
@@ -267,6 +257,16 @@ def _gtsam_fls(settings: EstimationSettings, noise: NoiseSettings) -> RecursiveE
     from sumhe.baseline.gtsam_fls import GtsamFls
 
     return GtsamFls(settings, dataclasses.replace(settings.estimator.gtsam_fls, noise=noise))
+
+
+def _mskf_em(settings: EstimationSettings, noise: NoiseSettings) -> RecursiveEstimator:
+    """``mskf-em`` with ``noise`` as the start of its EM."""
+    return MskfEm(settings, dataclasses.replace(settings.estimator.mskf_em, noise=noise))
+
+
+def _sr_upf(settings: EstimationSettings, noise: NoiseSettings) -> RecursiveEstimator:
+    """``sr-upf`` with ``noise``."""
+    return SrUpf(settings, dataclasses.replace(settings.estimator.sr_upf, noise=noise))
 
 
 def score(name: str, values: dict[str, Any], cases: Sequence[Case]) -> float:

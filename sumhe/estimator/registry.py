@@ -34,6 +34,8 @@ ESTIMATORS: dict[str, tuple[str, str]] = {
     "ukf": ("sumhe.baseline.ukf", "Ukf"),
     "pf": ("sumhe.baseline.particle", "ParticleFilter"),
     "imm": ("sumhe.baseline.imm", "Imm"),
+    "mskf-em": ("sumhe.baseline.mskf_em", "MskfEm"),
+    "sr-upf": ("sumhe.baseline.sr_upf", "SrUpf"),
     "gtsam-fls": ("sumhe.baseline.gtsam_fls", "GtsamFls"),
 }
 """Built-in estimators: name -> (module, class). Adding one is one line here."""

@@ -9,7 +9,7 @@ from sumhe.settings.estimators import (
     EstimatorSettings,
     MheSettings,
 )
-from sumhe.settings.peers import GtsamSettings, ImmSettings, NoiseSettings, ParticleSettings
+from sumhe.settings.peers import GtsamSettings, ImmSettings, MskfSettings, NoiseSettings, ParticleSettings, UpfSettings
 from sumhe.settings.sensors import CanModel, GnssModel, SensorSettings, VehicleSettings
 
 __all__ = [
@@ -21,9 +21,11 @@ __all__ = [
     "GtsamSettings",
     "ImmSettings",
     "MheSettings",
+    "MskfSettings",
     "NoiseSettings",
     "ParticleSettings",
     "SensorSettings",
+    "UpfSettings",
     "VehicleSettings",
     "with_changes",
 ]

@@ -10,7 +10,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from sumhe.settings.checks import at_least, non_negative, one_of, positive
-from sumhe.settings.peers import EKF_TUNED, GtsamSettings, ImmSettings, NoiseSettings, ParticleSettings
+from sumhe.settings.peers import (
+    EKF_TUNED,
+    GtsamSettings,
+    ImmSettings,
+    MskfSettings,
+    NoiseSettings,
+    ParticleSettings,
+    UpfSettings,
+)
 from sumhe.settings.sensors import CanModel, GnssModel, SensorSettings, VehicleSettings
 
 OBJECTIVES = ("linear", "log", "caps")
@@ -113,6 +121,8 @@ class EstimatorSettings:
     pf: ParticleSettings = field(default_factory=ParticleSettings)
     imm: ImmSettings = field(default_factory=ImmSettings)
     gtsam_fls: GtsamSettings = field(default_factory=GtsamSettings)
+    mskf_em: MskfSettings = field(default_factory=MskfSettings)
+    sr_upf: UpfSettings = field(default_factory=UpfSettings)
 
     def __post_init__(self) -> None:
         one_of(self, "model", MODELS)

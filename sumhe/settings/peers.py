@@ -1,5 +1,6 @@
 """The peers' tables (``[estimator.ekf]``, ``[estimator.ukf]``, ``[estimator.rts]``, ``[estimator.pf]``,
-``[estimator.imm]``, ``[estimator.gtsam_fls]``) with their tuned defaults.
+``[estimator.imm]``, ``[estimator.gtsam_fls]``, ``[estimator.mskf_em]``, ``[estimator.sr_upf]``) with their tuned
+defaults.
 
 The defaults come from ``sumhe bench tune`` (:mod:`sumhe.bench.tune`: a coordinate-wise grid search on training
 drives, seeds 100-105, never the test seeds; ``docs/baselines.md``). ``rts`` and ``ukf`` run the EKF's values.
@@ -7,10 +8,11 @@ drives, seeds 100-105, never the test seeds; ``docs/baselines.md``). ``rts`` and
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field, fields
 
-from sumhe.settings.checks import at_least, positive
+from sumhe.settings.checks import at_least, non_negative, positive
 
 
 @dataclass(frozen=True, slots=True)
@@ -71,22 +73,11 @@ PF_TUNED = NoiseSettings(
     scale_rw=0.00032,
     gps_scale=2.0,
 )
-IMM_STRAIGHT_TUNED = NoiseSettings(
-    pos_rw=0.00078125,
-    heading_rw=0.000125,
-    speed_rw=0.5,
-    yaw_rate_rw=0.0046875,
-    bias_rw=2.5e-05,
-    gps_scale=2.0,
-)
-IMM_TURN_TUNED = NoiseSettings(
-    pos_rw=0.003125,
-    heading_rw=0.000125,
-    speed_rw=0.5,
-    yaw_rate_rw=0.0375,
-    bias_rw=2.5e-05,
-    gps_scale=2.0,
-)
+IMM_STRAIGHT_TUNED = dataclasses.replace(EKF_TUNED, heading_rw=0.0005)
+IMM_TURN_TUNED = dataclasses.replace(EKF_TUNED, heading_rw=0.00025, yaw_rate_rw=0.0375)
+IMM_STRAIGHT_YAW_RATE_RPS = 0.01
+"""The IMM's cells, searched from the EKF's values (``sumhe bench tune search imm``): the curved one is the EKF's
+model, the straight one holds its azimuth and draws its yaw rate about zero with this sigma (rad/s)."""
 GTSAM_TUNED = EKF_TUNED
 """The fixed-lag smoother's noise: the EKF's (its odometry model is the EKF's process model)."""
 
@@ -105,17 +96,20 @@ class ParticleSettings:
 
 @dataclass(frozen=True, slots=True)
 class ImmSettings:
-    """``[estimator.imm]``: the straight and turning cells' noise (``[estimator.imm.straight]``,
-    ``[estimator.imm.turn]``; measurement noise, gate and priors come from the straight one) and the mean time
-    (s) the vehicle stays in each model."""
+    """``[estimator.imm]``: the straight and curved cells' noise (``[estimator.imm.straight]``,
+    ``[estimator.imm.turn]``; measurement noise, gate and priors come from the straight one), the straight model's
+    yaw-rate sigma about zero (rad/s; its ``yaw_rate_rw`` is not used) and the mean time (s) the vehicle stays in
+    each model: paper 002's transition matrix per 1 s, ``-1 / ln(0.9168)`` and ``-1 / ln(0.7672)``."""
 
     straight: NoiseSettings = field(default_factory=lambda: IMM_STRAIGHT_TUNED)
     turn: NoiseSettings = field(default_factory=lambda: IMM_TURN_TUNED)
-    sojourn_straight_s: float = 10.0
-    sojourn_turn_s: float = 0.75
+    straight_yaw_rate_rps: float = IMM_STRAIGHT_YAW_RATE_RPS
+    sojourn_straight_s: float = -1.0 / math.log(0.9168)
+    sojourn_turn_s: float = -1.0 / math.log(0.7672)
 
     def __post_init__(self) -> None:
         positive(self, "sojourn_straight_s", "sojourn_turn_s")
+        non_negative(self, "straight_yaw_rate_rps")
 
     @property
     def sojourn_s(self) -> tuple[float, float]:
@@ -140,3 +134,57 @@ class GtsamSettings:
     def __post_init__(self) -> None:
         positive(self, "lag_s", "relinearize_threshold")
         at_least(self, 1, "relinearize_skip")
+
+
+@dataclass(frozen=True, slots=True)
+class MskfSettings:
+    """``[estimator.mskf_em]``: paper 002's multi-stage Kalman filter with on-line EM (:mod:`sumhe.baseline.mskf_em`).
+
+    ``noise`` (``[estimator.mskf_em.noise]``): the start values of the re-estimated scales (``heading_rw``,
+    ``pos_rw``, ``gps_scale``) and the fixed noises (CAN, bias, scale), gate, priors; ``block_s``: the EM's block
+    (s; 002: 2-6 s); ``r_window_s``: the GNSS noise is re-estimated over the blocks of the last this many seconds
+    (002: 30-40 s); ``em_iterations``: EM iterations per block at most; ``scale_limit``: the re-estimated
+    covariances stay within this factor of their start values."""
+
+    noise: NoiseSettings = field(default_factory=lambda: EKF_TUNED)
+    block_s: float = 5.0
+    r_window_s: float = 30.0
+    em_iterations: int = 3
+    scale_limit: float = 100.0
+
+    def __post_init__(self) -> None:
+        positive(self, "block_s", "r_window_s")
+        at_least(self, 1, "em_iterations")
+        at_least(self, 1.0, "scale_limit")
+
+
+@dataclass(frozen=True, slots=True)
+class UpfSettings:
+    """``[estimator.sr_upf]``: paper 004's square-root unscented particle filter (:mod:`sumhe.baseline.sr_upf`).
+
+    ``noise`` (``[estimator.sr_upf.noise]``): the particle filter's tuned noise (``pf``'s) plus the CAN sigmas as
+    the inputs' noise; ``particles`` and ``seed``; the GNSS noise's sparse kernel density: fitted on the normalised
+    innovations of the last ``kde_samples`` fixes, once ``kde_min_samples`` exist, again every ``kde_refit`` fixes,
+    LASSO regularisation ``kde_lasso`` (times the largest density) and weights below ``kde_threshold`` times the
+    largest dropped (004: 0.1 and 0.2)."""
+
+    noise: NoiseSettings = field(default_factory=lambda: PF_TUNED)
+    particles: int = 100
+    seed: int = 0
+    kde_samples: int = 200
+    kde_min_samples: int = 30
+    kde_refit: int = 50
+    kde_lasso: float = 0.1
+    kde_threshold: float = 0.2
+
+    def __post_init__(self) -> None:
+        at_least(self, 10, "particles")
+        at_least(self, 2, "kde_min_samples")
+        at_least(self, 1, "kde_refit")
+        if self.kde_samples < self.kde_min_samples:
+            raise ValueError(
+                f"kde_samples: must be >= kde_min_samples ({self.kde_min_samples}), got {self.kde_samples!r}"
+            )
+        non_negative(self, "kde_lasso")
+        if not 0 <= self.kde_threshold < 1:
+            raise ValueError(f"kde_threshold: must be within [0, 1), got {self.kde_threshold!r}")

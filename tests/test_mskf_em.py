@@ -1,0 +1,56 @@
+"""``mskf-em``'s EM (paper 002 eqs. 13-16) on a linear stage with known noise, and the estimator's block scheme."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_estimator_contract import run, synthetic_drive
+
+from sumhe.baseline.mskf_em import MskfEm, Step, clamp, smooth_block
+from sumhe.settings import MskfSettings
+
+
+def random_walk_block(q: float, r: float, steps: int, seed: int) -> list[Step]:
+    """A 1-D position random walk (density q, 0.1 s steps) measured every step with variance ``r`` (R scaled)."""
+    rng = np.random.default_rng(seed)
+    dt = 0.1
+    x = 0.0
+    out = []
+    for _ in range(steps):
+        x += rng.normal(0.0, np.sqrt(q * dt))
+        z = np.array([x + rng.normal(0.0, np.sqrt(r))])
+        step = Step(np.eye(1), np.zeros(1), np.array([[dt]]), np.zeros((1, 1)))
+        step.updates.append((np.eye(1), z, np.eye(1), True))
+        out.append(step)
+    return out
+
+
+def test_em_recovers_the_noise_of_a_random_walk() -> None:
+    steps = random_walk_block(q=0.5, r=0.2, steps=1500, seed=1)
+    q, r = 1.5, 0.6  # both 3x off
+    for _ in range(25):
+        m = smooth_block(np.zeros(1), np.eye(1), steps, q, r, ())
+        q, r = m.q, m.r_sum / m.r_rows
+    assert q == pytest.approx(0.5, rel=0.15) and r == pytest.approx(0.2, rel=0.1)
+
+
+def test_clamp_keeps_the_scale_near_its_start() -> None:
+    assert clamp(1e-9, 1.0, 100.0, 3.0) == 0.01 and clamp(1e9, 1.0, 100.0, 3.0) == 100.0
+    assert clamp(float("nan"), 1.0, 100.0, 3.0) == 3.0
+
+
+def test_blocks_re_estimate_the_scales() -> None:
+    drive = synthetic_drive(duration_s=20.0)
+    est = MskfEm(table=MskfSettings(block_s=2.0))
+    run(est, drive.samples)
+    stats = est.stats()
+    assert stats["em_blocks"] >= 8
+    start = MskfSettings().noise
+    assert stats["q_position"] != start.pos_rw**2 and stats["r_gnss"] != 1.0
+
+
+def test_settings_are_validated() -> None:
+    with pytest.raises(ValueError, match="block_s"):
+        MskfSettings(block_s=0.0)
+    with pytest.raises(ValueError, match="em_iterations"):
+        MskfSettings(em_iterations=0)
