@@ -241,6 +241,16 @@ def test_gate_rejects_a_jump_and_reacquires_agreeing_fixes() -> None:
     assert set(scattered) == {"rejected"}
 
 
+def test_gate_reacquires_fixes_that_drift_steadily_from_a_filter_wrong_in_speed_and_heading() -> None:
+    """After an outage a filter wrong in speed and heading sees innovations growing by metres per fix: they agree
+    with each other (on a line in time) and are re-acquired; a run broken by a jump starts over."""
+    gate = Gate(threshold=9.0, reacquire_s=2.0)
+    drifting = [gate.check(float(k), np.array([20.0 + 3.0 * k, 5.0 - 2.0 * k]), 400.0, 1.0) for k in range(3)]
+    assert drifting == ["rejected", "rejected", "reacquire"]  # three fixes over 2 s
+    jumpy = [np.array([20.0, 5.0]), np.array([23.0, 3.0]), np.array([60.0, 3.0]), np.array([29.0, -1.0])]
+    assert {gate.check(10.0 + k, nu, 400.0, 1.0) for k, nu in enumerate(jumpy)} == {"rejected"}
+
+
 def test_late_fixes_are_dropped_and_counted() -> None:
     """Fixes arriving 1.2 s after their time (behind the CAN data by more than MAX_FIX_LAG_S) are not used."""
     ekf = Ekf()
