@@ -10,7 +10,9 @@ from ``/proc`` over the drive, in % of one core).
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
 import os
 import socket
 import subprocess
@@ -20,7 +22,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-from sumhe.sim import SimSettings, simulate, write_drive
+import numpy as np
+
+from sumhe.bench.drives import BenchDrive, PeersSettings, simulated_drive
+from sumhe.bench.peers import run_estimator
+from sumhe.config import Config
+from sumhe.io.serial import IDLE_S
+from sumhe.messages import GnssFix, Sample
+from sumhe.sim import SimSettings, profile_settings, simulate, write_drive
 
 GROUP = "ff11:7079:7468:6f6e:6465:6d6f:6d63:6173"
 
@@ -125,3 +134,45 @@ def format_live(fig: dict[str, Any]) -> str:
             f"  CPU: {fig['cpu_percent_of_one_core']:.1f} % of one core",
         ]
     )
+
+
+def arrival_order(samples: list[Sample], fix_delay_s: float) -> list[Sample]:
+    """Time-ordered ``samples`` (fixes at their measurement time) in the order a live service gets them: a CAN
+    sample at its own time, a fix ``fix_delay_s`` after its time (the receiver's latency and the serial source's
+    idle gap), so it comes after the CAN samples of that span (stable for equal times)."""
+    keyed = sorted(
+        ((s.t + fix_delay_s if isinstance(s, GnssFix) else s.t, i) for i, s in enumerate(samples)),
+    )
+    return [samples[i] for _, i in keyed]
+
+
+def held_vs_arrival(estimator: str, drive: BenchDrive, fix_delay_s: float) -> dict[str, tuple[float, float, float]]:
+    """Outage errors (m: mean, p95, max over the drive's outages) of ``estimator`` fed the drive in time order (what
+    the reorder hold gave) and in arrival order (no hold, :func:`arrival_order`)."""
+    out = {}
+    for name, samples in (
+        ("held", drive.samples),
+        ("arrival", arrival_order(drive.samples, fix_delay_s)),
+    ):
+        result = run_estimator(estimator, dataclasses.replace(drive, samples=samples))
+        err = np.concatenate([*result.outage_errors, np.zeros(0)])
+        out[name] = (
+            (float(np.mean(err)), float(np.percentile(err, 95)), float(np.max(err)))
+            if err.size
+            else (
+                math.nan,
+                math.nan,
+                math.nan,
+            )
+        )
+    return out
+
+
+def ab_drive(base: Config, duration_s: float = 240.0, seed: int = 1) -> tuple[BenchDrive, float]:
+    """The drive of the held/arrival comparison, the realistic profile's urban drive with outages of 5, 10, 30
+    and 55 s placed as ``sumhe bench peers`` places them, and how long after its measurement time a fix of it
+    reaches a live service (s: the drive's receiver latency, half its jitter, the serial idle gap)."""
+    ps = PeersSettings(duration_s=duration_s, seeds=(seed,))
+    sim = profile_settings("realistic", seed, scenario="urban", duration_s=duration_s)
+    delay = sim.gps_latency_s + sim.gps_latency_jitter_s / 2.0 + IDLE_S
+    return simulated_drive("urban", "", seed, ps, base, profile="realistic"), delay
