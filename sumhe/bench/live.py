@@ -21,20 +21,23 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
 from sumhe.config import Config, load_config
 from sumhe.estimator.registry import make_estimator
+from sumhe.frontend.fixes import LocalFix
 from sumhe.io.replay import log_samples
 from sumhe.io.serial import IDLE_S
-from sumhe.messages import GnssFix, Sample
+from sumhe.messages import CanSample, Sample
 from sumhe.service.pipeline import Pipeline
 from sumhe.sim import Drive, SimSettings, simulate, write_drive
 
+S = TypeVar("S", Sample, LocalFix | CanSample)
 GROUP = "ff11:7079:7468:6f6e:6465:6d6f:6d63:6173"
 OUTAGE_S = 10.0
 
@@ -252,11 +255,11 @@ def format_live(fig: dict[str, Any]) -> str:
     )
 
 
-def arrival_order(samples: list[Sample], fix_delay_s: float) -> list[Sample]:
+def arrival_order(samples: Sequence[S], fix_delay_s: float) -> list[S]:
     """Time-ordered ``samples`` (fixes at their measurement time) in the order a live service gets them: a CAN
     sample at its own time, a fix ``fix_delay_s`` after its time (the receiver's latency and the serial source's
     idle gap), so it comes after the CAN samples of that span (stable for equal times)."""
     keyed = sorted(
-        ((s.t + fix_delay_s if isinstance(s, GnssFix) else s.t, i) for i, s in enumerate(samples)),
+        ((s.t if isinstance(s, CanSample) else s.t + fix_delay_s, i) for i, s in enumerate(samples)),
     )
     return [samples[i] for _, i in keyed]
