@@ -80,6 +80,7 @@ SOURCE_COUNTERS = (
     "error_frames",
     "fd_frames",
     "remote_frames",
+    "restamped",
 )
 """Source counters shown in the status line when not zero (the JSON status has them all)."""
 
