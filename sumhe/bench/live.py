@@ -38,7 +38,8 @@ from sumhe.service.pipeline import Pipeline
 from sumhe.sim import Drive, SimSettings, simulate, write_drive
 
 S = TypeVar("S", Sample, LocalFix | CanSample)
-GROUP = "ff11:7079:7468:6f6e:6465:6d6f:6d63:6173"
+GROUP_PREFIX = "ff11:7079:7468:6f6e:6465:6d6f"
+"""Interface-local IPv6 multicast: each run takes its own group below it (runs at the same time stay apart)."""
 OUTAGE_S = 10.0
 
 
@@ -81,12 +82,12 @@ def live_drive(duration_s: float, directory: Path) -> tuple[Drive, Path]:
     return sim, directory
 
 
-def service_config(sim: Drive, tmp: Path, estimator: str, json_port: int, status_port: int) -> Path:
-    """The daemon's config file: the udp_multicast bus, the pty, JSON and status to 127.0.0.1."""
+def service_config(sim: Drive, tmp: Path, estimator: str, group: str, json_port: int, status_port: int) -> Path:
+    """The daemon's config file: the udp_multicast bus on ``group``, the pty, JSON and status to 127.0.0.1."""
     latency = sim.settings.gps_latency_s + sim.settings.gps_latency_jitter_s / 2
     path = tmp / "service.toml"
     path.write_text(
-        f'[can]\ninterface = "udp_multicast"\nchannel = "{GROUP}"\n'
+        f'[can]\ninterface = "udp_multicast"\nchannel = "{group}"\n'
         '[can.signals]\nspeed = "ESP_VEHICLE_SPEED.VEHICLE_SPEED"\nyaw_rate = "ESP_YAW_RATE.YAW_RATE"\n'
         f'[gps]\nport = "{tmp / "gps"}"\nlatency_s = {latency}\nreconnect_max_s = 0.5\n'
         f'[output]\njson = ["127.0.0.1:{json_port}"]\n'
@@ -104,12 +105,13 @@ def run_daemon(sim: Drive, drive_dir: Path, tmp: Path, estimator: str, speed: fl
     status_sock.bind(("127.0.0.1", 0))
     for s in (est_sock, status_sock):
         s.setblocking(False)
-    config = service_config(sim, tmp, estimator, est_sock.getsockname()[1], status_sock.getsockname()[1])
-    (tmp / "player.toml").write_text(f'[can]\ninterface = "udp_multicast"\nchannel = "{GROUP}"\n')
+    group = f"{GROUP_PREFIX}:{os.getpid() & 0xFFFF:x}:{est_sock.getsockname()[1]:x}"
+    config = service_config(sim, tmp, estimator, group, est_sock.getsockname()[1], status_sock.getsockname()[1])
+    (tmp / "player.toml").write_text(f'[can]\ninterface = "udp_multicast"\nchannel = "{group}"\n')
     run = DaemonRun()
     service = _sumhe(["run", "--config", str(config)], tmp / "service.log")
     try:
-        while "sumhe ready" not in (tmp / "service.log").read_text():
+        while "sumhe starting" not in (tmp / "service.log").read_text():
             if service.poll() is not None:
                 raise RuntimeError(f"sumhe run ended: {(tmp / 'service.log').read_text()[-2000:]}")
             time.sleep(0.1)
