@@ -133,12 +133,12 @@ def check_drive(
 
     ``emulated`` (the CI virtual machine: Python 10 to 50 times slower on shared cores) asserts correctness, not
     real-time speed. There the daemon may fall behind real time and shed load as it is built to: degraded output
-    (``degraded`` episodes; the MHE appends epochs unsolved) and, more than 10 s behind, drops samples as stale (``time.stale``; measured there: from 10 s
-    behind at 30 s of the drive to about 10 s behind throughout, as the machine's load varies). Checked then: a
+    (``degraded`` episodes; the MHE appends epochs unsolved) and, more than 10 s behind, drops samples as stale
+    (``time.stale``; measured there: from 10 s behind at 30 s of the drive to about 10 s behind throughout, as the
+    machine's load varies). Checked then: a
     second without an estimate only where the final ``status`` counts stale samples; the shedding logged, never
     silent. The estimates' GPS flags and errors against the truth are checked only where the daemon shed nothing:
-    with most epochs skipped (the outage's "no fix" epochs too, so estimates early in the outage still carry the last
-    used fix's ``ok``) they measure the machine, not sumhe; the SocketCAN data's flags and accuracy are checked by
+    with most epochs unsolved they measure the machine, not sumhe; the SocketCAN data's flags and accuracy are checked by
     replaying its recording (``test_socketcan.py``)."""
     assert code == 0, svc_text[-3000:]
     assert stop_s < max_stop_s, f"SIGTERM took {stop_s:.2f} s"
