@@ -138,8 +138,8 @@ def check_drive(
     machine's load varies). Checked then: a
     second without an estimate only where the final ``status`` counts stale samples; the shedding logged, never
     silent. The estimates' GPS flags and errors against the truth are checked only where the daemon shed nothing:
-    with most epochs unsolved they measure the machine, not sumhe; the SocketCAN data's flags and accuracy are checked by
-    replaying its recording (``test_socketcan.py``)."""
+    with most epochs unsolved they measure the machine, not sumhe; the SocketCAN data's flags and accuracy are
+    checked by replaying its recording (``test_socketcan.py``)."""
     assert code == 0, svc_text[-3000:]
     assert stop_s < max_stop_s, f"SIGTERM took {stop_s:.2f} s"
     assert "sumhe stopped" in svc_text
