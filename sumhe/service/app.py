@@ -81,6 +81,7 @@ SOURCE_COUNTERS = (
     "fd_frames",
     "remote_frames",
     "restamped",
+    "lost",
 )
 """Source counters shown in the status line when not zero (the JSON status has them all)."""
 
