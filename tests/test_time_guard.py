@@ -100,16 +100,17 @@ def test_a_clock_jump_is_judged_against_the_newest_of_any_stream():
     assert g.check(can(T0 + 0.1)) == "ok"  # after the reset the CAN stream starts over too
 
 
-def test_the_inbox_hands_out_chunks_in_time_order_and_drops_the_oldest_when_full():
+def test_the_inbox_hands_out_the_earliest_stamped_first_and_drops_them_when_full():
     inbox = Inbox(max_len=4)
     for k, s in enumerate([can(T0 + 0.3), fix(T0 + 0.1), can(T0 + 0.2), can(T0 + 0.4), can(T0 + 0.5)]):
         inbox.put(s, arrived=100.0 + k)
-    assert inbox.dropped == 1 and len(inbox) == 4  # the first (T0 + 0.3) went
+    assert inbox.dropped == 1 and len(inbox) == 4  # the earliest-stamped (the fix at T0 + 0.1) went
+    assert inbox.earliest_t() == T0 + 0.2
     chunk, arrived = inbox.take(3)
-    assert [s.t for s in chunk] == [T0 + 0.1, T0 + 0.2, T0 + 0.4]
-    assert arrived == 101.0
+    assert [s.t for s in chunk] == [T0 + 0.2, T0 + 0.3, T0 + 0.4]
+    assert arrived == 101.0  # the oldest arrival still waiting when taken
     assert [s.t for s in inbox.take(10)[0]] == [T0 + 0.5]
-    assert not inbox
+    assert not inbox and inbox.earliest_t() == math.inf
 
 
 def test_the_output_edge_drops_estimates_stamped_before_the_last_sent():

@@ -21,7 +21,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -97,8 +97,16 @@ def service_config(sim: Drive, tmp: Path, estimator: str, group: str, json_port:
     return path
 
 
-def run_daemon(sim: Drive, drive_dir: Path, tmp: Path, estimator: str, speed: float = 1.0) -> DaemonRun:
-    """Play ``drive_dir`` at ``speed`` through ``sumhe run`` (two processes); what came out."""
+def run_daemon(
+    sim: Drive,
+    drive_dir: Path,
+    tmp: Path,
+    estimator: str,
+    speed: float = 1.0,
+    during: Callable[[subprocess.Popen, float], None] | None = None,
+) -> DaemonRun:
+    """Play ``drive_dir`` at ``speed`` through ``sumhe run`` (two processes); what came out. ``during`` is called
+    with the daemon's process and the seconds played, every 20 ms while the player plays (fault injection)."""
     est_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     est_sock.bind(("127.0.0.1", 0))
     status_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -131,6 +139,8 @@ def run_daemon(sim: Drive, drive_dir: Path, tmp: Path, estimator: str, speed: fl
         )
         while player.poll() is None:
             time.sleep(0.02)
+            if during is not None:
+                during(service, time.monotonic() - wall0)
             _drain(est_sock, run)
             _drain_status(status_sock, run.statuses)
         run.play_s = time.monotonic() - wall0

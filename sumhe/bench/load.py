@@ -52,8 +52,9 @@ def run_load(duration_s: float, estimator: str, speeds: Sequence[float] = SPEEDS
             run = run_daemon(sim, drive_dir, tmp, estimator, speed=speed)
         degraded = [r.get("mode") == "degraded" for r in run.records]
         first = run.arrived[0] if run.arrived else math.nan
-        # from the first output to the end of the player, less the drive's start before the first fix
-        counts = per_second(run.arrived, first, first + run.play_s - 2.0 / speed) if run.arrived else np.zeros(0)
+        # whole seconds from the first output until the player ended (the drive's end: a partial second, left out)
+        end = min(first + run.play_s, run.arrived[-1]) - 1.0 if run.arrived else first
+        counts = per_second(run.arrived, first, end) if run.arrived else np.zeros(0)
         status = run.status
         time_drops = sum(v for k, v in status.get("time", {}).items() if k in ("stale", "late", "future"))
         out.append(

@@ -6,9 +6,10 @@ loop in a worker thread -> the output edge (time order) -> sinks (UDP JSON / NME
 * No hold: each sample goes to the estimator as it arrives, so a CAN sample's estimate leaves as soon as it is
   computed. Time order is judged per stream (:class:`~sumhe.service.pipeline.TimeGuard`): a GNSS fix arrives
   after the CAN samples of its latency and the estimators insert it at its time (the MHE builds its epoch from
-  its CAN buffer, the Kalman family compares the fix with its state run back by the lag). What arrived while a
-  push ran is taken next as one chunk (at most ``MAX_CHUNK`` samples) in time order: after a stall, the
-  backlogs of the sources meet in order.
+  its CAN buffer, the Kalman family compares the fix with its state run back by the lag). What waits while a
+  push runs is taken earliest-stamped first (at most ``MAX_CHUNK`` samples at a time, :class:`Inbox`); after a
+  stall (input older than ``STALL_S``: counted ``stalls``, a WARNING) the service waits ``STALL_WAIT_S`` once so
+  the sources' backlogs meet, then takes them in time order.
 * Readers never stall: sources run in their own threads; the estimator runs in ``asyncio.to_thread``.
 * Degraded, never silent: when the oldest waiting sample arrived more than ``BEHIND_S`` ago, the estimator has
   fallen behind: an ERROR line, ``degraded`` episodes counted, every estimate sent with ``mode = "degraded"``, and
@@ -37,8 +38,11 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import heapq
+import itertools
 import json
 import logging
+import math
 import signal
 import time
 from collections import deque
@@ -65,6 +69,11 @@ SOLVE_BACKLOG_S = 0.1
 """While degraded, a chunk taken with a backlog under this (s) is solved normally (time allows)."""
 RECOVER_S = 0.05
 """Degraded ends when a chunk is taken with a backlog under this (s)."""
+STALL_S = 1.0
+"""The earliest waiting sample is older than this on the service clock (s): the service stalled (SIGSTOP, a
+starved process) and the sources' backlogs come in; it waits ``STALL_WAIT_S`` once so that all sources deliver
+theirs before the estimator takes them in time order."""
+STALL_WAIT_S = 0.1
 MAX_CHUNK = 64
 """Samples pushed per call of the worker thread (estimates are sent after each)."""
 MAX_BACKLOG = 20_000
@@ -100,35 +109,49 @@ class ServiceStats:
     degraded_sent: int = 0
     degraded_s: float = 0.0
     backlog_dropped: int = 0
+    stalls: int = 0
     solve_ms: deque[float] = field(default_factory=lambda: deque(maxlen=SOLVE_WINDOW))
     latency_ms: deque[float] = field(default_factory=lambda: deque(maxlen=SOLVE_WINDOW))
 
 
 class Inbox:
-    """Samples as they arrive, each with its arrival time (``time.monotonic()``); taken in chunks, each chunk in
-    time order (stable). Holds at most ``max_len`` samples, dropping the oldest beyond (counted)."""
+    """Samples as they arrive, taken in chunks of the earliest-stamped (each stream is in time order already, so
+    this only orders backlogs of several sources against each other: nothing waits for order); the arrival times
+    (``time.monotonic()``) say how far behind the consumer is. Holds at most ``max_len`` samples, dropping the
+    earliest-stamped beyond (counted)."""
 
     def __init__(self, max_len: int = MAX_BACKLOG) -> None:
-        self._items: deque[tuple[float, Sample]] = deque()
+        self._heap: list[tuple[float, int, Sample]] = []
+        self._arrivals: deque[float] = deque()
+        self._seq = itertools.count()
         self.max_len = max_len
         self.dropped = 0
         self.event = asyncio.Event()
 
     def put(self, sample: Sample, arrived: float) -> None:
-        if len(self._items) >= self.max_len:
-            self._items.popleft()
+        if len(self._heap) >= self.max_len:
+            heapq.heappop(self._heap)
+            self._arrivals.popleft()
             self.dropped += 1
-        self._items.append((arrived, sample))
+        t = sample.t if math.isfinite(sample.t) else -math.inf
+        heapq.heappush(self._heap, (t, next(self._seq), sample))
+        self._arrivals.append(arrived)
         self.event.set()
 
+    def earliest_t(self) -> float:
+        """The earliest time stamped on a waiting sample (inf when empty)."""
+        return self._heap[0][0] if self._heap else math.inf
+
     def take(self, n: int) -> tuple[list[Sample], float]:
-        """Up to ``n`` samples in time order, and when the first of them arrived."""
-        chunk = [self._items.popleft() for _ in range(min(n, len(self._items)))]
-        arrived = chunk[0][0] if chunk else time.monotonic()
-        return sorted((s for _, s in chunk), key=lambda s: s.t), arrived
+        """Up to ``n`` earliest-stamped samples in time order, and when the oldest waiting sample arrived."""
+        arrived = self._arrivals[0] if self._arrivals else time.monotonic()
+        k = min(n, len(self._heap))
+        for _ in range(k):
+            self._arrivals.popleft()
+        return [heapq.heappop(self._heap)[2] for _ in range(k)], arrived
 
     def __len__(self) -> int:
-        return len(self._items)
+        return len(self._heap)
 
 
 def percentile(values: deque[float] | list[float], q: float) -> float:
@@ -245,11 +268,22 @@ class Service:
             self.inbox.put(sample, time.monotonic())
 
     async def _estimate(self) -> None:
+        stalled = False
         while True:
             if not self.inbox:
                 self.inbox.event.clear()
                 await self.inbox.event.wait()
                 continue
+            if self.clock() - self.inbox.earliest_t() <= STALL_S:
+                stalled = False
+            elif not stalled:
+                stalled = True
+                self.stats.stalls += 1
+                log.warning(
+                    "input %.1f s old: a stall; taking the sources' backlogs in time order",
+                    self.clock() - self.inbox.earliest_t(),
+                )
+                await asyncio.sleep(STALL_WAIT_S / self.clock_rate)
             chunk, arrived = self.inbox.take(MAX_CHUNK)
             backlog = time.monotonic() - arrived
             self._judge_backlog(backlog)
@@ -338,6 +372,7 @@ class Service:
             "degraded_s": round(self.stats.degraded_s + self._degraded_now(), 3),
             "backlog": len(self.inbox),
             "backlog_dropped": self.inbox.dropped,
+            "stalls": self.stats.stalls,
             "solve_ms_p50": round(percentile(self.stats.solve_ms, 50), 3),
             "solve_ms_p99": round(percentile(self.stats.solve_ms, 99), 3),
             "latency_ms_p50": round(percentile(self.stats.latency_ms, 50), 3),
