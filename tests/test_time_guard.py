@@ -1,8 +1,9 @@
 import math
 
 import pytest
+from test_udp import _estimate
 
-from sumhe.messages import CanSample, Estimate, GnssFix
+from sumhe.messages import CanSample, GnssFix
 from sumhe.service.app import Inbox
 from sumhe.service.pipeline import MonotonicOutput, TimeGuard, TimeRules
 
@@ -15,24 +16,6 @@ def can(t: float, value: float = 1.0) -> CanSample:
 
 def fix(t: float) -> GnssFix:
     return GnssFix(t=t, time_utc=None, lat_deg=48.1, lon_deg=11.5, alt_m=0.0, quality=1, valid=True)
-
-
-def estimate(t: float) -> Estimate:
-    return Estimate(
-        t=t,
-        east_m=0.0,
-        north_m=0.0,
-        lat_deg=48.1,
-        lon_deg=11.5,
-        alt_m=0.0,
-        track_rad=0.0,
-        speed_mps=1.0,
-        yaw_rate_rps=0.0,
-        gps="ok",
-        mode="mhe",
-        window=1,
-        solve_ms=0.0,
-    )
 
 
 def test_in_order_samples_are_accepted():
@@ -116,8 +99,8 @@ def test_the_inbox_hands_out_the_earliest_stamped_first_and_drops_them_when_full
 def test_the_output_edge_drops_estimates_stamped_before_the_last_sent():
     out = MonotonicOutput()
     times = [1.0, 1.1, 1.05, 1.1, 1.2, 0.9, 1.3]
-    sent = [t for t in times if out.admit(estimate(t))]
+    sent = [t for t in times if out.admit(_estimate(t=t))]
     assert sent == [1.0, 1.1, 1.1, 1.2, 1.3]
     assert out.out_of_order == 2
     out.reset()
-    assert out.admit(estimate(0.5))
+    assert out.admit(_estimate(t=0.5))
