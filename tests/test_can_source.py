@@ -19,6 +19,7 @@ from sumhe.io.can_source import (
     CanBusSource,
     CanFrameSource,
     ClockRebase,
+    FrameGaps,
     explain_open_error,
     is_permanent,
 )
@@ -333,3 +334,20 @@ def test_socketcan_vcan0_with_kernel_filters():
             assert source.decoder.stats.unused == 0
 
     run(main())
+
+
+def test_frames_lost_before_they_were_read_are_inferred_from_the_gaps_of_each_id():
+    gaps = FrameGaps()
+    t = 1000.0
+    for k in range(50):  # 0x100 at 100 Hz, 0x200 at 50 Hz, with jitter
+        gaps.see(0x100, t + 0.01 * k + 0.002 * (k % 3))
+        if k % 2 == 0:
+            gaps.see(0x200, t + 0.01 * k)
+    assert gaps.lost == 0
+    resume = t + 0.49 + 1.0  # a 1 s overrun: about 99 frames of 0x100 and 49 of 0x200 never read
+    gaps.see(0x100, resume)
+    gaps.see(0x200, resume)
+    assert 140 <= gaps.lost <= 155
+    before = gaps.lost
+    gaps.see(0x100, resume + 60.0)  # a sender that stopped for a minute: not an overrun
+    assert gaps.lost == before

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import os
 import time
 import tty
@@ -222,3 +223,39 @@ def test_the_line_source_yields_raw_lines_with_receive_times(pty):
 def test_a_gps_without_a_port_is_a_config_error():
     with pytest.raises(ConfigError, match=r"gps\.port"):
         SerialNmeaSource(GpsSettings(port=None))
+
+
+def epoch_at(tenths: int) -> bytes:
+    """GGA and RMC of 12:00:00 + ``tenths`` tenths of a second on 17 May 2024 (the position of :func:`epoch`)."""
+    t = f"1200{tenths // 10:02d}.{tenths % 10}0"
+    return nmea(f"GPGGA,{t},4807.038,N,01131.000,E,1,08,0.9,545.4,M,46.9,M,,") + nmea(
+        f"GPRMC,{t},A,4807.038,N,01131.000,E,10.0,84.4,170524,3.1,W,A"
+    )
+
+
+def test_epochs_read_from_a_backlog_are_stamped_from_their_utc_time(pty):
+    """A stall: 15 epochs the receiver sent over 1.5 s are read at once. Read times alone would give them one time
+    (all but one then dropped as back in time); they get their UTC time plus the quickest offset seen before."""
+
+    async def main():
+        async with SerialNmeaSource(settings(pty.path)) as source:
+            await until(lambda: source.stats.connected)
+            live = []
+            start = time.monotonic()
+            for k in range(5):  # a 10 Hz receiver
+                await asyncio.sleep(max(0.0, start + 0.1 * k - time.monotonic()))
+                pty.write(epoch_at(k))
+                live.append(await anext(source))
+            await asyncio.sleep(max(0.0, start + 2.0 - time.monotonic()))  # nobody reads: written late, at once
+            pty.write(b"".join(epoch_at(k) for k in range(5, 20)))
+            backlog = [await anext(source) for _ in range(15)]
+            lowest = min(f.t - f.time_utc.timestamp() for f in live)
+            t = [f.t for f in live + backlog]
+            assert all(b > a for a, b in itertools.pairwise(t)), t
+            # all but the newest of the backlog: their UTC time plus the lowest offset (quickest delivery)
+            assert source.receive_times.restamped >= 14
+            for f in backlog[:14]:
+                assert f.t == pytest.approx(f.time_utc.timestamp() + lowest, abs=0.01)
+            assert source.counters()["restamped"] == source.receive_times.restamped
+
+    run(main())

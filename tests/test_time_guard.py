@@ -1,10 +1,11 @@
 import math
 
 import pytest
+from test_udp import _estimate
 
 from sumhe.messages import CanSample, GnssFix
-from sumhe.service.app import Reorder, newest_epoch_only
-from sumhe.service.pipeline import TimeGuard, TimeRules
+from sumhe.service.app import Inbox
+from sumhe.service.pipeline import MonotonicOutput, TimeGuard, TimeRules
 
 T0 = 1780300800.0
 
@@ -63,28 +64,43 @@ def test_gnss_clock_skew_against_can_is_counted_but_the_fix_is_used():
     assert g.stats.skew == 1 and g.stats.last_skew_s == pytest.approx(2.0)
 
 
-def test_reorder_releases_in_time_order_hold_after_each_timestamp():
-    r = Reorder(hold_s=0.1)
-    r.put(can(T0 + 0.20), now=T0 + 0.20)
-    r.put(fix(T0 + 0.10), now=T0 + 0.25)  # stamped earlier than it arrived (receiver latency)
-    r.put(can(T0 + 0.26), now=T0 + 0.26)
-    assert r.next_due() == pytest.approx(T0 + 0.20)  # the fix, due 0.1 s after its own time
-    released, lag = r.release(now=T0 + 0.31)
-    assert [s.t for s in released] == [T0 + 0.10, T0 + 0.20]  # time order; the later CAN sample still held
-    assert lag == pytest.approx(0.11, abs=1e-6)
-    assert [s.t for s in r.release(now=T0 + 0.36)[0]] == [T0 + 0.26]
+def test_time_order_is_judged_per_stream_not_across_them():
+    """No reorder hold: a fix stamped before CAN samples already taken is in order on its own stream."""
+    g = TimeGuard(TimeRules())
+    assert g.check(can(T0 + 1.0)) == "ok"
+    assert g.check(CanSample(T0 + 0.99, "yaw_rate", 0.1)) == "ok"  # another quantity: its own stream
+    assert g.check(fix(T0 + 0.8)) == "ok"  # the receiver's latency behind the CAN data
+    assert g.check(fix(T0 + 0.7)) == "drop"  # back in time on the GNSS stream
+    assert g.check(fix(T0 + 0.8)) == "drop"  # the same fix again
+    assert g.check(CanSample(T0 + 0.98, "yaw_rate", 0.1)) == "drop"
+    assert (g.stats.late, g.stats.duplicate, g.stats.accepted) == (2, 1, 3)
 
 
-def test_reorder_never_holds_a_future_dated_sample_longer_than_the_hold():
-    r = Reorder(hold_s=0.1)
-    r.put(can(T0 + 100.0), now=T0)
-    assert r.next_due() == pytest.approx(T0 + 0.1)
-    assert len(r.release(now=T0 + 0.1)[0]) == 1
+def test_a_clock_jump_is_judged_against_the_newest_of_any_stream():
+    g = TimeGuard(TimeRules(jump_s=30.0))
+    g.check(can(T0 + 100.0))
+    assert g.check(fix(T0)) == "reset"
+    assert g.check(can(T0 + 0.1)) == "ok"  # after the reset the CAN stream starts over too
 
 
-def test_newest_epoch_only_skips_older_epochs_but_keeps_can():
-    batch = [fix(T0), can(T0 + 0.01), fix(T0 + 0.1), can(T0 + 0.11), fix(T0 + 0.2)]
-    kept, skipped = newest_epoch_only(batch)
-    assert skipped == 2
-    assert [type(s).__name__ for s in kept] == ["CanSample", "CanSample", "GnssFix"]
-    assert kept[-1].t == T0 + 0.2
+def test_the_inbox_hands_out_the_earliest_stamped_first_and_drops_them_when_full():
+    inbox = Inbox(max_len=4)
+    for k, s in enumerate([can(T0 + 0.3), fix(T0 + 0.1), can(T0 + 0.2), can(T0 + 0.4), can(T0 + 0.5)]):
+        inbox.put(s, arrived=100.0 + k)
+    assert inbox.dropped == 1 and len(inbox) == 4  # the earliest-stamped (the fix at T0 + 0.1) went
+    assert inbox.earliest_t() == T0 + 0.2
+    chunk, arrived = inbox.take(3)
+    assert [s.t for s in chunk] == [T0 + 0.2, T0 + 0.3, T0 + 0.4]
+    assert arrived == 101.0  # the oldest arrival still waiting when taken
+    assert [s.t for s in inbox.take(10)[0]] == [T0 + 0.5]
+    assert not inbox and inbox.earliest_t() == math.inf
+
+
+def test_the_output_edge_drops_estimates_stamped_before_the_last_sent():
+    out = MonotonicOutput()
+    times = [1.0, 1.1, 1.05, 1.1, 1.2, 0.9, 1.3]
+    sent = [t for t in times if out.admit(_estimate(t=t))]
+    assert sent == [1.0, 1.1, 1.1, 1.2, 1.3]
+    assert out.out_of_order == 2
+    out.reset()
+    assert out.admit(_estimate(t=0.5))

@@ -7,8 +7,8 @@ listens like any client. Faster than real time (``speed`` > 1), everything runs 
 ``t0 + (wall - wall0) * speed``: the player keeps the frames' timestamps (``preserve_timestamps``) and the serial
 source stamps lines with the same clock, so the estimator sees the drive as it happened. Wall-clock delays (the
 serial source's 50 ms idle gap that closes an epoch, thread hand-overs) last ``speed`` times longer on that clock,
-so the reorder margin is scaled with it: unscaled, fixes came after CAN samples already released and were dropped
-as late, and a skipped epoch later failed a solve.
+so a fix comes that much further behind the CAN data (the estimators insert it at its time, up to the front-end's
+``MAX_FIX_LAG_S``).
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from sumhe.io.player import Player, Pty, read_nmea_log
 from sumhe.io.replay import log_samples
 from sumhe.io.serial import SerialNmeaSource
 from sumhe.io.udp import estimate_to_json
-from sumhe.service.app import REORDER_MARGIN_S, Service, install_signal_handlers
+from sumhe.service.app import Service, install_signal_handlers
 from sumhe.service.pipeline import Pipeline
 from sumhe.sim import Truth, bundled_drive_dir, load_settings, load_truth
 
@@ -147,7 +147,6 @@ async def run_live(
             config,
             make_estimator(config.estimator.name, config),
             sources,
-            hold_s=latency + REORDER_MARGIN_S * speed,
             clock=clock,
             clock_rate=speed,
         )
@@ -224,8 +223,8 @@ def demo(speed: float, estimator: str | None, say: Callable[[str], None]) -> Dem
     span = (records[-1]["t"] - records[0]["t"]) if len(records) > 1 else 0.0
     if span > 0:
         say(f"output rate {len(records) / span:.1f} Hz of drive time")
-    p50, p99, skipped = status["solve_ms_p50"], status["solve_ms_p99"], status["skipped_epochs"]
-    say(f"epoch update p50/p99 {p50}/{p99} ms, skipped epochs {skipped}")
+    p50, p99, degraded = status["solve_ms_p50"], status["solve_ms_p99"], status["degraded_sent"]
+    say(f"epoch update p50/p99 {p50}/{p99} ms, estimates sent degraded {degraded}")
     say("position error (m)           with GPS: mean / p95 / max      GPS out: mean / p95 / max")
     for name, recs in (("sumhe " + (estimator or "default"), records), ("dead reckoning", dr)):
         s = summarise(recs, truth, frame)

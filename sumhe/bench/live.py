@@ -3,26 +3,44 @@
 Two real processes, as in the end-to-end test: ``sumhe play`` puts a simulated drive (10 Hz GNSS, 100/50 Hz CAN)
 on a python-can ``udp_multicast`` bus (an interface-local IPv6 group: nothing leaves the machine) and its NMEA
 into a pseudo-terminal, in real time; ``sumhe run`` reads both and sends JSON to 127.0.0.1, where this
-benchmark listens. Printed: the output rate, the end-to-end latency from the newest CAN frame's timestamp to the
-UDP send (the service's own status figures), the epoch solve times, and the daemon's CPU use (user + system time
-from ``/proc`` over the drive, in % of one core).
+benchmark listens. Printed: the output rate, the end-to-end latency from the CAN frame's timestamp to the UDP send
+(the service's own status figures: no reorder hold, each CAN sample's estimate leaves when computed), the epoch
+solve times, the daemon's CPU use (user + system time from ``/proc`` over the drive, in % of one core), and the
+outage errors against the truth three ways: the live run's own, and the same drive files replayed in-process in
+time order (what the former reorder hold gave the estimator) and in arrival order (:func:`arrival_order`: each
+fix after the CAN samples of its latency, as the daemon now takes them).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import socket
 import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
-from sumhe.sim import SimSettings, simulate, write_drive
+import numpy as np
 
-GROUP = "ff11:7079:7468:6f6e:6465:6d6f:6d63:6173"
+from sumhe.config import Config, load_config
+from sumhe.estimator.registry import make_estimator
+from sumhe.frontend.fixes import LocalFix
+from sumhe.io.replay import log_samples
+from sumhe.io.serial import IDLE_S
+from sumhe.messages import CanSample, Sample
+from sumhe.service.pipeline import Pipeline
+from sumhe.sim import Drive, SimSettings, simulate, write_drive
+
+S = TypeVar("S", Sample, LocalFix | CanSample)
+GROUP_PREFIX = "ff11:7079:7468:6f6e:6465:6d6f"
+"""Interface-local IPv6 multicast: each run takes its own group below it (runs at the same time stay apart)."""
+OUTAGE_S = 10.0
 
 
 def _cpu_s(pid: int) -> float:
@@ -39,89 +57,221 @@ def _sumhe(args: list[str], log: Path) -> subprocess.Popen:
         )
 
 
-def run_live(duration_s: float, estimator: str, say: Any = print) -> dict[str, Any]:
-    """Play a drive of ``duration_s`` through ``sumhe run``; returns the measured figures."""
-    with tempfile.TemporaryDirectory(prefix="sumhe-live-") as tmp_name:
-        tmp = Path(tmp_name)
-        sim = simulate(SimSettings(scenario="urban", seed=5, duration_s=duration_s, outages=((duration_s / 2, 10.0),)))
-        write_drive(sim, tmp / "drive")
-        est_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        est_sock.bind(("127.0.0.1", 0))
-        status_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        status_sock.bind(("127.0.0.1", 0))
-        for s in (est_sock, status_sock):
-            s.setblocking(False)
-        can = f'[can]\ninterface = "udp_multicast"\nchannel = "{GROUP}"\n'
-        latency = sim.settings.gps_latency_s + sim.settings.gps_latency_jitter_s / 2
-        (tmp / "service.toml").write_text(
-            can + '[can.signals]\nspeed = "ESP_VEHICLE_SPEED.VEHICLE_SPEED"\nyaw_rate = "ESP_YAW_RATE.YAW_RATE"\n'
-            f'[gps]\nport = "{tmp / "gps"}"\nlatency_s = {latency}\nreconnect_max_s = 0.5\n'
-            f'[output]\njson = ["127.0.0.1:{est_sock.getsockname()[1]}"]\n'
-            f'status_udp = "127.0.0.1:{status_sock.getsockname()[1]}"\nstatus_interval_s = 1.0\n'
-            f'[estimator]\nname = "{estimator}"\n'
+@dataclass
+class DaemonRun:
+    """What one run of ``sumhe run`` against ``sumhe play`` gave: the JSON estimates with the benchmark's
+    ``time.monotonic()`` at their arrival (``arrived``), the status datagrams, the player's clock offset (s:
+    service time = drive time + offset), the daemon's CPU use (% of one core) and the wall time the player took."""
+
+    records: list[dict[str, Any]] = field(default_factory=list)
+    arrived: list[float] = field(default_factory=list)
+    statuses: list[dict[str, Any]] = field(default_factory=list)
+    offset_s: float = math.nan
+    cpu_percent: float = math.nan
+    play_s: float = math.nan
+
+    @property
+    def status(self) -> dict[str, Any]:
+        return self.statuses[-1] if self.statuses else {}
+
+
+def live_drive(duration_s: float, directory: Path) -> tuple[Drive, Path]:
+    """The benchmark's drive (urban, seed 5, one outage of ``OUTAGE_S`` at half time) written to ``directory``."""
+    sim = simulate(SimSettings(scenario="urban", seed=5, duration_s=duration_s, outages=((duration_s / 2, OUTAGE_S),)))
+    write_drive(sim, directory)
+    return sim, directory
+
+
+def service_config(sim: Drive, tmp: Path, estimator: str, group: str, json_port: int, status_port: int) -> Path:
+    """The daemon's config file: the udp_multicast bus on ``group``, the pty, JSON and status to 127.0.0.1."""
+    latency = sim.settings.gps_latency_s + sim.settings.gps_latency_jitter_s / 2
+    path = tmp / "service.toml"
+    path.write_text(
+        f'[can]\ninterface = "udp_multicast"\nchannel = "{group}"\n'
+        '[can.signals]\nspeed = "ESP_VEHICLE_SPEED.VEHICLE_SPEED"\nyaw_rate = "ESP_YAW_RATE.YAW_RATE"\n'
+        f'[gps]\nport = "{tmp / "gps"}"\nlatency_s = {latency}\nreconnect_max_s = 0.5\n'
+        f'[output]\njson = ["127.0.0.1:{json_port}"]\n'
+        f'status_udp = "127.0.0.1:{status_port}"\nstatus_interval_s = 1.0\n'
+        f'[estimator]\nname = "{estimator}"\n'
+    )
+    return path
+
+
+def run_daemon(
+    sim: Drive,
+    drive_dir: Path,
+    tmp: Path,
+    estimator: str,
+    speed: float = 1.0,
+    during: Callable[[subprocess.Popen, float], None] | None = None,
+) -> DaemonRun:
+    """Play ``drive_dir`` at ``speed`` through ``sumhe run`` (two processes); what came out. ``during`` is called
+    with the daemon's process and the seconds played, every 20 ms while the player plays (fault injection)."""
+    est_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    est_sock.bind(("127.0.0.1", 0))
+    status_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    status_sock.bind(("127.0.0.1", 0))
+    for s in (est_sock, status_sock):
+        s.setblocking(False)
+    group = f"{GROUP_PREFIX}:{os.getpid() & 0xFFFF:x}:{est_sock.getsockname()[1]:x}"
+    config = service_config(sim, tmp, estimator, group, est_sock.getsockname()[1], status_sock.getsockname()[1])
+    (tmp / "player.toml").write_text(f'[can]\ninterface = "udp_multicast"\nchannel = "{group}"\n')
+    run = DaemonRun()
+    service = _sumhe(["run", "--config", str(config)], tmp / "service.log")
+    try:
+        while "sumhe starting" not in (tmp / "service.log").read_text():
+            if service.poll() is not None:
+                raise RuntimeError(f"sumhe run ended: {(tmp / 'service.log').read_text()[-2000:]}")
+            time.sleep(0.1)
+        cpu0, wall0 = _cpu_s(service.pid), time.monotonic()
+        player = _sumhe(
+            [
+                "play",
+                str(drive_dir),
+                "--config",
+                str(tmp / "player.toml"),
+                "--pty",
+                str(tmp / "gps"),
+                "--speed",
+                f"{speed:g}",
+            ],
+            tmp / "player.log",
         )
-        (tmp / "player.toml").write_text(can)
-        service = _sumhe(["run", "--config", str(tmp / "service.toml")], tmp / "service.log")
-        try:
-            while "sumhe starting" not in (tmp / "service.log").read_text():
-                time.sleep(0.1)
-            cpu0, wall0 = _cpu_s(service.pid), time.monotonic()
-            player = _sumhe(
-                ["play", str(tmp / "drive"), "--config", str(tmp / "player.toml"), "--pty", str(tmp / "gps")],
-                tmp / "player.log",
-            )
-            estimates, statuses = 0, []
-            while player.poll() is None:
-                time.sleep(0.05)
-                estimates += _drain(est_sock, None)
-                _drain(status_sock, statuses)
-            cpu = (_cpu_s(service.pid) - cpu0) / (time.monotonic() - wall0) * 100.0
-            time.sleep(1.5)
-            estimates += _drain(est_sock, None)
-            _drain(status_sock, statuses)
-        finally:
-            service.terminate()
-            service.wait(10)
-            est_sock.close()
-            status_sock.close()
-    last = statuses[-1] if statuses else {}
-    return {
-        "estimator": estimator,
-        "drive_s": duration_s,
-        "estimates": estimates,
-        "rate_hz": estimates / duration_s,
-        "latency_ms_p50": last.get("latency_ms_p50"),
-        "latency_ms_p99": last.get("latency_ms_p99"),
-        "solve_ms_p50": last.get("solve_ms_p50"),
-        "solve_ms_p99": last.get("solve_ms_p99"),
-        "skipped_epochs": last.get("skipped_epochs"),
-        "source_rates_hz": last.get("rates_hz"),
-        "cpu_percent_of_one_core": cpu,
-    }
+        while player.poll() is None:
+            time.sleep(0.02)
+            if during is not None:
+                during(service, time.monotonic() - wall0)
+            _drain(est_sock, run)
+            _drain_status(status_sock, run.statuses)
+        run.play_s = time.monotonic() - wall0
+        run.cpu_percent = (_cpu_s(service.pid) - cpu0) / run.play_s * 100.0
+        end = time.monotonic() + 2.0
+        while time.monotonic() < end:
+            time.sleep(0.02)
+            _drain(est_sock, run)
+            _drain_status(status_sock, run.statuses)
+    finally:
+        service.terminate()
+        service.wait(10)
+        est_sock.close()
+        status_sock.close()
+    text = (tmp / "player.log").read_text()
+    marker = "clock offset "
+    if marker in text:
+        run.offset_s = float(text.split(marker, 1)[1].split()[0])
+    return run
 
 
-def _drain(sock: socket.socket, into: list[dict[str, Any]] | None) -> int:
-    n = 0
+def _drain(sock: socket.socket, run: DaemonRun) -> None:
     while True:
         try:
             data = sock.recv(65535)
         except BlockingIOError:
-            return n
-        n += 1
-        if into is not None:
-            into.append(json.loads(data))
+            return
+        run.records.append(json.loads(data))
+        run.arrived.append(time.monotonic())
+
+
+def _drain_status(sock: socket.socket, into: list[dict[str, Any]]) -> None:
+    while True:
+        try:
+            data = sock.recv(65535)
+        except BlockingIOError:
+            return
+        into.append(json.loads(data))
+
+
+def outage_errors_of(records: list[dict[str, Any]], sim: Drive, offset_s: float) -> tuple[float, float, float]:
+    """Mean, p95 and max horizontal error (m) of the JSON ``records`` inside the drive's outages, their times on
+    the service clock (drive time + ``offset_s``)."""
+    if not records:
+        return (math.nan, math.nan, math.nan)
+    t = np.array([r["t"] for r in records]) - offset_s
+    enu = sim.frame.to_enu(np.array([r["lat"] for r in records]), np.array([r["lon"] for r in records]), 0.0)
+    at = sim.truth.at(t)
+    err = np.hypot(enu[:, 0] - at.east, enu[:, 1] - at.north)
+    inside = np.asarray(sim.in_outage(t), dtype=bool)
+    return _summary(err[inside])
+
+
+def _summary(err: np.ndarray) -> tuple[float, float, float]:
+    if not err.size:
+        return (math.nan, math.nan, math.nan)
+    return float(np.mean(err)), float(np.percentile(err, 95)), float(np.max(err))
+
+
+def replayed_outage_errors(sim: Drive, config: Config, drive_dir: Path, estimator: str) -> dict[str, Any]:
+    """The drive's files replayed in-process in time order (``held``) and in arrival order (``arrival``): outage
+    errors of the estimator's own outputs (m: mean, p95, max)."""
+    samples = list(log_samples(config, drive_dir / "drive.log", drive_dir / "drive.nmea"))
+    delay = sim.settings.gps_latency_s + sim.settings.gps_latency_jitter_s / 2.0 + IDLE_S
+    out: dict[str, Any] = {}
+    for name, ordered in (("held", samples), ("arrival", arrival_order(samples, delay))):
+        pipeline = Pipeline(config, make_estimator(estimator, config))
+        records = [{"t": e.t, "lat": e.lat_deg, "lon": e.lon_deg} for s in ordered for e in pipeline.push(s)]
+        out[name] = outage_errors_of(records, sim, 0.0)
+    return out
+
+
+def run_live(duration_s: float, estimator: str, say: Any = print) -> dict[str, Any]:
+    """Play a drive of ``duration_s`` through ``sumhe run``; returns the measured figures."""
+    with tempfile.TemporaryDirectory(prefix="sumhe-live-") as tmp_name:
+        tmp = Path(tmp_name)
+        sim, drive_dir = live_drive(duration_s, tmp / "drive")
+        run = run_daemon(sim, drive_dir, tmp, estimator)
+        config = load_config(tmp / "service.toml")
+        replayed = replayed_outage_errors(sim, config, drive_dir, estimator)
+    last = run.status
+    return {
+        "estimator": estimator,
+        "drive_s": duration_s,
+        "estimates": len(run.records),
+        "rate_hz": len(run.records) / duration_s,
+        "latency_ms_p50": last.get("latency_ms_p50"),
+        "latency_ms_p99": last.get("latency_ms_p99"),
+        "solve_ms_p50": last.get("solve_ms_p50"),
+        "solve_ms_p99": last.get("solve_ms_p99"),
+        "out_of_order": last.get("out_of_order"),
+        "degraded_sent": last.get("degraded_sent"),
+        "source_rates_hz": last.get("rates_hz"),
+        "cpu_percent_of_one_core": run.cpu_percent,
+        "outage_live": outage_errors_of(run.records, sim, run.offset_s),
+        "outage_held": replayed["held"],
+        "outage_arrival": replayed["arrival"],
+        "nonmonotonic": int(np.sum(np.diff([r["t"] for r in run.records]) < 0)) if run.records else 0,
+    }
 
 
 def format_live(fig: dict[str, Any]) -> str:
+    def err(key: str) -> str:
+        mean, p95, worst = fig[key]
+        return f"{mean:.2f} / {p95:.2f} / {worst:.2f}"
+
+    held = fig["outage_held"][0]
     return "\n".join(
         [
             f"live daemon, estimator {fig['estimator']}, {fig['drive_s']:.0f} s drive in real time "
-            f"(10 Hz GNSS, 100 Hz yaw rate + 50 Hz speed CAN, one 10 s outage), OPENBLAS_NUM_THREADS=1",
+            f"(10 Hz GNSS, 100 Hz yaw rate + 50 Hz speed CAN, one {OUTAGE_S:.0f} s outage), OPENBLAS_NUM_THREADS=1",
             f"  output: {fig['estimates']} estimates, {fig['rate_hz']:.1f} Hz; source rates {fig['source_rates_hz']}",
-            f"  end-to-end latency (newest CAN timestamp -> UDP send) p50 {fig['latency_ms_p50']} ms, "
-            f"p99 {fig['latency_ms_p99']} ms (the reorder hold is the GNSS latency + 100 ms)",
-            f"  solve p50 {fig['solve_ms_p50']} ms, p99 {fig['solve_ms_p99']} ms; "
-            f"skipped epochs {fig['skipped_epochs']}",
+            f"  end-to-end latency (CAN frame timestamp -> UDP send, no reorder hold) p50 {fig['latency_ms_p50']} ms, "
+            f"p99 {fig['latency_ms_p99']} ms",
+            f"  solve p50 {fig['solve_ms_p50']} ms, p99 {fig['solve_ms_p99']} ms; sent degraded "
+            f"{fig['degraded_sent']}; left out as out of order {fig['out_of_order']}; t decreasing between "
+            f"datagrams {fig['nonmonotonic']}",
             f"  CPU: {fig['cpu_percent_of_one_core']:.1f} % of one core",
+            "  outage error (m, mean / p95 / max): "
+            f"live {err('outage_live')}; replayed in time order (held) {err('outage_held')}; "
+            f"replayed in arrival order {err('outage_arrival')} "
+            f"({(fig['outage_arrival'][0] / held - 1.0) * 100.0:+.1f} % mean vs held)",
         ]
     )
+
+
+def arrival_order(samples: Sequence[S], fix_delay_s: float) -> list[S]:
+    """Time-ordered ``samples`` (fixes at their measurement time) in the order a live service gets them: a CAN
+    sample at its own time, a fix ``fix_delay_s`` after its time (the receiver's latency and the serial source's
+    idle gap), so it comes after the CAN samples of that span (stable for equal times)."""
+    keyed = sorted(
+        ((s.t if isinstance(s, CanSample) else s.t + fix_delay_s, i) for i, s in enumerate(samples)),
+    )
+    return [samples[i] for _, i in keyed]

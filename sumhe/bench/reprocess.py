@@ -41,7 +41,7 @@ from sumhe.geo import LocalFrame
 from sumhe.io.replay import RecordedDrive
 from sumhe.io.udp import estimate_to_json
 from sumhe.messages import Estimate
-from sumhe.service.pipeline import Pipeline
+from sumhe.service.pipeline import MonotonicOutput, Pipeline
 from sumhe.sim.truth import Truth
 
 TRUTH_CHUNK = 4096
@@ -158,7 +158,9 @@ class _TruthScore:
 
 
 class Recorder:
-    """Writes estimates as JSON lines (to ``out``, or nowhere) and keeps what the summary needs in bounded memory:
+    """Writes estimates as JSON lines (to ``out``, or nowhere; in time order: one stamped before the last written
+    is left out, counted ``out_of_order``, :class:`~sumhe.service.pipeline.MonotonicOutput`) and keeps what the
+    summary needs in bounded memory:
     solve times (ms, histogram), the count of each mode, the distance travelled (m, between consecutive
     estimates), the positions of the estimates near the outage ``windows`` (absolute, s) and, with a truth, the
     error histogram against it."""
@@ -174,6 +176,7 @@ class Recorder:
         self.lon: list[float] = []
         self._truth = _TruthScore(truth) if truth is not None else None
         self._last: tuple[float, float] | None = None
+        self.order = MonotonicOutput()
 
     def write(self, estimates: Iterable[Estimate]) -> None:
         margin = MAX_INTERPOLATION_GAP_S
@@ -191,7 +194,7 @@ class Recorder:
                 self.lon.append(est.lon_deg)
             if self._truth is not None:
                 self._truth.add(est)
-            if self.out is not None:
+            if self.out is not None and self.order.admit(est):
                 lines.append(json.dumps(estimate_to_json(est), separators=(",", ":")))
         if lines:
             self.out.write("\n".join(lines) + "\n")  # type: ignore[union-attr]
@@ -250,7 +253,8 @@ class DriveSummary:
         out = [
             f"replay: {self.estimator}: {self.fixes} fixes ({self.valid_fixes} valid), {self.can_samples} CAN "
             f"samples, {self.estimates} estimates; dropped late {d['late']}, duplicate {d['duplicate']}, zero "
-            f"time {d['zero_time']}, clock resets {d['clock_resets']}; solve p50/p99 {self.solve_p50_ms:.2f}/"
+            f"time {d['zero_time']}, clock resets {d['clock_resets']}, out of order (not written) "
+            f"{d['out_of_order']}; solve p50/p99 {self.solve_p50_ms:.2f}/"
             f"{self.solve_p99_ms:.2f} ms; {self.span_s:.0f} s of data in {self.wall_s:.1f} s "
             f"({self.speed:.0f}x real time; CPU {self.cpu_s:.1f} s: {throughput(self.span_s, self.cpu_s):.0f}x)",
             _modes_line(self.modes),
@@ -337,7 +341,10 @@ def replay_drive(
         fixes_removed=len(cut.removed),
         can_samples=ps.can_samples,
         estimates=ps.estimates,
-        dropped={k: getattr(ts, k) for k in ("late", "duplicate", "zero_time", "future", "stale", "clock_resets")},
+        dropped={
+            **{k: getattr(ts, k) for k in ("late", "duplicate", "zero_time", "future", "stale", "clock_resets")},
+            "out_of_order": recorder.order.out_of_order,
+        },
         span_s=span,
         wall_s=wall,
         cpu_s=cpu,

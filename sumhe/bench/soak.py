@@ -236,7 +236,7 @@ async def soak_daemon(
     say: Callable[[str], None] = lambda _: None,
     every_s: float = 300.0,
 ) -> tuple[dict[str, Any], list[MemoryPoint], int]:
-    """The daemon's service (:class:`~sumhe.service.app.Service`: reorder buffer, estimator in a worker thread,
+    """The daemon's service (:class:`~sumhe.service.app.Service`: inbox, estimator in a worker thread,
     UDP JSON output to a client on 127.0.0.1) fed by the drive's samples paced at ``speed`` times real time on one
     scaled service clock (as ``sumhe demo``), its memory read every ``every_s`` seconds of data. The fixes come
     stamped (with the reference config's ``gps.time = "utc"`` the service's stamping leaves them as they are).

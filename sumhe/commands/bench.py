@@ -39,6 +39,11 @@ BENCHMARKS: dict[str, tuple[str, str, str]] = {
         "sumhe.commands.bench:add_live_arguments",
         "sumhe.commands.bench:run_live",
     ),
+    "load": (
+        "the daemon against a player at 2x, 4x, 8x: output rate per second, degraded share, recovery",
+        "sumhe.commands.bench:add_load_arguments",
+        "sumhe.commands.bench:run_load",
+    ),
     "soak": (
         "a day of simulated data replayed: resident memory after every hour, throughput",
         "sumhe.commands.soak:add_arguments",
@@ -331,4 +336,20 @@ def run_live(args: argparse.Namespace) -> int:
     from sumhe.bench.live import format_live, run_live
 
     print(format_live(run_live(args.duration, args.estimator)), flush=True)
+    return 0
+
+
+def add_load_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--duration", type=float, default=60.0, metavar="S", help="length of the drive (default 60 s)")
+    parser.add_argument("--estimator", default="mhe", metavar="NAME", help="estimator the daemon runs (default mhe)")
+    parser.add_argument(
+        "--speeds", type=float, nargs="+", default=[2.0, 4.0, 8.0], metavar="X", help="player speeds (default 2 4 8)"
+    )
+
+
+def run_load(args: argparse.Namespace) -> int:
+    from sumhe.bench.load import format_load, run_load
+
+    figs = run_load(args.duration, args.estimator, args.speeds)
+    print(format_load(figs, args.estimator, args.duration), flush=True)
     return 0

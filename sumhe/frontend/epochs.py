@@ -4,7 +4,9 @@ One rule for every estimator (and the batch grid): the nominal period is the mea
 epochs that lie within 50 % of their median (the mean of consecutive intervals cancels the receive-time jitter;
 the median test leaves outage gaps out), from at least two intervals (two fixes around an outage say nothing of
 the period), else the GNSS model's ``period_s``. Silence longer than 1.5 periods, measured on the fix clock (the
-newest CAN time minus the typical delay of fixes behind the CAN data), is a missed epoch every period, once the
+newest CAN time minus the largest recent delay of fixes behind the CAN data: a live service takes each sample as
+it arrives, so a fix comes after the CAN samples of its latency, with jitter, and one later than the typical
+fix must not find its epoch declared missed), is a missed epoch every period, once the
 stream has shown its period (two intervals): before, a 1 Hz receiver's second fix would come after ten epochs
 "missed" at the default 0.1 s and be dropped as back in time, and its period never measured.
 """
@@ -46,7 +48,8 @@ def bad_epoch_time(t: object, last_epoch: float | None) -> tuple[str, str, tuple
 
 
 class EpochClock:
-    """The stream's GNSS timing: the nominal period, the fixes' delay behind the CAN data, the last epoch."""
+    """The stream's GNSS timing: the nominal period, the fixes' largest recent delay behind the CAN data, the last
+    epoch."""
 
     def __init__(self, default_period_s: float) -> None:
         self.default_period_s = default_period_s
@@ -66,7 +69,7 @@ class EpochClock:
         self._last_real = t
         if newest_can > t:
             self._delays.append(newest_can - t)
-            self.delay_s = statistics.median(self._delays)
+            self.delay_s = max(self._delays)
 
     def missed(self, t_fix_clock: float) -> list[float]:
         """Times of the epochs GNSS missed up to ``t_fix_clock`` (s), each a period after the last; they become the

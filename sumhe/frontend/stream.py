@@ -52,6 +52,8 @@ OUTPUT_QUANTITY = "speed"
 """The CAN quantity whose samples the estimators answer with an estimate."""
 CAN_KEEP_S = 2.0
 """CAN samples are kept for this long, or three periods if longer, behind the newest epoch."""
+SAME_EPOCH = 0.25
+"""A fix within this fraction of a period after the last epoch handed out (on the CAN clock) is that epoch again."""
 OFFSET_SLEW = 0.2
 """The applied GNSS time offset moves towards the learned one by at most this fraction of a period per fix."""
 
@@ -137,6 +139,8 @@ class FrontEnd:
         self.time_offset_s = gnss.time_offset_s
         self.started = False
         self._t_last = -math.inf
+        self._t_epoch = -math.inf
+        """The time of the last epoch handed out, on the CAN clock."""
 
     @property
     def period_s(self) -> float:
@@ -195,6 +199,10 @@ class FrontEnd:
             return []
         fix = self._on_can_clock(fix)
         t = fix.t
+        if t < self._t_epoch + SAME_EPOCH * self.period_s:  # the epoch already handed out (declared missed before
+            # its fix came after CAN data newer than any fix's so far), or behind it by the time offset's slew since
+            self.tally.count("dropped_backwards", "GNSS epoch %.3f s back in time dropped", self._t_epoch - t)
+            return []
         newest_can = self.can.newest
         if self.started and t < newest_can - MAX_FIX_LAG_S:
             self.tally.count("late_fixes", "GNSS epoch %.2f s behind the CAN data dropped", newest_can - t)
@@ -212,12 +220,14 @@ class FrontEnd:
             self.started = True
             self.tally.counts["epochs"] += 1
             self.can.trim(t - max(CAN_KEEP_S, 3.0 * self.period_s))
+            self._t_epoch = t
             return [Epoch(t, self.measure(fix, sigmas), start=True)]
         events: list[Epoch | CanTick] = self._missed(stamp)
         self.clock.last_epoch = stamp
         self.tally.counts["epochs"] += 1
         self.can.trim(t - max(CAN_KEEP_S, 3.0 * self.period_s))
         events.append(Epoch(t, self.measure(fix, sigmas) if usable else None))
+        self._t_epoch = t
         return events
 
     def _on_can_clock(self, fix: LocalFix) -> LocalFix:
@@ -255,11 +265,13 @@ class FrontEnd:
 
     def _missed(self, t_fix_clock: float) -> list[Epoch | CanTick]:
         """The epochs missed up to ``t_fix_clock`` (s, on the fixes' own clock), at their times on the CAN clock."""
-        times = self.clock.missed(t_fix_clock)
+        times = [t + self.time_offset_s for t in self.clock.missed(t_fix_clock)]
+        times = [t for t in times if t >= self._t_epoch + SAME_EPOCH * self.period_s]
         if times:
             self.tally.counts["epochs"] += len(times)
             self.tally.counts["missed_epochs"] += len(times)
-        return [Epoch(t + self.time_offset_s, None, missed=True) for t in times]
+            self._t_epoch = times[-1]
+        return [Epoch(t, None, missed=True) for t in times]
 
     def _check_gap(self, t: float) -> None:
         if self.started and t - self._t_last > MAX_DATA_GAP_S:

@@ -19,6 +19,11 @@ is not python-can's or the system's). The messages name the interface and channe
 SocketCAN buses are opened with CAN FD frames enabled, so FD frames on the bus reach the decoder, which counts
 and ignores those on classic messages' ids; error frames are counted there too (a bus-off one reopens the bus).
 
+Frames lost before they were read (:class:`FrameGaps`): when the service stalls, the socket's receive buffer
+overflows and the kernel drops frames. SocketCAN counts them (``SO_RXQ_OVFL``), but python-can does not read that
+ancillary data, and buses over UDP (udp_multicast) have no such count; so the loss is inferred from the gaps in
+each id's periodic frames and counted ``lost`` (a sender that pauses for up to ``MAX_LOST_GAP_S`` looks the same).
+
 Timestamps (:class:`ClockRebase`): frame times must be Unix time on the host clock (the kernel's are). An adapter
 whose first frame after opening is more than :data:`REBASE_AFTER_S` away from the host clock counts from
 something else (python-can's pcan without the ``uptime`` package: time since boot); its times are then re-based
@@ -66,6 +71,38 @@ frames that waited least, so the adapter's clock drift never accumulates."""
 
 NO_AF_CAN = (errno.EAFNOSUPPORT, errno.EPROTONOSUPPORT)
 NO_PERMISSION = (errno.EPERM, errno.EACCES)
+
+
+GAP_PERIODS = 2.5
+"""A silence of an id longer than this many of its periods counts the frames it missed as ``lost``."""
+MAX_LOST_GAP_S = 10.0
+"""Longer silences are a sender that stopped (or a bus that went quiet), not lost frames."""
+PERIOD_SMOOTHING = 0.1
+"""Weight of a new regular interval in an id's period estimate."""
+
+
+class FrameGaps:
+    """Frames lost before they were read, inferred from the gaps in each id's periodic frames (module docstring)."""
+
+    def __init__(self) -> None:
+        self._last: dict[int, float] = {}
+        self._period: dict[int, float] = {}
+        self.lost = 0
+
+    def see(self, arbitration_id: int, t: float) -> None:
+        """A frame of ``arbitration_id`` received at ``t`` (s)."""
+        last = self._last.get(arbitration_id)
+        self._last[arbitration_id] = t
+        if last is None or not t > last:
+            return
+        dt = t - last
+        period = self._period.get(arbitration_id)
+        if period is None:
+            self._period[arbitration_id] = dt
+        elif GAP_PERIODS * period < dt <= MAX_LOST_GAP_S:
+            self.lost += round(dt / period) - 1
+        elif dt <= GAP_PERIODS * period:
+            self._period[arbitration_id] = period + PERIOD_SMOOTHING * (dt - period)
 
 
 class ClockRebase:
@@ -208,6 +245,7 @@ class _CanSource(ThreadedSource[T]):
         self.can_filters = can_filters
         self.bus: can.BusABC | None = None
         self.rebase = ClockRebase(self.name, clock)
+        self.gaps = FrameGaps()
 
     def _open(self) -> None:
         s = self.settings
@@ -228,6 +266,8 @@ class _CanSource(ThreadedSource[T]):
             if msg.is_error_frame and msg.arbitration_id & CAN_ERR_BUSOFF:
                 raise SourceError(f"{self.settings.channel}: controller is bus-off")
             msg.timestamp = self.rebase(msg.timestamp)
+            if not msg.is_error_frame:
+                self.gaps.see(msg.arbitration_id, msg.timestamp)
             out.extend(self._convert(msg))
             if len(out) >= BATCH:
                 break
@@ -293,10 +333,12 @@ class CanBusSource(_CanSource[Sample]):
         return self.decoder.decode(msg)
 
     def counters(self) -> dict[str, object]:
-        """The source's counters and the decoder's (frames seen, decoded, unused, bad, error and FD frames)."""
+        """The source's counters, the frames lost before they were read (inferred) and the decoder's (frames seen,
+        decoded, unused, bad, error and FD frames)."""
         s = self.decoder.stats
         return {
             **super().counters(),
+            "lost": self.gaps.lost,
             "frames": s.frames,
             "decoded": s.decoded,
             "unused": s.unused,

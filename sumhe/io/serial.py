@@ -13,15 +13,28 @@ from then on emits each epoch on that sentence. (Emitting as soon as GGA and RMC
 receivers send after them: GST sigmas on the u-blox F9P and the Quectel L70, HDT heading on the Saab R4.) A line
 longer than ``MAX_LINE`` bytes (binary noise) is cut there.
 
+Receive times after a stall: a terminal gives no kernel receive time for its bytes (``SO_TIMESTAMP`` is for
+sockets; pyserial reads a tty), so a line is stamped when it is read. When the service stalls (``SIGSTOP``, a
+swapped-out process, a long garbage collection) the receiver's epochs pile up in the port's buffer and are read
+at once, all with one time: the front-end would drop all but the first as "back in time". :class:`ReceiveTimes`
+mends that from the fixes' own UTC time: it keeps the lowest recent offset of read time minus UTC time (the
+quickest delivery seen, over ``OFFSET_HISTORY`` fixes); a fix read more than ``BACKLOG_S`` later than that offset
+says, or read together with a later epoch, was read from a backlog and is stamped ``UTC + offset`` instead
+(counted ``restamped``). Fixes without a date
+(GGA alone) keep their read time.
+
 A read error or end of file (device unplugged, pseudo-terminal closed) makes the base class close the port and
 reopen it with capped back-off, so the source resumes when the device comes back at the same path.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import math
 import re
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TypeVar
@@ -42,6 +55,13 @@ MAX_LINE = 4096
 """Longest line kept whole (bytes); longer runs without CR/LF are binary noise and are cut."""
 REPORT_EVERY_S = 60.0
 """How often :class:`SerialNmeaSource` logs its decoder counters, if bad input arrived meanwhile (s)."""
+
+BACKLOG_S = 0.5
+"""A fix read this much later than its UTC time and the lowest recent offset say is from a backlog (s)."""
+MIN_STEP_S = 0.001
+"""A fix stamped anew comes at least this long after the previous one (s)."""
+OFFSET_HISTORY = 64
+"""Fixes whose read-time-minus-UTC offsets are remembered (6 s at 10 Hz)."""
 
 T = TypeVar("T")
 _LINE_END = re.compile(rb"[\r\n]+")
@@ -105,6 +125,31 @@ class SerialLines:
             port.close()
 
 
+class ReceiveTimes:
+    """Stamps a fix read from a backlog with the time it was most likely received (the module docstring)."""
+
+    def __init__(self) -> None:
+        self._offsets: deque[float] = deque(maxlen=OFFSET_HISTORY)
+        self._last_t = -math.inf
+        self.restamped = 0
+
+    def stamp(self, fix: GnssFix, queued: bool = False) -> GnssFix:
+        """``fix`` with ``t`` moved back to ``UTC + lowest recent offset`` if it was read from a backlog: read
+        ``BACKLOG_S`` later than that, or ``queued`` (a later epoch came in the same read); never before the
+        previous fix's time."""
+        if fix.time_utc is None:
+            return fix
+        utc = fix.time_utc.timestamp()
+        offset = fix.t - utc
+        self._offsets.append(offset)
+        lowest = min(self._offsets)
+        if offset - lowest > BACKLOG_S or (queued and offset > lowest):
+            self.restamped += 1
+            fix = dataclasses.replace(fix, t=max(utc + lowest, self._last_t + MIN_STEP_S))
+        self._last_t = fix.t
+        return fix
+
+
 class _SerialSource(ThreadedSource[T]):
     """Shared open/close of the two serial sources; subclasses read."""
 
@@ -142,9 +187,14 @@ class SerialNmeaSource(_SerialSource[GnssFix]):
     ) -> None:
         super().__init__(settings, idle_s, clock)
         self.decoder = NmeaDecoder() if decoder is None else decoder
+        self.receive_times = ReceiveTimes()
         self.report_every_s = report_every_s
         self._reported_bad = 0
         self._next_report = time.monotonic() + report_every_s
+
+    def counters(self) -> dict[str, object]:
+        """The source's counters and the fixes stamped anew after a backlog (``restamped``)."""
+        return {**vars(self.stats), "restamped": self.receive_times.restamped}
 
     def _read(self) -> list[GnssFix]:
         lines, idle = self.port.read()
@@ -152,7 +202,7 @@ class SerialNmeaSource(_SerialSource[GnssFix]):
         if idle:
             fixes.extend(self.decoder.close_epoch())
         self._report()
-        return fixes
+        return [self.receive_times.stamp(fix, queued=i < len(fixes) - 1) for i, fix in enumerate(fixes)]
 
     def _report(self) -> None:
         """Log the decoder counters now and then when bad input arrived since the last report."""

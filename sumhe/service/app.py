@@ -1,20 +1,31 @@
 """``sumhe run``: the live service wired with asyncio.
 
-sources (CAN bus, serial GNSS; or any async iterators of samples) -> a short reorder buffer (time order across
-sources) -> the estimator, run off the event loop in a worker thread -> sinks (UDP JSON / NMEA) and a status line.
+sources (CAN bus, serial GNSS; or any async iterators of samples) -> an inbox -> the estimator, run off the event
+loop in a worker thread -> the output edge (time order) -> sinks (UDP JSON / NMEA) and a status line.
 
+* No hold: each sample goes to the estimator as it arrives, so a CAN sample's estimate leaves as soon as it is
+  computed. Time order is judged per stream (:class:`~sumhe.service.pipeline.TimeGuard`): a GNSS fix arrives
+  after the CAN samples of its latency and the estimators insert it at its time (the MHE builds its epoch from
+  its CAN buffer, the Kalman family compares the fix with its state run back by the lag). What waits while a
+  push runs is taken earliest-stamped first (at most ``MAX_CHUNK`` samples at a time, :class:`Inbox`); after a
+  stall (input older than ``STALL_S``: counted ``stalls``, a WARNING) the service waits ``STALL_WAIT_S`` once so
+  the sources' backlogs meet, then takes them in time order.
 * Readers never stall: sources run in their own threads; the estimator runs in ``asyncio.to_thread``.
-* No backlog: samples released while a solve runs are taken as one batch; when the batch comes out later than
-  one hold time (the estimator fell behind) and holds several GNSS epochs, only the newest is solved, the older
-  ones are skipped and counted (``skipped_epochs``).
-* The reorder buffer releases samples in time order, each ``hold_s`` after its own timestamp (or after its
-  arrival, if that was earlier: a future-dated sample never blocks the rest), on the service clock. A fix is
-  stamped ``latency`` before it arrives and its epoch is complete only after the serial source's idle gap
-  (50 ms), so the default hold is the receiver latency + 100 ms: the price of strict time order, paid by every
-  output (the status line reports it as latency).
+* Degraded, never silent: when the oldest waiting sample arrived more than ``BEHIND_S`` ago, the estimator has
+  fallen behind: an ERROR line, ``degraded`` episodes counted, every estimate sent with ``mode = "degraded"``, and
+  an estimator with ``defer_solves`` (the MHE) appends its GNSS epochs without a solve, so it keeps pace at CAN rate
+  from its newest solved state; each chunk that finds the backlog under ``SOLVE_BACKLOG_S`` solves again (the
+  appended epochs with it). Back under ``RECOVER_S``: normal again (an INFO line with the episode's length). No
+  epoch is skipped. The inbox holds at most ``MAX_BACKLOG`` samples; beyond, the oldest are dropped and counted
+  (``backlog_dropped``).
+* Output time order: an estimate stamped before one already sent is dropped and counted (``out_of_order``,
+  :class:`~sumhe.service.pipeline.MonotonicOutput`): the Kalman family reports an epoch at its own time, up to the
+  receiver latency before the CAN-rate estimate before it. A clock jump (``time.clock_resets``) starts over.
 * Time: every timestamp is on one service clock (``time.time()`` live; a scaled clock for faster-than-real-time
-  demos), which also judges stale and future-dated samples.
-* Health: a status line every ``output.status_interval_s`` (log, and JSON to ``output.status_udp`` if set).
+  demos), which also judges stale and future-dated samples. The backlog is measured on ``time.monotonic()``.
+* Health: a status line every ``output.status_interval_s`` (log, and JSON to ``output.status_udp`` if set); its
+  latency is the service clock at the send minus the estimate's time (for a CAN-rate estimate: since the CAN
+  frame's timestamp).
 * Lifecycle, logged at INFO (``sumhe run`` shows it by default): ``sumhe starting`` (what is read and where the
   output goes, then the resolved config), ``sumhe ready`` (every source open), ``status: ...`` periodically,
   ``sumhe stopped`` (the final counters; also sent as the last JSON status). SIGINT/SIGTERM set the stop event;
@@ -26,6 +37,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import heapq
 import itertools
 import json
@@ -47,11 +59,25 @@ from sumhe.io.fixtime import stamp_fix
 from sumhe.io.source import SourceTimeout
 from sumhe.io.udp import UdpSender, UdpSink
 from sumhe.messages import Estimate, GnssFix, Sample
-from sumhe.service.pipeline import Pipeline, TimeRules
+from sumhe.service.pipeline import MonotonicOutput, Pipeline, TimeRules
 
 log = logging.getLogger(__name__)
 
-REORDER_MARGIN_S = 0.1
+BEHIND_S = 0.25
+"""The oldest waiting sample arrived this long ago (s): the estimator has fallen behind (degraded)."""
+SOLVE_BACKLOG_S = 0.1
+"""While degraded, a chunk taken with a backlog under this (s) is solved normally (time allows)."""
+RECOVER_S = 0.05
+"""Degraded ends when a chunk is taken with a backlog under this (s)."""
+STALL_S = 1.0
+"""The earliest waiting sample is older than this on the service clock (s): the service stalled (SIGSTOP, a
+starved process) and the sources' backlogs come in; it waits ``STALL_WAIT_S`` once so that all sources deliver
+theirs before the estimator takes them in time order."""
+STALL_WAIT_S = 0.1
+MAX_CHUNK = 64
+"""Samples pushed per call of the worker thread (estimates are sent after each)."""
+MAX_BACKLOG = 20_000
+"""Samples waiting at most; beyond, the oldest are dropped (``backlog_dropped``)."""
 SOLVE_WINDOW = 2000
 READY_POLL_S = 0.1
 SOURCE_COUNTERS = (
@@ -63,6 +89,8 @@ SOURCE_COUNTERS = (
     "error_frames",
     "fd_frames",
     "remote_frames",
+    "restamped",
+    "lost",
 )
 """Source counters shown in the status line when not zero (the JSON status has them all)."""
 
@@ -74,53 +102,56 @@ class ServiceStats:
     started_wall: float = field(default_factory=time.monotonic)
     received: dict[str, int] = field(default_factory=dict)
     timeouts: dict[str, int] = field(default_factory=dict)
-    skipped_epochs: int = 0
     batches: int = 0
     sent: int = 0
+    out_of_order: int = 0
+    degraded: int = 0
+    degraded_sent: int = 0
+    degraded_s: float = 0.0
+    backlog_dropped: int = 0
+    stalls: int = 0
     solve_ms: deque[float] = field(default_factory=lambda: deque(maxlen=SOLVE_WINDOW))
     latency_ms: deque[float] = field(default_factory=lambda: deque(maxlen=SOLVE_WINDOW))
 
 
-class Reorder:
-    """Holds samples until ``min(t, arrival) + hold_s`` (service clock) and releases them in time order."""
+class Inbox:
+    """Samples as they arrive, taken in chunks of the earliest-stamped (each stream is in time order already, so
+    this only orders backlogs of several sources against each other: nothing waits for order); the arrival times
+    (``time.monotonic()``) say how far behind the consumer is. Holds at most ``max_len`` samples, dropping the
+    earliest-stamped beyond (counted)."""
 
-    def __init__(self, hold_s: float) -> None:
-        self.hold_s = hold_s
-        self._heap: list[tuple[float, int, float, Sample]] = []
+    def __init__(self, max_len: int = MAX_BACKLOG) -> None:
+        self._heap: list[tuple[float, int, Sample]] = []
+        self._arrivals: deque[float] = deque()
         self._seq = itertools.count()
+        self.max_len = max_len
+        self.dropped = 0
         self.event = asyncio.Event()
 
-    def put(self, sample: Sample, now: float) -> None:
-        due = min(sample.t, now) + self.hold_s if math.isfinite(sample.t) else now
-        heapq.heappush(self._heap, (sample.t, next(self._seq), due, sample))
+    def put(self, sample: Sample, arrived: float) -> None:
+        if len(self._heap) >= self.max_len:
+            heapq.heappop(self._heap)
+            self._arrivals.popleft()
+            self.dropped += 1
+        t = sample.t if math.isfinite(sample.t) else -math.inf
+        heapq.heappush(self._heap, (t, next(self._seq), sample))
+        self._arrivals.append(arrived)
         self.event.set()
 
-    def release(self, now: float) -> tuple[list[Sample], float]:
-        """Samples due by ``now``, in time order (a sample waits for any earlier-stamped one still held), and how
-        late (s) the earliest-due of them is released: more than ``hold_s`` means the consumer fell behind."""
-        out: list[Sample] = []
-        first_due = now
-        while self._heap and self._heap[0][2] <= now:
-            _, _, due, sample = heapq.heappop(self._heap)
-            first_due = min(first_due, due)
-            out.append(sample)
-        return out, now - first_due
+    def earliest_t(self) -> float:
+        """The earliest time stamped on a waiting sample (inf when empty)."""
+        return self._heap[0][0] if self._heap else math.inf
 
-    def next_due(self) -> float | None:
-        """When the earliest-stamped sample is due (it gates all later-stamped ones)."""
-        return self._heap[0][2] if self._heap else None
+    def take(self, n: int) -> tuple[list[Sample], float]:
+        """Up to ``n`` earliest-stamped samples in time order, and when the oldest waiting sample arrived."""
+        arrived = self._arrivals[0] if self._arrivals else time.monotonic()
+        k = min(n, len(self._heap))
+        for _ in range(k):
+            self._arrivals.popleft()
+        return [heapq.heappop(self._heap)[2] for _ in range(k)], arrived
 
-    def clear(self) -> None:
-        self._heap.clear()
-
-
-def newest_epoch_only(batch: list[Sample]) -> tuple[list[Sample], int]:
-    """Drop all GNSS epochs of a batch but the newest; returns the batch and how many were skipped."""
-    fix_positions = [i for i, s in enumerate(batch) if isinstance(s, GnssFix)]
-    if len(fix_positions) <= 1:
-        return batch, 0
-    skip = set(fix_positions[:-1])
-    return [s for i, s in enumerate(batch) if i not in skip], len(skip)
+    def __len__(self) -> int:
+        return len(self._heap)
 
 
 def percentile(values: deque[float] | list[float], q: float) -> float:
@@ -136,7 +167,6 @@ class Service:
         estimator: Estimator,
         sources: dict[str, AsyncIterator[Sample]],
         sink: Callable[[Estimate], None] | None = None,
-        hold_s: float | None = None,
         rules: TimeRules | None = None,
         clock: Callable[[], float] = time.time,
         clock_rate: float = 1.0,
@@ -148,8 +178,10 @@ class Service:
         self.clock_rate = clock_rate
         self.pipeline = Pipeline(config, estimator, rules, wall_clock=clock)
         self.stats = ServiceStats()
-        epoch_s = config.gps.epoch_span_s if config.gps.source == "can" else 0.0  # a CAN GNSS epoch may come late
-        self.reorder = Reorder(config.gps.latency_s + epoch_s + REORDER_MARGIN_S if hold_s is None else hold_s)
+        self.inbox = Inbox()
+        self.output = MonotonicOutput()
+        self.degraded_since: float | None = None
+        self._clock_resets = 0
         self._udp = UdpSink(config.output, config.blame)
         status_udp = config.output.status_udp
         self._status_udp = (
@@ -235,33 +267,56 @@ class Service:
             self.stats.received[name] += 1
             if isinstance(sample, GnssFix):
                 sample = stamp_fix(sample, self.config.gps)
-            self.reorder.put(sample, self.clock())
+            self.inbox.put(sample, time.monotonic())
 
     async def _estimate(self) -> None:
+        stalled = False
         while True:
-            due = self.reorder.next_due()
-            if due is None:
-                self.reorder.event.clear()
-                await self.reorder.event.wait()
+            if not self.inbox:
+                self.inbox.event.clear()
+                await self.inbox.event.wait()
                 continue
-            delay = (due - self.clock()) / self.clock_rate
-            if delay > 0:
-                self.reorder.event.clear()
-                with contextlib.suppress(asyncio.TimeoutError):
-                    await asyncio.wait_for(self.reorder.event.wait(), delay)
-                continue
-            batch, lag = self.reorder.release(self.clock())
-            skipped = 0
-            if lag > self.reorder.hold_s:  # the estimator fell behind: solve the newest epoch only
-                batch, skipped = newest_epoch_only(batch)
-            if skipped:
-                self.stats.skipped_epochs += skipped
-                log.warning("estimator behind: %d GNSS epochs skipped (%d so far)", skipped, self.stats.skipped_epochs)
+            if self.clock() - self.inbox.earliest_t() <= STALL_S:
+                stalled = False
+            elif not stalled:
+                stalled = True
+                self.stats.stalls += 1
+                log.warning(
+                    "input %.1f s old: a stall; taking the sources' backlogs in time order",
+                    self.clock() - self.inbox.earliest_t(),
+                )
+                await asyncio.sleep(STALL_WAIT_S / self.clock_rate)
+            chunk, arrived = self.inbox.take(MAX_CHUNK)
+            backlog = time.monotonic() - arrived
+            self._judge_backlog(backlog)
             self.stats.batches += 1
-            estimates, epoch_ms = await asyncio.to_thread(self._push_all, batch)
+            estimates, epoch_ms = await asyncio.to_thread(self._push_all, chunk)
             self.stats.solve_ms.extend(epoch_ms)
+            if self.pipeline.guard.stats.clock_resets != self._clock_resets:
+                self._clock_resets = self.pipeline.guard.stats.clock_resets
+                self.output.reset()
             for est in estimates:
                 self._send(est)
+
+    def _judge_backlog(self, backlog: float) -> None:
+        """Enter or leave the degraded state for a chunk taken ``backlog`` s after its first sample arrived, and
+        tell an estimator that can defer its solves whether to (the module docstring)."""
+        now = time.monotonic()
+        if self.degraded_since is None and backlog > BEHIND_S:
+            self.degraded_since = now
+            self.stats.degraded += 1
+            log.error(
+                "estimator behind by %.2f s: degraded output (epochs appended unsolved; %d episodes so far)",
+                backlog,
+                self.stats.degraded,
+            )
+        elif self.degraded_since is not None and backlog < RECOVER_S:
+            length = now - self.degraded_since
+            self.stats.degraded_s += length
+            self.degraded_since = None
+            log.info("estimator caught up after %.1f s degraded: normal output", length)
+        if hasattr(self.estimator, "defer_solves"):
+            self.estimator.defer_solves = self.degraded_since is not None and backlog >= SOLVE_BACKLOG_S
 
     def _push_all(self, batch: list[Sample]) -> tuple[list[Estimate], list[float]]:
         """Push a batch (in the worker thread): the estimates, and the update time (ms) of each GNSS epoch."""
@@ -275,6 +330,12 @@ class Service:
         return out, epoch_ms
 
     def _send(self, est: Estimate) -> None:
+        if not self.output.admit(est):
+            self.stats.out_of_order = self.output.out_of_order
+            return
+        if self.degraded_since is not None:
+            est = dataclasses.replace(est, mode="degraded")
+            self.stats.degraded_sent += 1
         self.stats.latency_ms.append((self.clock() - est.t) * 1000.0)
         if self._udp is not None:
             self._udp.send(est)
@@ -307,7 +368,13 @@ class Service:
             "fix": "no fix yet" if ps.first_fix_t is None else "ok",
             "estimates": ps.estimates,
             "sent": self.stats.sent,
-            "skipped_epochs": self.stats.skipped_epochs,
+            "out_of_order": self.stats.out_of_order,
+            "degraded": self.stats.degraded,
+            "degraded_sent": self.stats.degraded_sent,
+            "degraded_s": round(self.stats.degraded_s + self._degraded_now(), 3),
+            "backlog": len(self.inbox),
+            "backlog_dropped": self.inbox.dropped,
+            "stalls": self.stats.stalls,
             "solve_ms_p50": round(percentile(self.stats.solve_ms, 50), 3),
             "solve_ms_p99": round(percentile(self.stats.solve_ms, 99), 3),
             "latency_ms_p50": round(percentile(self.stats.latency_ms, 50), 3),
@@ -317,6 +384,9 @@ class Service:
             "gps": est.gps if est else "outage",
             "estimator": dict(self.estimator.stats()),
         }
+
+    def _degraded_now(self) -> float:
+        return time.monotonic() - self.degraded_since if self.degraded_since is not None else 0.0
 
     def status_line(self) -> str:
         s = self.status()
@@ -337,7 +407,8 @@ class Service:
         return (
             f"{rates} fix={s['fix']} gps={s['gps']} mode={s['mode']} window={s['window']} "
             f"solve p50/p99={s['solve_ms_p50']}/{s['solve_ms_p99']} ms sent={s['sent']} "
-            f"skipped={s['skipped_epochs']} time_drops={time_drops}{sources}{down}"
+            f"out_of_order={s['out_of_order']} degraded={s['degraded']} backlog={s['backlog']} "
+            f"time_drops={time_drops}{sources}{down}"
         )
 
 

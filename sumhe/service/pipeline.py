@@ -9,10 +9,12 @@ Time rules (s; ``t`` is the sample's time on the service clock):
 * ``t <= 0`` or not finite: dropped (``zero_time``);
 * live only (a wall clock is given): ``t`` more than ``future_s`` ahead of the wall clock is dropped
   (``future``), more than ``stale_s`` behind it is dropped (``stale``);
-* ``t`` more than ``jump_s`` away from the newest accepted time (either way): a clock jump; the estimator is
-  reset and starts over at the next valid fix (``clock_resets``);
-* otherwise older than the newest accepted time (out of order beyond the reorder buffer): dropped (``late``);
-  the same sample twice: dropped (``duplicate``);
+* ``t`` more than ``jump_s`` away from the newest accepted time of any stream (either way): a clock jump; the
+  estimator is reset and starts over at the next valid fix (``clock_resets``);
+* otherwise older than the newest accepted time of its own stream (each CAN quantity, GNSS): dropped (``late``);
+  the same sample twice: dropped (``duplicate``). Time order is judged per stream, not across them: samples reach
+  the estimator as they arrive (no reorder hold), so a fix comes after the CAN samples of its latency, and the
+  estimators insert it at its time (a fix too far behind the CAN data is theirs to drop: ``late_fixes``);
 * GNSS fixes whose time is more than ``skew_s`` away from the newest CAN time, while both run: counted as
   ``skew`` and reported (a receiver latency or clock offset is misconfigured); the fix is still used.
 """
@@ -67,7 +69,8 @@ class TimeGuard:
         self.stats = TimeStats()
         self._newest = -math.inf
         self._newest_can = -math.inf
-        self._last_key: tuple[object, ...] | None = None
+        self._streams: dict[tuple[str, str], tuple[float, tuple[object, ...]]] = {}
+        """Per stream (each CAN quantity, GNSS): the newest accepted time and that sample's identity."""
         self._next_log = 0.0
 
     def check(self, sample: Sample) -> str:
@@ -86,21 +89,24 @@ class TimeGuard:
             s.clock_resets += 1
             log.warning("clock jump of %.1f s: estimator reset", t - self._newest)
             self._newest = self._newest_can = -math.inf
+            self._streams.clear()
             verdict = "reset"
-        elif t < self._newest:
+        stream = _stream(sample)
+        newest, last_key = self._streams.get(stream, (-math.inf, None))
+        if verdict == "ok" and t < newest:
             s.late += 1
             verdict = "drop"
         if verdict == "drop":
             self._log_drops()
             return verdict
         key = _identity(sample)
-        if key == self._last_key:
+        if key == last_key:
             s.duplicate += 1
             return "drop"
-        self._last_key = key
-        self._newest = t
+        self._streams[stream] = (t, key)
+        self._newest = max(self._newest, t)
         if isinstance(sample, CanSample):
-            self._newest_can = t
+            self._newest_can = max(self._newest_can, t)
         elif math.isfinite(self._newest_can) and abs(t - self._newest_can) > r.skew_s:
             s.skew += 1
             s.last_skew_s = t - self._newest_can
@@ -121,6 +127,10 @@ class TimeGuard:
             )
 
 
+def _stream(sample: Sample) -> tuple[str, str]:
+    return ("can", sample.quantity) if isinstance(sample, CanSample) else ("gnss", "")
+
+
 def _identity(sample: Sample) -> tuple[object, ...]:
     if isinstance(sample, CanSample):
         return ("can", sample.t, sample.quantity, sample.value)
@@ -138,7 +148,7 @@ class PipelineStats:
 
 
 class Pipeline:
-    """Samples in time order -> time checks -> local frame -> estimator -> geodetic estimates."""
+    """Samples as they arrive -> time checks -> local frame -> estimator -> geodetic estimates."""
 
     def __init__(
         self,
@@ -199,3 +209,26 @@ class Pipeline:
         if estimates:
             self.stats.estimates += len(estimates)
             self.stats.last_estimate = estimates[-1]
+
+
+class MonotonicOutput:
+    """The output edge's time order: an estimate stamped before the last one let through is dropped and counted
+    (``out_of_order``). A Kalman filter reports an epoch at the epoch's own time, up to the receiver latency
+    before the CAN-rate estimate it already sent; the next CAN-rate estimate carries the fix anyway. Estimators
+    and benchmarks see every estimate; only what is sent or written goes through here."""
+
+    def __init__(self) -> None:
+        self.last_t = -math.inf
+        self.out_of_order = 0
+
+    def admit(self, estimate: Estimate) -> bool:
+        """Whether ``estimate`` may go out (its ``t`` is not before the last one let through)."""
+        if estimate.t < self.last_t:
+            self.out_of_order += 1
+            return False
+        self.last_t = estimate.t
+        return True
+
+    def reset(self) -> None:
+        """A clock jump back: start over from the next estimate."""
+        self.last_t = -math.inf

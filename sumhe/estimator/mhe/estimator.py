@@ -19,7 +19,9 @@ wrong (fixes rejected too long, or a consistent streak after an outage), the est
 keeping its CAN bias and scale.
 
 Modes: ``"init"`` (first fix), ``"mhe"`` (solved), ``"mhe-widened"`` (solved after widening), ``"predict"``
-(solver failed: model prediction), ``"can"`` (between epochs: the newest solution moved on with CAN data).
+(solver failed: model prediction), ``"can"`` (between epochs: the newest solution moved on with CAN data),
+``"degraded"`` (``defer_solves`` set by a service that fell behind: the epoch appended to the window unsolved, its
+estimate the model prediction; the next epoch solved solves them all).
 Only the single-antenna model ``su5`` is supported in the sample stream.
 """
 
@@ -72,6 +74,10 @@ class MovingHorizonEstimator(StreamEstimator):
         self.solve = WindowSolve(model, s, self.tally)
         self.gate = FixGate(s)
         self.propagation = Propagation(model, s.can.max_gap_s)
+        self.defer_solves = False
+        """Set by a service that fell behind: epochs are appended to the window without a solve (mode
+        ``"degraded"``) until it is cleared; the next epoch solved then solves the whole window."""
+        self._unsolved = False
         self._step_jac = step_jacobians(model)
         md = model.n_dynamic
         self._theta_range = (self.solve.hi[md:] - self.solve.lo[md:]) / 2.0
@@ -97,6 +103,7 @@ class MovingHorizonEstimator(StreamEstimator):
         self.solve.reset()
         self.gate.start(heading_known=False)
         self._arrival: Arrival | None = None
+        self._unsolved = False
         self._theta0: NDArray[np.float64] | None = None
         self._status: GpsStatus = "outage"
 
@@ -220,9 +227,16 @@ class MovingHorizonEstimator(StreamEstimator):
                 self.policy.theta_drift,
                 self.envelope.factor,
             )
-            self._learn_bounds(win.x[:drop], slice(0, drop))
+            if not self._unsolved:
+                self._learn_bounds(win.x[:drop], slice(0, drop))
         self._merge_offsets(win.apply(plan))
-        x_new, mode = self._solve(None if plan.merge else plan.drop)
+        if self.defer_solves:
+            self.tally.counts["deferred_epochs"] += 1
+            self._unsolved = True
+            self.gate.done(t, status, status == "ok" and bool(win.avail[-1, model.j_azimuth]))
+            return self._estimate(list(win.x[-1]), t, status, "degraded")
+        x_new, mode = self._solve(None if plan.merge or self._unsolved else plan.drop)
+        self._unsolved = False
         if mode == "predict" and status == "ok":
             # the window cannot take the fix even with widened bounds: an outlier the gate let in; drop it
             self.tally.count("rejected_by_solver", "fix at %.2f rejected: no trajectory of the window reaches it", t)
