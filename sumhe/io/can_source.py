@@ -334,7 +334,7 @@ class CanBusSource(_CanSource[Sample]):
 
     def counters(self) -> dict[str, object]:
         """The source's counters, the frames lost before they were read (inferred) and the decoder's (frames seen,
-        decoded, unused, bad, error and FD frames)."""
+        decoded, unused, bad, error, FD and over-long frames)."""
         s = self.decoder.stats
         return {
             **super().counters(),
@@ -347,5 +347,6 @@ class CanBusSource(_CanSource[Sample]):
             "stale": s.stale,
             "error_frames": s.error_frames,
             "fd_frames": s.fd_frames,
+            "long_frames": s.long_frames,
             "remote_frames": s.remote_frames,
         }

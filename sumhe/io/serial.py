@@ -211,7 +211,7 @@ class SerialNmeaSource(_SerialSource[GnssFix]):
             return
         self._next_report = now + self.report_every_s
         c = self.decoder.counters
-        bad = c.checksum_errors + c.garbled + c.late + c.backwards
+        bad = c.checksum_errors + c.garbled + c.late + c.backwards + c.implausible
         if bad > self._reported_bad:
             self._reported_bad = bad
             log.warning("%s: bad NMEA input so far: %s", self.name, c.summary())

@@ -88,6 +88,7 @@ SOURCE_COUNTERS = (
     "stale",
     "error_frames",
     "fd_frames",
+    "long_frames",
     "remote_frames",
     "restamped",
     "lost",
