@@ -182,3 +182,12 @@ def check_drive(
     assert np.mean(err[steady & (gps == "ok")]) < 2.5
     assert np.max(err[inside]) < 12.0
     assert np.max(err[near_jump], initial=0.0) < 5.0, "one 50 m jump must not pull the estimate"
+    # every datagram carries the error estimates, the MHE's its SU bound too; both grow through the outage
+    assert all({"eph", "epx", "epy", "eps", "epd"} <= r.keys() for r in records), records[0]
+    assert all("bound_east" in r and "bound_north" in r for r in records), records[0]
+    eph, bound = np.array([r["eph"] for r in records]), np.array([r["bound_east"] for r in records])
+    ok_steady = steady & (gps == "ok")
+    order = np.argsort(t[inside])
+    for name, values in (("eph", eph), ("bound_east", bound)):
+        grown = values[inside][order]
+        assert grown[-1] > grown[0] and grown[-1] > np.median(values[ok_steady]), (name, grown[[0, -1]])
