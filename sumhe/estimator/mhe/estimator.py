@@ -74,9 +74,10 @@ class MovingHorizonEstimator(StreamEstimator):
         self.gate = FixGate(s)
         self.propagation = Propagation(model, s.can.max_gap_s)
         self._step_jac = step_jacobians(model)
-        self.newest = NewestError(model, self._step_jac, s.estimator.r_cap_sigmas)
         md = model.n_dynamic
         self._theta_range = (self.solve.hi[md:] - self.solve.lo[md:]) / 2.0
+        drift = np.square(self.policy.theta_drift * self._theta_range) / 60.0
+        self.newest = NewestError(model, self._step_jac, s.estimator.r_cap_sigmas, drift)
         self.envelope = OutputEnvelope(
             model.n_outputs, self.policy.bound_history, self.policy.bound_margin, self.policy.bound_max_factor
         )

@@ -22,7 +22,9 @@ not the bound box scaled: the box is a worst case, and grows linearly with the a
 where the errors of a real drive grow as their sigmas do; a 95 % figure from it would be several times too wide.
 
 Between epochs (the CAN-rate estimates) both are carried to the estimate's time by the model and the state bounds
-of the vehicle's limits for the part of a step.
+of the vehicle's limits for the part of a step. The CAN states (yaw-rate bias, speed scale, ...) drift in the
+covariance as the arrival cost lets them: ``estimator.mhe.theta_drift`` of their ranges per square-root minute, as
+a sigma.
 """
 
 from __future__ import annotations
@@ -69,9 +71,13 @@ def grow_box(alpha: FloatArray, A: FloatArray, q: FloatArray) -> FloatArray:
 class NewestError:
     """The newest state's bound box and covariance (module docstring), carried along the MHE's solutions."""
 
-    def __init__(self, model: SuModel, step_jac: StepJacobians, sigmas_per_bound: float) -> None:
+    def __init__(
+        self, model: SuModel, step_jac: StepJacobians, sigmas_per_bound: float, drift_per_s: FloatArray
+    ) -> None:
         self.model, self.step_jac = model, step_jac
         self.scale = 1.0 / sigmas_per_bound
+        self.drift = np.zeros(model.n_states)
+        self.drift[model.n_dynamic :] = drift_per_s
         self.reset()
 
     def reset(self) -> None:
@@ -106,7 +112,7 @@ class NewestError:
         A, G = transition_matrices(self.step_jac, xp, xn, float(win.t[-1] - win.t[-2]), win.y[-2], md)
         q = Q[-1] if len(Q) else np.zeros(md)
         self.alpha = np.minimum(grow_box(self.alpha + moved, A, q), self.limits)
-        self.P = A @ self.P @ A.T + G @ np.diag(np.square(self.scale * q)) @ G.T
+        self.P = self._moved(self.P, A, G, q, float(win.t[-1] - win.t[-2]))
         self.x = xn.copy()
         self._measure(win, out_factor, theta_range)
 
@@ -138,8 +144,13 @@ class NewestError:
         if h <= 0.0:
             return self.alpha, self.P
         A, G = transition_matrices(self.step_jac, self.x, x, h, y, self.model.n_dynamic)
-        P = A @ self.P @ A.T + G @ np.diag(np.square(self.scale * q)) @ G.T
+        P = self._moved(self.P, A, G, q, h)
         return np.minimum(grow_box(self.alpha, A, q), self.limits), P
+
+    def _moved(self, P: FloatArray, A: FloatArray, G: FloatArray, q: FloatArray, h: float) -> FloatArray:
+        """The covariance one transition (``h`` s) on: the state noise of the bounds ``q`` and the CAN states'
+        drift."""
+        return A @ P @ A.T + G @ np.diag(np.square(self.scale * q)) @ G.T + np.diag(self.drift * h)
 
     def spread(self, P: FloatArray) -> Spread:
         """The error figures of a covariance of the model's states."""
