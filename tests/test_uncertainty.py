@@ -10,12 +10,15 @@ import numpy as np
 import pynmea2
 import pytest
 
+from sumhe.baseline.ekf import Ekf
 from sumhe.bench import metrics
 from sumhe.bench.mhe import drive_stream
 from sumhe.bench.report import calibration_cells
 from sumhe.commands.candump import reference_config
+from sumhe.estimator.base import to_estimate
 from sumhe.estimator.registry import make_estimator
 from sumhe.estimator.uncertainty import K1, K2, Spread, exact_radius_95, gpsd_errors, radius_95
+from sumhe.geo import LocalFrame
 from sumhe.io.nmea_format import nmea_checksum
 from sumhe.io.udp import encode_json, encode_nmea
 from sumhe.messages import ErrorEstimate, Estimate
@@ -144,7 +147,11 @@ def outage_drive():
     return simulate(SimSettings(scenario="urban", seed=3, duration_s=60.0, outages=((30.0, 15.0),)))
 
 
-@pytest.mark.parametrize("name", estimator_params(live_only=True))
+WITH_COVARIANCE = ("mhe", "ekf", "ukf", "rts", "imm", "pf", "gtsam-fls", "dead-reckoning")
+"""The live estimators that report an error estimate (a recursive filter does through ``_covariance()``)."""
+
+
+@pytest.mark.parametrize("name", estimator_params(WITH_COVARIANCE))
 def test_every_estimate_has_an_error_estimate_that_grows_through_an_outage(name: str, outage_drive) -> None:
     estimator = make_estimator(name, reference_config())
     out = [e for s in drive_stream(outage_drive) for e in estimator.push(s)]
@@ -181,3 +188,15 @@ def test_the_mhe_bound_box_holds_the_truth_on_a_bounded_noise_drive() -> None:
     assert inside.mean() >= 0.99, inside.mean()
     outage = np.array([e.gps == "outage" for e in out])
     assert np.median(be[outage]) > np.median(be[~outage])  # the set grows while no fix cuts it
+
+
+def test_a_filter_without_a_covariance_sends_no_error_estimate(outage_drive) -> None:
+    class NoCovariance(Ekf):
+        def _covariance(self) -> None:
+            return None
+
+    frame = LocalFrame(50.0, 14.0, 0.0)
+    out = [e for s in drive_stream(outage_drive)[:3000] for e in NoCovariance().push(s)]
+    assert out and all(e.spread is None for e in out)
+    sent = json.loads(encode_json(to_estimate(out[-1], frame)))
+    assert "lat" in sent and not {"eph", "epx", "epy", "eps", "epd"} & sent.keys()
