@@ -172,7 +172,9 @@ def check_drive(
     near_jump = (t > JUMP_AT_S - 0.2) & (t < JUMP_AT_S + 0.3)
     assert "rejected" in set(gps[near_jump])
     after = (t > OUTAGE[0] + OUTAGE[1] + 1.5) & (t < JUMP_AT_S - 0.5)
-    assert set(gps[after]) == {"ok"}
+    assert set(gps[after]) == {"ok"}, [
+        (round(float(a), 2), g) for a, g in zip(t[after], gps[after], strict=True) if g != "ok"
+    ][:10]
     # errors against the truth
     frame = sim.frame
     enu = frame.to_enu(np.array([r["lat"] for r in records]), np.array([r["lon"] for r in records]), frame.alt0_m)
