@@ -81,13 +81,35 @@ Sample = GnssFix | CanSample
 
 
 @dataclass(frozen=True, slots=True)
+class ErrorEstimate:
+    """An estimate's error figures as gpsd defines them (95 % confidence): ``eph_m`` the radius (m) of the circle
+    around the estimate that holds the horizontal error, ``epx_m``/``epy_m`` the east (longitude) and north
+    (latitude) half-widths (m), ``eps_mps`` the speed's (m/s), ``epd_rad`` the track's (rad); and the 1-sigma figures
+    NMEA GST sends: the error ellipse (semi-major and semi-minor axes, m; orientation of the semi-major axis, rad
+    clockwise from north) and the east and north sigmas (m). :mod:`sumhe.estimator.uncertainty` computes them."""
+
+    eph_m: float
+    epx_m: float
+    epy_m: float
+    eps_mps: float
+    epd_rad: float
+    sigma_major_m: float
+    sigma_minor_m: float
+    orient_rad: float
+    sigma_east_m: float
+    sigma_north_m: float
+
+
+@dataclass(frozen=True, slots=True)
 class Estimate:
     """One position estimate as the sinks send it.
 
     ``east_m``/``north_m`` are metres from the datum; ``track_rad`` clockwise from north;
     ``yaw_rate_rps`` anticlockwise positive. ``gps`` says whether GPS was used at this estimate.
     ``bound_east_m``/``bound_north_m`` are half-widths of the feasible set of the newest position
-    where the estimator knows them.
+    where the estimator knows them. ``error`` the estimator's own error estimate (None before it has one);
+    ``sats`` and ``hdop`` the satellites used and the HDOP of the newest fix used (in outages: no satellites, and
+    the fix's HDOP grown with the error estimate since).
     """
 
     t: float
@@ -105,3 +127,6 @@ class Estimate:
     solve_ms: float = 0.0
     bound_east_m: float | None = None
     bound_north_m: float | None = None
+    error: ErrorEstimate | None = None
+    sats: int | None = None
+    hdop: float | None = None

@@ -2,8 +2,9 @@
 estimator, and optionally the drive's ``truth.csv``.
 
 One PNG: the trajectory (every estimator overlaid, the truth in black, the stretches without GPS shaded), and
-against time the error to the truth, the estimator's window length and the half-widths of its feasible set
-(``bound_east``/``bound_north``) where the JSON has them. Outages are the runs of estimates with ``gps`` =
+against time the error to the truth, the estimator's window length, its error estimate (``eph``, 95 %: with the
+error to the truth beside it when there is one) and the half-widths of its feasible set (``bound_east``/
+``bound_north``) where the JSON has them. Outages are the runs of estimates with ``gps`` =
 ``"outage"``. matplotlib is the optional extra ``plot`` (``pip install 'sumhe[plot]'``), imported only when a
 figure is drawn; everything else here works without it.
 """
@@ -41,7 +42,8 @@ class PlotError(SumheError):
 @dataclass(frozen=True, eq=False)
 class Track:
     """One estimator's replay, in time order: ``t`` (s), WGS84 ``lat``/``lon`` (deg), ``gps`` status, ``window``
-    length (steps; 0 where the estimator has none) and ``bound_east``/``bound_north`` (m; NaN where absent)."""
+    length (steps; 0 where the estimator has none), ``bound_east``/``bound_north`` and ``eph`` (m; NaN where
+    absent)."""
 
     label: str
     t: FloatArray
@@ -51,10 +53,15 @@ class Track:
     window: FloatArray
     bound_east: FloatArray
     bound_north: FloatArray
+    eph: FloatArray
 
     @property
     def has_bounds(self) -> bool:
         return bool(np.any(np.isfinite(self.bound_east)))
+
+    @property
+    def has_eph(self) -> bool:
+        return bool(np.any(np.isfinite(self.eph)))
 
 
 def _number(value: Any) -> float:
@@ -84,6 +91,7 @@ def track_from_records(records: Iterable[dict[str, Any]], label: str) -> Track:
                 window if math.isfinite(window) else 0.0,
                 _number(r.get("bound_east")),
                 _number(r.get("bound_north")),
+                _number(r.get("eph")),
             )
         )
     if skipped:
@@ -91,9 +99,12 @@ def track_from_records(records: Iterable[dict[str, Any]], label: str) -> Track:
     if not rows:
         raise PlotError(f"{label}: no estimates with a time and a position")
     rows.sort(key=lambda row: row[0])
-    t, lat, lon, gps, window, be, bn = zip(*rows, strict=True)
+    t, lat, lon, gps, window, be, bn, eph = zip(*rows, strict=True)
     return Track(
-        label, *(np.array(v, dtype=float) for v in (t, lat, lon)), np.array(gps), *map(np.array, (window, be, bn))
+        label,
+        *(np.array(v, dtype=float) for v in (t, lat, lon)),
+        np.array(gps),
+        *map(np.array, (window, be, bn, eph)),
     )
 
 
@@ -205,6 +216,7 @@ def _time_panels(tracks: Sequence[Track], truth: Truth | None) -> list[tuple[str
     return [
         ("error", truth is not None),
         ("window", any(np.any(tr.window > 0) for tr in tracks)),
+        ("eph", any(tr.has_eph for tr in tracks)),
         ("bounds", any(tr.has_bounds for tr in tracks)),
     ]
 
@@ -245,6 +257,14 @@ def _draw_panel(ax: Any, name: str, tracks: Sequence[Track], truth: Truth | None
             if np.any(tr.window > 0):
                 ax.step(tr.t - t0, tr.window, where="post", lw=0.8, color=_colour(i), label=tr.label)
         ax.set(ylabel="window (steps)", title="estimator window length")
+    elif name == "eph":
+        for i, tr in enumerate(tracks):
+            if tr.has_eph:
+                ax.plot(tr.t - t0, tr.eph, lw=0.8, color=_colour(i), label=f"{tr.label} eph")
+                if truth is not None:
+                    t, err = track_errors(tr, truth, frame)
+                    ax.plot(t - t0, err, lw=0.6, ls=":", color=_colour(i), label=f"{tr.label} error")
+        ax.set(ylabel="m", title="error estimate eph (95 %) and the error")
     else:
         for i, tr in enumerate(tracks):
             if tr.has_bounds:

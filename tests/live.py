@@ -172,7 +172,9 @@ def check_drive(
     near_jump = (t > JUMP_AT_S - 0.2) & (t < JUMP_AT_S + 0.3)
     assert "rejected" in set(gps[near_jump])
     after = (t > OUTAGE[0] + OUTAGE[1] + 1.5) & (t < JUMP_AT_S - 0.5)
-    assert set(gps[after]) == {"ok"}
+    assert set(gps[after]) == {"ok"}, [
+        (round(float(a), 2), g) for a, g in zip(t[after], gps[after], strict=True) if g != "ok"
+    ][:10]
     # errors against the truth
     frame = sim.frame
     enu = frame.to_enu(np.array([r["lat"] for r in records]), np.array([r["lon"] for r in records]), frame.alt0_m)
@@ -182,3 +184,12 @@ def check_drive(
     assert np.mean(err[steady & (gps == "ok")]) < 2.5
     assert np.max(err[inside]) < 12.0
     assert np.max(err[near_jump], initial=0.0) < 5.0, "one 50 m jump must not pull the estimate"
+    # every datagram carries the error estimates, the MHE's its SU bound too; both grow through the outage
+    assert all({"eph", "epx", "epy", "eps", "epd"} <= r.keys() for r in records), records[0]
+    assert all("bound_east" in r and "bound_north" in r for r in records), records[0]
+    eph, bound = np.array([r["eph"] for r in records]), np.array([r["bound_east"] for r in records])
+    ok_steady = steady & (gps == "ok")
+    order = np.argsort(t[inside])
+    for name, values in (("eph", eph), ("bound_east", bound)):
+        grown = values[inside][order]
+        assert grown[-1] > grown[0] and grown[-1] > np.median(values[ok_steady]), (name, grown[[0, -1]])

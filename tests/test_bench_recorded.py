@@ -113,5 +113,10 @@ def test_the_command_reports_every_estimator_and_both_floors(drive_dir, tmp_path
         ekf = length["rows"]["ekf"]
         assert ekf["truth"]["n"] > 0 and ekf["truth"]["mean_m"] < 10.0
         assert ekf["widened_share"] == 0.0 and ekf["x_real_time"] > 1.0
+        # the error estimates against the removed fixes: every scored fix has an eph; the EKF has no bound box
+        c = ekf["calibration"]
+        assert c["n"] == ekf["fixes"]["n"] and 0.0 <= c["eph_coverage"] <= 1.0 and c["median_eph_m"] > 0.0
+        assert c["box_n"] == 0 and c["box_coverage"] is None
     assert "| floor: calibrated dead reckoning |" in printed and "vs truth" in printed
+    assert "| removed fix within eph |" in printed and "| `ekf` |" in printed
     assert (out / "recorded.md").read_text().startswith(f"## {drive_dir.name}")

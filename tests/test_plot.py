@@ -52,7 +52,7 @@ def test_bad_files(tmp_path):
 @pytest.fixture(scope="module")
 def replays(tmp_path_factory):
     """A 40 s simulated drive with a 10 s outage replayed by the MHE and the EKF, and a copy of the EKF's output
-    with feasible-set bounds added (no estimator here reports them on this drive)."""
+    with feasible-set bounds added (the MHE reports its own; the EKF none)."""
     d = tmp_path_factory.mktemp("plot")
     assert main(["simulate", "--out", str(d), "--duration", "40", "--outage", "15+10", "--seed", "2"]) == 0
     out = {}
@@ -86,12 +86,16 @@ def test_plot_of_replays_with_a_truth_is_a_non_trivial_png(replays, tmp_path, ca
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert png.stat().st_size > 30_000
     pixels = _image(png)
-    assert pixels.shape[:2] == (780, 1500)  # three time panels: error, window length, bounds
+    assert pixels.shape[:2] == (1040, 1500)  # four time panels: error, window length, eph, bounds
     assert pixels[..., :3].std() > 0.05  # not a blank canvas
-    # no truth, no bounds: the trajectory and the window length only (a smaller figure)
+    # no truth: the trajectory, the window length, the MHE's eph and bounds (a smaller figure)
     small = tmp_path / "mhe.png"
     assert main(["plot", str(replays["mhe"]), "--out", str(small)]) == 0
-    assert _image(small).shape[:2] == (700, 1500)
+    assert _image(small).shape[:2] == (780, 1500)
+    # the EKF: no window, no bounds; its eph only
+    ekf = tmp_path / "ekf.png"
+    assert main(["plot", str(replays["ekf"]), "--out", str(ekf)]) == 0
+    assert _image(ekf).shape[:2] == (700, 1500)
 
 
 def test_plot_input_errors_exit_with_a_message(replays, tmp_path, capsys):

@@ -6,6 +6,11 @@ motion since the previous fix with an azimuth, once that is ``MOTION_HEADING_M``
 ``MOTION_HEADING_MAX_S``). Between fixes and through
 outages: the raw CAN speed and yaw rate integrated from there (midpoint rule; no bias or scale correction, no
 turning at standstill). No gate: every fix is taken as it is. Until the first azimuth the position holds.
+
+Error growth model (its error estimates): a covariance carried by the linearised model as the EKF's, with the
+speed and yaw rate the raw CAN values' errors (the sensors' noise and, since dead reckoning corrects neither, the
+CAN speed scale and yaw-rate bias at half their configured maxima as one sigma, as the filters' priors take them);
+a fix sets the position (and an azimuth the azimuth) to the measurement's covariance.
 """
 
 from __future__ import annotations
@@ -15,7 +20,8 @@ import math
 import numpy as np
 
 from sumhe.baseline import kinematics as kin
-from sumhe.baseline.kinematics import OMEGA, PHI, FloatArray, V
+from sumhe.baseline.ekf import kf_predict, pin, set_heading
+from sumhe.baseline.kinematics import OMEGA, FloatArray, V
 from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
 from sumhe.config import Config
 from sumhe.frontend.stream import FixMeasurement
@@ -34,6 +40,7 @@ class DeadReckoning(RecursiveEstimator):
     name = "dead-reckoning"
     gated = False
     uses_gps_speed = False
+    averages_fixes = False
 
     def __init__(self, settings: EstimationSettings | None = None, noise: NoiseSettings | None = None) -> None:
         super().__init__(settings or EstimationSettings(), noise or NoiseSettings())
@@ -44,11 +51,12 @@ class DeadReckoning(RecursiveEstimator):
 
     def _reset_filter(self) -> None:
         self.x = np.zeros(self.layout.n)
+        self.P = np.eye(self.layout.n)
         self._anchor: FloatArray | None = None
         self._anchor_t = -math.inf
 
     def _start(self, x0: FloatArray, P0: FloatArray) -> None:
-        self.x = x0.copy()
+        self.x, self.P = x0.copy(), P0.copy()
         self._anchor = x0[[kin.E, kin.N]].copy()
         self._anchor_t = self._t_state
 
@@ -56,11 +64,19 @@ class DeadReckoning(RecursiveEstimator):
         self.x[V] = inputs.speed if inputs.speed is not None else 0.0
         moving = not inputs.standstill and inputs.yaw_rate is not None
         self.x[OMEGA] = inputs.yaw_rate if moving else 0.0
+        can, noise = self.settings.can, self.noise
+        var_v = noise.can_speed_mps**2 + (0.5 * can.speed_scale_max * self.x[V]) ** 2
+        var_omega = noise.can_yaw_rate_rps**2 + (0.5 * can.yaw_rate_bias_max_rps) ** 2
+        self.P = pin(self.P, [V, OMEGA], np.diag([var_v, var_omega]))
 
     def _predict(self, dt: float, inputs: Inputs) -> None:
         self._set_inputs(inputs)
+        Q = kin.process_noise(dt, self.noise, self.layout)
         if self._heading_known:
-            self.x = kin.wrap_state(kin.step(self.x, dt))
+            F = kin.step_jacobian(self.x, dt)
+            self.x, self.P = kin.wrap_state(kin.step(self.x, dt)), kf_predict(self.P, F, Q)
+        else:
+            self.P = self.P + Q
 
     def _can_update(self, inputs: Inputs) -> None:
         self._set_inputs(inputs)
@@ -75,12 +91,13 @@ class DeadReckoning(RecursiveEstimator):
 
     def _inflate(self, kind: str, nu: FloatArray, R: FloatArray) -> None:
         """Move the state by the innovation (taking the measurement as it is)."""
-        self.x[list(kin.FIX_ROWS[kind])] += nu
+        rows = list(kin.FIX_ROWS[kind])
+        self.x[rows] += nu
         kin.wrap_state(self.x)
+        self.P = pin(self.P, rows, R)
 
     def _init_heading(self, phi: float, sigma: float) -> None:
-        self.x[PHI] = phi
-        kin.wrap_state(self.x)
+        self.x, self.P = set_heading(self.x, self.P, phi, sigma)
 
     def _fix_angle(self, fix: FixMeasurement) -> tuple[float, float] | None:
         angle = super()._fix_angle(fix)
@@ -96,3 +113,6 @@ class DeadReckoning(RecursiveEstimator):
 
     def _mean(self) -> FloatArray:
         return self.x
+
+    def _covariance(self) -> FloatArray:
+        return self.P

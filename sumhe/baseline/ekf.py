@@ -48,12 +48,18 @@ def inflate(P: FloatArray, kind: str, nu: FloatArray, R: FloatArray) -> FloatArr
 
 def set_heading(x: FloatArray, P: FloatArray, phi: float, sigma: float) -> tuple[FloatArray, FloatArray]:
     """The state with the azimuth set to ``phi`` (rad), uncorrelated, with variance ``sigma^2``."""
-    x, P = x.copy(), P.copy()
+    x = x.copy()
     x[PHI] = phi
-    P[PHI, :] = 0.0
-    P[:, PHI] = 0.0
-    P[PHI, PHI] = sigma**2
-    return kin.wrap_state(x), P
+    return kin.wrap_state(x), pin(P, [PHI], np.array([[sigma**2]]))
+
+
+def pin(P: FloatArray, rows: list[int], R: FloatArray) -> FloatArray:
+    """P with the state ``rows`` set outright to a measurement of covariance ``R`` (uncorrelated with the rest)."""
+    P = P.copy()
+    P[rows, :] = 0.0
+    P[:, rows] = 0.0
+    P[np.ix_(rows, rows)] = R
+    return P
 
 
 def ekf_predict(
@@ -145,6 +151,9 @@ class GaussianFilter(RecursiveEstimator):
 
     def _mean(self) -> FloatArray:
         return self.x
+
+    def _covariance(self) -> FloatArray:
+        return self.P
 
 
 class Ekf(GaussianFilter):

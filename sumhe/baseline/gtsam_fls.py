@@ -529,6 +529,23 @@ class GtsamFls(RecursiveEstimator):
         if self._smoother is None and self._opened is not None:
             self._open_graph(phi, sigma)
 
+    def _covariance(self) -> FloatArray:
+        """The newest node's marginal covariance (iSAM2's) carried by the odometry since to the state's time; the
+        newest fix's sigmas before the graph opens; speed and yaw rate the CAN sensors' noise."""
+        P = np.diag(np.square([self.noise.can_speed_mps, self.noise.can_yaw_rate_rps]))
+        out = np.eye(self.layout.n)
+        out[np.ix_([V, OMEGA], [V, OMEGA])] = P
+        node = self._node
+        if node is None or self._now is None or self._smoother is None:
+            out[[E, N], [E, N]] = np.square(self._fix_sigma)
+            out[PHI, PHI] = math.pi**2
+            return out
+        _, pose_cov = self._predict_node(node, self._now)
+        rows = [E, N, PHI]
+        out[np.ix_(rows, rows)] = pose_cov[:3, :3]
+        out[PHI, [E, N]] = out[[E, N], PHI] = -pose_cov[:2, 2]  # phi = pi/2 - theta
+        return out
+
     def _mean(self) -> FloatArray:
         if self._opened is not None and self._smoother is not None and self._opened.t <= self._t_state:
             self._flush()

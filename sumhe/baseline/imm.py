@@ -172,3 +172,8 @@ class Imm(RecursiveEstimator):
 
     def _mean(self) -> FloatArray:
         return kin.weighted_mean(np.column_stack(self.xs), self.mu)
+
+    def _covariance(self) -> FloatArray:
+        """The mixture's covariance: the cells' covariances and the spread of their means, weighted."""
+        spread = kin.weighted_covariance(np.column_stack(self.xs), self.mu, self._mean())
+        return np.asarray(sum(m * P for m, P in zip(self.mu, self.Ps, strict=True)) + spread)

@@ -182,6 +182,13 @@ def weighted_mean(x: FloatArray, w: FloatArray) -> FloatArray:
     return m
 
 
+def weighted_covariance(x: FloatArray, w: FloatArray, mean: FloatArray) -> FloatArray:
+    """Covariance of stacked states ``(n, M)`` with weights ``w`` (sum 1) about ``mean`` (azimuth differences
+    wrapped)."""
+    d = state_difference(x, mean)
+    return np.asarray((d * w) @ d.T, dtype=float)
+
+
 def measurement_mean(kind: str, z: FloatArray, w: FloatArray) -> FloatArray:
     """Weighted mean of stacked measurements ``(rows, M)`` of ``kind``; an azimuth as a circular mean."""
     if kind == AZIMUTH:

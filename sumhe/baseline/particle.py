@@ -147,3 +147,7 @@ class ParticleFilter(RecursiveEstimator):
 
     def _mean(self) -> FloatArray:
         return kin.weighted_mean(self.X, self.w)
+
+    def _covariance(self) -> FloatArray:
+        """The particles' weighted spread about their mean."""
+        return kin.weighted_covariance(self.X, self.w, self._mean())

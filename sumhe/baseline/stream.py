@@ -12,7 +12,11 @@ own state:
   that applies the update; the gate here decides whether to commit;
 * ``_inflate(kind, nu, R)``: widen the state so that a re-acquired fix can pull it (after a rejected run);
 * ``_init_heading(phi, sigma)``: the first azimuth measurement sets the azimuth outright;
-* ``_mean()``: the state estimate now (layout of :mod:`.kinematics`, speed and yaw rate filled in).
+* ``_mean()``: the state estimate now (layout of :mod:`.kinematics`, speed and yaw rate filled in);
+* ``_covariance()``, optional: its covariance (a Gaussian filter's own, the particles' weighted spread, the
+  mixture's, dead reckoning's growth model); every estimate's error figures (:mod:`sumhe.estimator.uncertainty`)
+  come from it, carried to the estimate's time by the model's Jacobian and process noise; a filter without it
+  reports none.
 
 Timing: the filter's state lives at ``t_state``, the newest CAN speed sample's measurement time (or fix, if
 newer); a CAN-rate estimate is reported at the sample's timestamp. A fix older than the state (the receiver's
@@ -47,9 +51,12 @@ from sumhe.baseline.kinematics import (
     N,
     V,
     chi2_threshold,
+    process_noise,
     step,
+    step_jacobian,
 )
 from sumhe.estimator.base import StateEstimate, StreamEstimator
+from sumhe.estimator.uncertainty import Spread
 from sumhe.frontend.fixes import LocalFix
 from sumhe.frontend.stream import CanTick, Epoch, FixMeasurement
 from sumhe.messages import CanSample, GpsStatus
@@ -233,6 +240,11 @@ class RecursiveEstimator(StreamEstimator):
     def _mean(self) -> FloatArray:
         """The state estimate at ``t_state``."""
 
+    def _covariance(self) -> FloatArray | None:
+        """The covariance of the state estimate at ``t_state`` (n x n); None (an estimator that has none): its
+        estimates carry no error estimate."""
+        return None
+
     def _on_report(self, estimate: StateEstimate, epoch: bool) -> None:
         """Called with every estimate returned, ``epoch`` False for the CAN-rate ones (the RTS records them)."""
 
@@ -343,10 +355,14 @@ class RecursiveEstimator(StreamEstimator):
         return "ok"
 
     def _report(self, t: float, status: GpsStatus, epoch: bool = True) -> StateEstimate:
-        x = self._mean()
+        x, P = self._mean(), self._covariance()
         if t != self._t_state:
-            x = step(x, t - self._t_state)
-        if not np.all(np.isfinite(x)):
+            dt = t - self._t_state
+            if P is not None:
+                F = step_jacobian(x, dt)
+                P = F @ P @ F.T + process_noise(abs(dt), self.noise, self.layout)
+            x = step(x, dt)
+        if not np.all(np.isfinite(x)) or (P is not None and not np.all(np.isfinite(P))):
             raise _NumericFailure("non-finite state")
         estimate = StateEstimate(
             t=t,
@@ -359,6 +375,7 @@ class RecursiveEstimator(StreamEstimator):
             mode=self.name,
             window=self._window(),
             solve_ms=self.elapsed_ms(),
+            spread=Spread.from_covariance(P, E, N, V, PHI) if P is not None else None,
         )
         self._on_report(estimate, epoch)
         return estimate

@@ -37,6 +37,46 @@ def horizontal_errors(t: ArrayLike, east: ArrayLike, north: ArrayLike, truth: Tr
     return np.asarray(np.hypot(np.asarray(east, dtype=float) - at.east, np.asarray(north, dtype=float) - at.north))
 
 
+CALIBRATION_COLUMNS = ("error_m", "eph_m", "box_ratio", "box_half_m")
+"""Per estimate: its horizontal error, its ``eph``, how far the truth lies out in its bound box (the larger of
+``|error east| / bound_east`` and ``|error north| / bound_north``: inside when <= 1) and the box's larger
+half-width; NaN where the estimate has no ``eph`` or no box."""
+
+
+def calibration_columns(
+    d_east: ArrayLike, d_north: ArrayLike, eph: ArrayLike, bound_east: ArrayLike, bound_north: ArrayLike
+) -> FloatArray:
+    """The :data:`CALIBRATION_COLUMNS` (N x 4) of estimates whose errors are ``d_east``/``d_north`` (m: estimate
+    minus truth, or minus a removed fix) with error estimates ``eph`` and bound half-widths (m; NaN: none)."""
+    de, dn = np.asarray(d_east, dtype=float), np.asarray(d_north, dtype=float)
+    be, bn = np.asarray(bound_east, dtype=float), np.asarray(bound_north, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.maximum(np.abs(de) / be, np.abs(dn) / bn)
+    return np.column_stack([np.hypot(de, dn), np.asarray(eph, dtype=float), ratio, np.maximum(be, bn)])
+
+
+def calibration(columns: ArrayLike) -> dict[str, float | int]:
+    """How well error estimates and bound boxes describe the errors (rows of :func:`calibration_columns`): the
+    share of estimates whose error lies within their ``eph`` (of those with one) and inside their box (of those
+    with one), the median ``eph``, the median error and their ratio, the median box half-width."""
+    c = np.asarray(columns, dtype=float).reshape(-1, len(CALIBRATION_COLUMNS))
+    err, eph, ratio, half = c.T
+    with_eph = np.isfinite(eph) & np.isfinite(err)
+    with_box = np.isfinite(ratio) & np.isfinite(half)
+    median_eph = float(np.median(eph[with_eph])) if with_eph.any() else math.nan
+    median_err = float(np.median(err[with_eph])) if with_eph.any() else math.nan
+    return {
+        "n": int(with_eph.sum()),
+        "eph_coverage": float(np.mean(err[with_eph] <= eph[with_eph])) if with_eph.any() else math.nan,
+        "median_eph_m": median_eph,
+        "median_error_m": median_err,
+        "eph_over_error": median_eph / median_err if median_err > 0 else math.nan,
+        "box_n": int(with_box.sum()),
+        "box_coverage": float(np.mean(ratio[with_box] <= 1.0)) if with_box.any() else math.nan,
+        "median_box_half_m": float(np.median(half[with_box])) if with_box.any() else math.nan,
+    }
+
+
 def angle_errors(estimated_rad: ArrayLike, true_rad: ArrayLike) -> FloatArray:
     """Absolute angle differences (rad) wrapped to [0, pi]: 359 deg against 1 deg is 2 deg."""
     d = np.asarray(estimated_rad, dtype=float) - np.asarray(true_rad, dtype=float)

@@ -17,7 +17,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from sumhe.bench.metrics import interval_index, mean_p95_max
 from sumhe.geo import LocalFrame
@@ -87,10 +87,31 @@ def outage_errors(
 ) -> tuple[list[OutageErrors], OutageErrors]:
     """The errors of estimates (times ``est_t``, s; WGS84 latitude/longitude, deg) against the valid ``removed``
     fixes of each window, and over all of them. Each fix is compared with the estimate interpolated linearly (in
-    a local east/north frame) to its time."""
+    a local east/north frame) to its time (:func:`residuals_at_fixes`)."""
+    t_fix, d_east, d_north, _ = residuals_at_fixes(removed, est_t, est_lat_deg, est_lon_deg)
+    errors = np.hypot(d_east, d_north)
+    index = interval_index(t_fix, windows) if t_fix.size else np.zeros(0, dtype=np.intp)
+    per_window = [_errors(start, end, errors[index == i]) for i, (start, end) in enumerate(windows)]
+    start = windows[0][0] if windows else math.nan
+    end = windows[-1][1] if windows else math.nan
+    return per_window, _errors(start, end, errors[index >= 0])
+
+
+def residuals_at_fixes(
+    removed: Sequence[GnssFix],
+    est_t: ArrayLike,
+    est_lat_deg: ArrayLike,
+    est_lon_deg: ArrayLike,
+    extra: Sequence[ArrayLike] = (),
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], list[NDArray[np.float64]]]:
+    """The valid ``removed`` fixes' times (s) and the estimates' residuals east and north of them (m: estimate
+    minus fix, the estimates interpolated linearly in a local east/north frame to each fix's time; NaN where no
+    estimates lie on both sides within :data:`MAX_INTERPOLATION_GAP_S`), and each of the per-estimate values
+    ``extra`` interpolated the same way."""
     fixes = [f for f in removed if f.valid and f.lat_deg is not None and f.lon_deg is not None]
     t_fix = np.array([f.t for f in fixes], dtype=float)
-    errors = np.full(len(fixes), math.nan)
+    d_east, d_north = np.full(len(fixes), math.nan), np.full(len(fixes), math.nan)
+    values = [np.full(len(fixes), math.nan) for _ in extra]
     t = np.asarray(est_t, dtype=float)
     if fixes and t.size:
         frame = LocalFrame(float(fixes[0].lat_deg), float(fixes[0].lon_deg), 0.0)  # type: ignore[arg-type]
@@ -102,14 +123,10 @@ def outage_errors(
         inside = (k > 0) & (k < t.size)
         kk = np.clip(k, 1, max(t.size - 1, 1))
         inside &= t[kk] - t[kk - 1] <= MAX_INTERPOLATION_GAP_S
-        east = np.interp(t_fix, t, est[:, 0])
-        north = np.interp(t_fix, t, est[:, 1])
-        errors = np.where(inside, np.hypot(east - ref[:, 0], north - ref[:, 1]), math.nan)
-    index = interval_index(t_fix, windows) if fixes else np.zeros(0, dtype=np.intp)
-    per_window = [_errors(start, end, errors[index == i]) for i, (start, end) in enumerate(windows)]
-    start = windows[0][0] if windows else math.nan
-    end = windows[-1][1] if windows else math.nan
-    return per_window, _errors(start, end, errors[index >= 0])
+        d_east = np.where(inside, np.interp(t_fix, t, est[:, 0]) - ref[:, 0], math.nan)
+        d_north = np.where(inside, np.interp(t_fix, t, est[:, 1]) - ref[:, 1], math.nan)
+        values = [np.where(inside, np.interp(t_fix, t, np.asarray(v, dtype=float)[order]), math.nan) for v in extra]
+    return t_fix, d_east, d_north, values
 
 
 def _errors(start: float, end: float, errors: np.ndarray) -> OutageErrors:

@@ -39,7 +39,7 @@ from sumhe.bench.drives import BenchDrive, Outage, PeersSettings, drives
 from sumhe.config import Config
 from sumhe.errors import ConfigError, SumheError
 from sumhe.estimator.registry import estimator_class, make_estimator
-from sumhe.messages import GnssFix
+from sumhe.messages import Estimate, GnssFix
 from sumhe.service.pipeline import Pipeline
 
 log = logging.getLogger(__name__)
@@ -75,6 +75,8 @@ class RunResult:
     outage_errors: tuple[NDArray[np.float64], ...] = ()
     gps_errors: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
     heading_errors: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    calib_gps: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, len(metrics.CALIBRATION_COLUMNS))))
+    calib_outage: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, len(metrics.CALIBRATION_COLUMNS))))
     sample_hist: NDArray[np.int64] = field(default_factory=lambda: metrics.latency_histogram([]))
     epoch_hist: NDArray[np.int64] = field(default_factory=lambda: metrics.latency_histogram([]))
     span_s: float = 0.0
@@ -135,6 +137,7 @@ def run_estimator(name: str, drive: BenchDrive, heading_min_speed_mps: float = 2
     err = metrics.horizontal_errors(t, east, north, drive.truth)
     spans = [o.scored_span for o in drive.outages]
     inside, with_gps = metrics.split_by_interval(t, err, spans, after=drive.scored_from)
+    calib_gps, calib_outage = _calibration(estimates, finite, t, east, north, drive, spans)
     moving = (t >= drive.scored_from) & (drive.truth.at(t).speed >= heading_min_speed_mps)
     heading = metrics.heading_errors(t[moving], track[moving], drive.truth)
     return RunResult(
@@ -146,6 +149,8 @@ def run_estimator(name: str, drive: BenchDrive, heading_min_speed_mps: float = 2
         outage_errors=tuple(inside),
         gps_errors=with_gps,
         heading_errors=heading,
+        calib_gps=calib_gps,
+        calib_outage=calib_outage,
         sample_hist=metrics.latency_histogram(push_ms),
         epoch_hist=metrics.latency_histogram(push_ms[is_fix]),
         span_s=drive.span_s,
@@ -154,6 +159,34 @@ def run_estimator(name: str, drive: BenchDrive, heading_min_speed_mps: float = 2
         build_s=build_s,
         peak_mb=_max_rss_mb() - rss0,
     )
+
+
+def _calibration(
+    estimates: list[Estimate],
+    finite: NDArray[np.bool_],
+    t: NDArray[np.float64],
+    east: NDArray[np.float64],
+    north: NDArray[np.float64],
+    drive: BenchDrive,
+    spans: list[tuple[float, float]],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The calibration columns (:func:`~sumhe.bench.metrics.calibration_columns`) of the finite estimates against
+    the truth: with GPS (after the warm-up) and inside the outages."""
+    kept = [e for e, ok in zip(estimates, finite, strict=True) if ok]
+
+    def column(get: Callable[[Estimate], float | None]) -> NDArray[np.float64]:
+        return np.array([math.nan if (v := get(e)) is None else v for e in kept], dtype=float)
+
+    at = drive.truth.at(t)
+    cols = metrics.calibration_columns(
+        east - at.east,
+        north - at.north,
+        column(lambda e: e.error.eph_m if e.error is not None else None),
+        column(lambda e: e.bound_east_m),
+        column(lambda e: e.bound_north_m),
+    )
+    index = metrics.interval_index(t, spans)
+    return cols[(index < 0) & (t >= drive.scored_from)], cols[index >= 0]
 
 
 def _child(send: Any, fn: Callable[[], Any]) -> None:

@@ -34,15 +34,16 @@ import numpy as np
 
 from sumhe.bench import outages
 from sumhe.bench.floors import CanTrack, Fixes, calibrated_floor, plain_floor
-from sumhe.bench.metrics import interval_index, mean_p95_max
+from sumhe.bench.metrics import calibration, calibration_columns, interval_index, mean_p95_max
 from sumhe.bench.peers import BenchRunError, call_isolated
+from sumhe.bench.report import calibration_cells
 from sumhe.calibration import signals_of
 from sumhe.config import Config, load_config
 from sumhe.errors import ConfigError
 from sumhe.estimator.registry import estimator_names, make_estimator
 from sumhe.geo import LocalFrame
 from sumhe.io.replay import RecordedDrive
-from sumhe.messages import Sample
+from sumhe.messages import Estimate, Sample
 from sumhe.service.pipeline import Pipeline
 from sumhe.sim import Truth, load_truth
 
@@ -163,7 +164,8 @@ def _usable(rec: Recording, start: float, length_s: float, min_speed_mps: float)
 class RunOutcome:
     """One estimator on one drive with the outages of one length: the errors (m) against the removed fixes
     (pooled over the outages) and, with a truth, every estimate's inside them against the truth; its epochs'
-    modes; seconds of data and of pushing; the GNSS time offset its estimates were compared at (s)."""
+    modes; seconds of data and of pushing; the GNSS time offset its estimates were compared at (s); how its ``eph``
+    and bound box describe its errors against the removed fixes (:func:`~sumhe.bench.metrics.calibration`)."""
 
     fix_errors: outages.OutageErrors
     truth_errors: np.ndarray
@@ -171,6 +173,7 @@ class RunOutcome:
     span_s: float
     wall_s: float
     offset_s: float
+    calibration: dict[str, float | int]
 
 
 def run_estimator(name: str, rec: Recording, windows: Sequence[tuple[float, float]]) -> RunOutcome:
@@ -179,7 +182,7 @@ def run_estimator(name: str, rec: Recording, windows: Sequence[tuple[float, floa
     cut = outages.FixCut(windows)
     margin = outages.MAX_INTERPOLATION_GAP_S
     near = [(a - margin, b + margin) for a, b in windows]
-    kept: list[tuple[float, float, float]] = []
+    kept: list[tuple[float, ...]] = []
     modes: Counter[str] = Counter()
     wall0 = time.perf_counter()
     for sample in rec.samples:
@@ -188,23 +191,36 @@ def run_estimator(name: str, rec: Recording, windows: Sequence[tuple[float, floa
         for est in pipeline.push(sample):
             modes[est.mode] += 1
             if interval_index([est.t], near)[0] >= 0:
-                kept.append((est.t, est.lat_deg, est.lon_deg))
+                kept.append(_row(est))
     for est in pipeline.finish():
         modes[est.mode] += 1
-        kept.append((est.t, est.lat_deg, est.lon_deg))
+        kept.append(_row(est))
     wall = time.perf_counter() - wall0
     offset = float(pipeline.estimator.stats().get("gps_time_offset_s", 0.0))
-    est = np.array(kept, dtype=float).reshape(-1, 3)
+    est = np.array(kept, dtype=float).reshape(-1, 6)
     shifted = [dataclasses.replace(f, t=f.t + offset) for f in cut.removed]
     moved = [(a + offset, b + offset) for a, b in windows]
     _, errors = outages.outage_errors(moved, shifted, est[:, 0], est[:, 1], est[:, 2])
+    t_fix, d_east, d_north, (eph, bound_east, bound_north) = outages.residuals_at_fixes(
+        shifted, est[:, 0], est[:, 1], est[:, 2], (est[:, 3], est[:, 4], est[:, 5])
+    )
+    inside_fix = interval_index(t_fix, moved) >= 0 if t_fix.size else np.zeros(0, dtype=bool)
+    calib = calibration(calibration_columns(d_east, d_north, eph, bound_east, bound_north)[inside_fix])
     truth_errors = np.zeros(0)
     if rec.truth is not None and len(est):
         inside = interval_index(est[:, 0], windows) >= 0
         en = rec.frame.to_enu(est[inside, 1], est[inside, 2])
         at = rec.truth.at(est[inside, 0])
         truth_errors = np.hypot(en[:, 0] - at.east, en[:, 1] - at.north)
-    return RunOutcome(errors, truth_errors, outages.mode_shares(modes.elements()), rec.span_s, wall, offset)
+    return RunOutcome(errors, truth_errors, outages.mode_shares(modes.elements()), rec.span_s, wall, offset, calib)
+
+
+def _row(est: Estimate) -> tuple[float, ...]:
+    """What the bench keeps of an estimate: time, latitude, longitude, eph, bound half-widths (NaN: none)."""
+    eph = est.error.eph_m if est.error is not None else math.nan
+    be = est.bound_east_m if est.bound_east_m is not None else math.nan
+    bn = est.bound_north_m if est.bound_north_m is not None else math.nan
+    return est.t, est.lat_deg, est.lon_deg, eph, be, bn
 
 
 @dataclass(frozen=True)
@@ -280,6 +296,7 @@ def summary(rec: Recording, results: Sequence[LengthResult]) -> dict[str, Any]:
                 "failed_share": _finite(run.shares.failed_share),
                 "x_real_time": run.span_s / run.wall_s if run.wall_s > 0 else None,
                 "gps_time_offset_s": run.offset_s,
+                "calibration": {k: _finite(float(v)) for k, v in run.calibration.items()},
             }
         for name, errors in r.floors.items():
             rows[name] = {"fixes": stats(errors)}
@@ -340,5 +357,21 @@ def markdown(data: dict[str, Any]) -> list[str]:
             else:
                 cells += ["–", "–", "–", "–"]
             lines.append("| " + " | ".join(cells) + " |")
-        lines.append("")
+        lines += ["", *calibration_lines(length["rows"]), ""]
+    return lines
+
+
+def calibration_lines(rows: dict[str, Any]) -> list[str]:
+    """The estimators' error estimates and bound boxes against the removed fixes (Markdown)."""
+    head = [
+        "estimator",
+        "removed fix within eph",
+        "median eph / median error (m)",
+        "removed fix in bound box",
+        "median box half-width (m)",
+    ]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, row in rows.items():
+        if "calibration" in row:
+            lines.append("| " + " | ".join([f"`{name}`", *calibration_cells(row["calibration"])]) + " |")
     return lines

@@ -26,6 +26,10 @@ def _errors(values: Sequence[NDArray[np.float64]], unit: str = "m", scale: float
     return {"n": int(pooled.size), f"mean_{unit}": mean, f"p95_{unit}": p95, f"max_{unit}": mx}
 
 
+def _rows(parts: Sequence[NDArray[np.float64]]) -> NDArray[np.float64]:
+    return np.vstack(parts) if parts else np.zeros((0, len(metrics.CALIBRATION_COLUMNS)))
+
+
 def _length_key(length_s: float) -> str:
     return f"{length_s:g}"
 
@@ -60,6 +64,10 @@ def summarise_estimator(name: str, results: Sequence[RunResult], drives_: Sequen
         "outage_by_motion": {m: _errors(by_motion[m]) for m in MOTION_ORDER if m in by_motion},
         "with_gps": _errors([r.gps_errors for r in ok]),
         "heading_deg": _errors([r.heading_errors for r in ok], "deg", math.degrees(1.0)),
+        "calibration": {
+            "with_gps": metrics.calibration(_rows([r.calib_gps for r in ok])),
+            "outage": metrics.calibration(_rows([r.calib_outage for r in ok])),
+        },
         "latency_ms": {
             kind: {
                 "n": int(hist.sum()),
@@ -247,6 +255,61 @@ def main_table(summary: Mapping[str, Any], profile: str) -> list[str]:
     return lines
 
 
+EPH_TARGET = (0.90, 0.98)
+"""The share of errors within ``eph`` the error estimates aim at (issue 13): 95 % nominal, 90-98 % accepted."""
+EPH_OVER_ERROR_MAX = 3.0
+"""Median ``eph`` at most this many times the median error (issue 13)."""
+BOX_TARGET = 0.99
+"""The share of estimates whose bound box holds the truth, on bounded-noise drives (issue 13)."""
+
+
+def calibration_table(summary: Mapping[str, Any], profile: str) -> list[str]:
+    """Error estimates and bound boxes against the errors, with GPS and in outages (Markdown); each cell says
+    whether it meets the targets (:data:`EPH_TARGET`, :data:`EPH_OVER_ERROR_MAX`, :data:`BOX_TARGET`)."""
+    head = ["estimator"]
+    for where in ("with GPS", "outages"):
+        head += [
+            f"{where}: error within eph",
+            f"{where}: median eph / median error (m)",
+            f"{where}: truth in bound box",
+            f"{where}: median box half-width (m)",
+        ]
+    lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
+    for name, e in summary["profiles"][profile].items():
+        cells = [f"`{name}`"]
+        for where in ("with_gps", "outage"):
+            cells += calibration_cells(e.get("calibration", {}).get(where, {}))
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def calibration_cells(c: Mapping[str, Any]) -> list[str]:
+    """Four cells of one :func:`~sumhe.bench.metrics.calibration`: eph coverage (with the target met or not),
+    median eph / median error (ratio), box coverage, median box half-width."""
+    if not c or not c.get("n"):
+        return ["–", "–", *_box_cells(c)]
+    cover, ratio = c.get("eph_coverage"), c.get("eph_over_error")
+    met = cover is not None and EPH_TARGET[0] <= cover <= EPH_TARGET[1]
+    ratio_met = ratio is not None and ratio <= EPH_OVER_ERROR_MAX
+    return [
+        f"{_num(100 * cover if cover is not None else None, 1)} % {'(met)' if met else '(missed)'}",
+        f"{_num(c.get('median_eph_m'))} / {_num(c.get('median_error_m'))} = {_num(ratio)}"
+        f" {'(met)' if ratio_met else '(missed)'}",
+        *_box_cells(c),
+    ]
+
+
+def _box_cells(c: Mapping[str, Any]) -> list[str]:
+    if not c or not c.get("box_n"):
+        return ["no box", "–"]
+    cover = c.get("box_coverage")
+    met = cover is not None and cover >= BOX_TARGET
+    return [
+        f"{_num(100 * cover if cover is not None else None, 2)} % {'(≥ 99 %)' if met else '(< 99 %)'}",
+        _num(c.get("median_box_half_m")),
+    ]
+
+
 def motion_table(summary: Mapping[str, Any], profile: str) -> list[str]:
     """Mean / max error during outages of one profile's drives by what the vehicle did (Markdown)."""
     placements = [p for p in summary["placements"] if p["profile"] == profile]
@@ -268,6 +331,9 @@ def markdown(summary: Mapping[str, Any]) -> str:
     out += ["## Position error during outages by the truth's motion", ""]
     for profile in summary["profiles"]:
         out += [profile_title(profile, summary), "", *motion_table(summary, profile), ""]
+    out += ["## Error estimates and bound boxes against the errors", ""]
+    for profile in summary["profiles"]:
+        out += [profile_title(profile, summary), "", *calibration_table(summary, profile), ""]
     out += [
         "## How the figures are measured",
         "",
@@ -282,6 +348,11 @@ def markdown(summary: Mapping[str, Any]) -> str:
         "is in x real time.",
         "- x real time: seconds of data / seconds of `push` + `finish` (estimator construction left out).",
         f"- Peak memory: {summary['memory']}.",
+        "- Error estimates: the share of estimates whose error (against the truth) lies within their `eph` (95 % "
+        f"nominal; target {100 * EPH_TARGET[0]:g}-{100 * EPH_TARGET[1]:g} %), median `eph` over median error "
+        f"(target <= {EPH_OVER_ERROR_MAX:g}); bound box: the share whose truth lies within `bound_east` and "
+        f"`bound_north` of the estimate (target >= {100 * BOX_TARGET:g} % on bounded-noise drives), and the median "
+        "of the box's larger half-width.",
     ]
     if summary["failures"]:
         out += ["", "## Failed runs", ""]

@@ -261,7 +261,7 @@ def run_peers(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from sumhe.bench.peers import run_bench
-    from sumhe.bench.report import how_it_ran, main_table, markdown, profile_title, summarise
+    from sumhe.bench.report import calibration_table, how_it_ran, main_table, markdown, profile_title, summarise
     from sumhe.commands.candump import reference_config
     from sumhe.config import load_config
 
@@ -278,6 +278,7 @@ def run_peers(args: argparse.Namespace) -> int:
     lines = how_it_ran(summary)
     for profile in summary["profiles"]:
         lines += ["", profile_title(profile, summary), "", *main_table(summary, profile)]
+        lines += ["", "error estimates and bound boxes:", "", *calibration_table(summary, profile)]
     for line in lines:
         print(line, flush=True)
     if summary["failures"]:

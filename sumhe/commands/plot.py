@@ -2,7 +2,7 @@
 
 Each file is the JSON lines of one ``sumhe replay --out`` (one estimator), named by its stem or ``--label``. The
 figure (:mod:`sumhe.plot`): trajectory with outages shaded, error against the truth (with ``--truth``), window
-length and feasible-set bounds against time. Needs matplotlib (``pip install 'sumhe[plot]'``).
+length, error estimate (``eph``) and feasible-set bounds against time. Needs matplotlib (``pip install 'sumhe[plot]'``).
 """
 
 from __future__ import annotations

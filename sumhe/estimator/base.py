@@ -32,11 +32,12 @@ import math
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import ClassVar, Protocol, runtime_checkable
 
+from sumhe.estimator.uncertainty import Spread, gpsd_errors
 from sumhe.frontend.fixes import LocalFix
-from sumhe.frontend.stream import CanTick, Epoch, FrontEnd, Tally
+from sumhe.frontend.stream import CanTick, Epoch, FixMeasurement, FrontEnd, Tally
 from sumhe.geo import LocalFrame
 from sumhe.messages import CanSample, Estimate, GpsStatus
 from sumhe.settings import EstimationSettings
@@ -47,7 +48,9 @@ class StateEstimate:
     """An estimator's answer in the local frame: east/north (m), azimuth (rad, clockwise from north),
     speed (m/s), yaw rate (rad/s, anticlockwise); the GNSS status and the estimator's mode; ``bound_*`` the
     half-widths of the set of positions consistent with model and data, where the estimator knows them; the window
-    length (steps) and the time of the push that made it (ms)."""
+    length (steps) and the time of the push that made it (ms); ``spread`` the estimator's own 1-sigma error figures
+    (:mod:`sumhe.estimator.uncertainty`), ``sats``/``hdop`` the receiver's of the newest fix used
+    (:meth:`StreamEstimator.push` fills them in)."""
 
     t: float
     east_m: float
@@ -61,6 +64,9 @@ class StateEstimate:
     bound_north_m: float | None = None
     window: int = 0
     solve_ms: float = 0.0
+    spread: Spread | None = None
+    sats: int | None = None
+    hdop: float | None = None
 
 
 @runtime_checkable
@@ -89,22 +95,28 @@ class StreamEstimator(ABC):
     * :meth:`on_can`: one CAN sample taken in -> an estimate at its time, or None (the MHE and the Kalman peers
       answer each ``speed`` sample).
 
-    ``uses_gps_speed = False`` leaves the fixes' speed over ground out of the measurements. ``self.tally`` counts
+    ``uses_gps_speed = False`` leaves the fixes' speed over ground out of the measurements; ``averages_fixes``: see
+    :class:`Receiver`. ``self.tally`` counts
     what the estimator reports in ``stats()``.
     """
 
     name: ClassVar[str] = ""
     uses_gps_speed: ClassVar[bool] = True
+    averages_fixes: ClassVar[bool] = True
+    """False for an estimator that takes each fix as it is (dead reckoning): its own covariance already holds the
+    fix's error, and :class:`Receiver` adds none."""
 
     def __init__(self, settings: EstimationSettings) -> None:
         self.settings = settings
         self.tally = Tally(self.name, logging.getLogger(type(self).__module__))
         self.frontend = FrontEnd(settings, self.tally, self.uses_gps_speed)
         self._push_t0 = time.perf_counter()
+        self._receiver: Receiver | None = None
 
     def reset(self) -> None:
         """Forget the estimate and the stream (CAN data, GNSS timing); counters are kept."""
         self.frontend.reset()
+        self._receiver = None
         self.reset_state()
 
     def push(self, sample: LocalFix | CanSample) -> list[StateEstimate]:
@@ -112,9 +124,14 @@ class StreamEstimator(ABC):
         self._push_t0 = time.perf_counter()
         out = []
         for event in self.frontend.push(sample):
-            estimate = self.on_epoch(event) if isinstance(event, Epoch) else self.on_can(event)
+            if isinstance(event, Epoch):
+                estimate: StateEstimate | None = self.on_epoch(event)
+                if estimate is not None and estimate.gps == "ok" and event.fix is not None:
+                    self._receiver = Receiver(event.fix, estimate.spread, self.averages_fixes)
+            else:
+                estimate = self.on_can(event)
             if estimate is not None:
-                out.append(estimate)
+                out.append(self._receiver.tag(estimate) if self._receiver is not None else estimate)
         return out
 
     def stats(self) -> Mapping[str, float | int | str]:
@@ -150,6 +167,46 @@ class StreamEstimator(ABC):
         """The estimate at a CAN sample, or None."""
 
 
+class Receiver:
+    """What the newest fix used said of itself, for every estimate after it: satellites used and HDOP (and the
+    estimate's horizontal 1-sigma, m, when it was used), and its position sigmas (m, the front-end's).
+
+    The error a filter cannot see: GNSS position errors are correlated over minutes (multipath, atmosphere), and a
+    filter that takes each fix as independent shrinks its covariance below the fix's own sigma although the
+    offset the fixes share does not average out; every estimator's estimate carries that offset into an outage.
+    So every estimate's position covariance gets the newest used fix's (its 1-sigma per axis) on top of the
+    estimator's own (:meth:`tag`), unless ``offset`` is False (an estimator whose covariance holds it already)."""
+
+    def __init__(self, fix: FixMeasurement, spread: Spread | None, offset: bool = True) -> None:
+        gnss = fix.fix.fix
+        self.sats = gnss.sats if gnss is not None else None
+        self.hdop = fix.fix.hdop
+        scale = 1.0 if offset else 0.0
+        self.var_east_m2, self.var_north_m2 = scale * fix.sigma_east_m**2, scale * fix.sigma_north_m**2
+        self.sigma_m = horizontal_sigma(self._grow(spread))
+
+    def _grow(self, spread: Spread | None) -> Spread | None:
+        return None if spread is None else spread.grown(self.var_east_m2, self.var_north_m2)
+
+    def tag(self, estimate: StateEstimate) -> StateEstimate:
+        """The estimate with the fix's position covariance added to its own, satellites and HDOP: the fix's while
+        GPS is used; in outages (and for rejected fixes) no satellites and the fix's HDOP grown as the estimate's
+        horizontal sigma grew since (so that a consumer who reads only HDOP sees the error grow)."""
+        spread = self._grow(estimate.spread)
+        if estimate.gps == "ok":
+            return replace(estimate, spread=spread, sats=self.sats, hdop=self.hdop)
+        sigma = horizontal_sigma(spread)
+        hdop = self.hdop
+        if hdop is not None and sigma is not None and self.sigma_m:
+            hdop = hdop * max(sigma / self.sigma_m, 1.0)
+        return replace(estimate, spread=spread, sats=0, hdop=hdop)
+
+
+def horizontal_sigma(spread: Spread | None) -> float | None:
+    """The root mean square of the east and north sigmas (m), or None."""
+    return None if spread is None else math.sqrt(max(0.5 * (spread.var_east_m2 + spread.var_north_m2), 0.0))
+
+
 def to_estimate(state: StateEstimate, frame: LocalFrame, up_m: float = 0.0) -> Estimate:
     """A local-frame estimate as the sinks send it (with WGS84 latitude, longitude and height)."""
     lat, lon, alt = frame.to_geodetic(state.east_m, state.north_m, up_m)
@@ -169,4 +226,7 @@ def to_estimate(state: StateEstimate, frame: LocalFrame, up_m: float = 0.0) -> E
         solve_ms=state.solve_ms,
         bound_east_m=state.bound_east_m,
         bound_north_m=state.bound_north_m,
+        error=gpsd_errors(state.spread) if state.spread is not None else None,
+        sats=state.sats,
+        hdop=state.hdop,
     )

@@ -1,4 +1,4 @@
-"""UDP output: each estimate as one JSON object per datagram and/or as NMEA GGA + RMC sentences.
+"""UDP output: each estimate as one JSON object per datagram and/or as NMEA GGA + RMC + GST sentences.
 
 Destinations (:func:`remote_reason`): without ``output.allow_remote`` each must be this host: a loopback address, an
 address of one of its interfaces, or an interface-local IPv6 multicast group (``ff01::/16``, ``ff11::/16``); a name
@@ -23,8 +23,8 @@ from typing import Any
 
 from sumhe.config import OutputSettings, parse_host_port
 from sumhe.errors import ConfigError
-from sumhe.io.nmea_format import format_gga, format_rmc
-from sumhe.messages import Estimate
+from sumhe.io.nmea_format import format_gga, format_gst, format_rmc
+from sumhe.messages import ErrorEstimate, Estimate
 
 log = logging.getLogger(__name__)
 
@@ -57,9 +57,19 @@ def estimate_to_json(est: Estimate) -> dict[str, Any]:
         "window": est.window,
         "solve_ms": _round(est.solve_ms, 3),
     }
+    if est.error is not None:
+        out["eph"] = _round(est.error.eph_m, 3)
+        out["epx"] = _round(est.error.epx_m, 3)
+        out["epy"] = _round(est.error.epy_m, 3)
+        out["eps"] = _round(est.error.eps_mps, 3)
+        out["epd"] = _round(math.degrees(est.error.epd_rad), 3)
     if est.bound_east_m is not None and est.bound_north_m is not None:
         out["bound_east"] = _round(est.bound_east_m, 3)
         out["bound_north"] = _round(est.bound_north_m, 3)
+    if est.sats is not None:
+        out["sats"] = est.sats
+    if est.hdop is not None:
+        out["hdop"] = _round(est.hdop, 2)
     return out
 
 
@@ -73,11 +83,20 @@ GGA_DEAD_RECKONING = 6
 
 
 def encode_nmea(est: Estimate) -> bytes:
-    """GGA + RMC of one estimate, CRLF-terminated, in one datagram. While GPS is not used (outage or rejected
-    fix) GGA says quality 6 and RMC mode E (dead reckoning), the way gpsd understands."""
+    """GGA + RMC + GST of one estimate, CRLF-terminated, in one datagram. While GPS is not used (outage or rejected
+    fix) GGA says quality 6 and RMC mode E (dead reckoning), the way gpsd understands. GGA carries the satellites
+    and HDOP of :class:`~sumhe.messages.Estimate`; GST the estimator's 1-sigma error ellipse and per-axis sigmas
+    (no pseudorange RMS, no altitude sigma: those fields are empty); no GST without an error estimate."""
     dead_reckoning = est.gps != "ok"
+    hdop = est.hdop if est.hdop is not None and math.isfinite(est.hdop) else None
     gga = format_gga(
-        est.t, est.lat_deg, est.lon_deg, GGA_DEAD_RECKONING if dead_reckoning else GGA_GPS, alt_msl_m=est.alt_m
+        est.t,
+        est.lat_deg,
+        est.lon_deg,
+        GGA_DEAD_RECKONING if dead_reckoning else GGA_GPS,
+        sats=None if est.sats is None else min(max(est.sats, 0), 99),
+        hdop=None if hdop is None else min(hdop, 99.99),
+        alt_msl_m=est.alt_m,
     )
     rmc = format_rmc(
         est.t,
@@ -87,7 +106,24 @@ def encode_nmea(est: Estimate) -> bytes:
         speed_mps=max(est.speed_mps, 0.0) if math.isfinite(est.speed_mps) else None,
         course_rad=est.track_rad if math.isfinite(est.track_rad) else None,
     )
-    return f"{gga}\r\n{rmc}\r\n".encode("ascii")
+    lines = [gga, rmc]
+    if est.error is not None:
+        lines.append(gst_of(est.t, est.error))
+    return "".join(f"{line}\r\n" for line in lines).encode("ascii")
+
+
+def gst_of(t: float, error: ErrorEstimate) -> str:
+    """The GST sentence of an error estimate: 1-sigma semi-major and semi-minor axes, the orientation of the
+    semi-major axis, the latitude (north) and longitude (east) sigmas."""
+    return format_gst(
+        t,
+        rms_m=None,
+        sigma_lat_m=error.sigma_north_m,
+        sigma_lon_m=error.sigma_east_m,
+        sigma_major_m=error.sigma_major_m,
+        sigma_minor_m=error.sigma_minor_m,
+        orientation_rad=error.orient_rad,
+    )
 
 
 LIMITED_BROADCAST = ipaddress.IPv4Address("255.255.255.255")

@@ -40,6 +40,7 @@ from sumhe.estimator.batch import model_for, nominal_parameters
 from sumhe.estimator.mhe.arrival import Arrival, arrival_update, prior_arrival
 from sumhe.estimator.mhe.envelope import OutputEnvelope
 from sumhe.estimator.mhe.gate import GATE_RESET_S, REACQUIRE_FIXES, FixGate
+from sumhe.estimator.mhe.newest import NewestError, half_widths
 from sumhe.estimator.mhe.outputs import can_outputs, step_outputs
 from sumhe.estimator.mhe.preintegration import step_motion
 from sumhe.estimator.mhe.problem import SolveResult, step_jacobians
@@ -81,6 +82,8 @@ class MovingHorizonEstimator(StreamEstimator):
         self._step_jac = step_jacobians(model)
         md = model.n_dynamic
         self._theta_range = (self.solve.hi[md:] - self.solve.lo[md:]) / 2.0
+        drift = np.square(self.policy.theta_drift * self._theta_range) / 60.0
+        self.newest = NewestError(model, self._step_jac, s.estimator.r_cap_sigmas, drift)
         self.envelope = OutputEnvelope(
             model.n_outputs, self.policy.bound_history, self.policy.bound_margin, self.policy.bound_max_factor
         )
@@ -101,6 +104,7 @@ class MovingHorizonEstimator(StreamEstimator):
         """Forget the window, the arrival, the gate's streaks and the CAN states (counters are kept)."""
         self.window.clear()
         self.solve.reset()
+        self.newest.reset()
         self.gate.start(heading_known=False)
         self._arrival: Arrival | None = None
         self._unsolved = False
@@ -176,6 +180,11 @@ class MovingHorizonEstimator(StreamEstimator):
         y, avail, allow = step_outputs(model, can, t, s.gnss.period_s, self.period_s, fix, s, x)
         self.gate.start(heading_known=bool(avail[model.j_azimuth]))
         self.window.append(t, y, avail, allow, x)
+        limits = np.full(md, np.inf)
+        limits[model.i_phi] = math.pi
+        limits[model.i_v] = hi[model.i_v] - lo[model.i_v]
+        limits[model.i_omega] = hi[model.i_omega] - lo[model.i_omega]
+        self.newest.start(self.window, half, limits, self.envelope.factor, self._theta_range)
         self._status = "ok"
         self.tally.counts["gps_ok"] += 1
         self.propagation.restart(list(x), t, can)
@@ -254,6 +263,7 @@ class MovingHorizonEstimator(StreamEstimator):
             self._learn_bounds(x_new, slice(0, len(win)))
         self.gate.done(t, status, status == "ok" and bool(win.avail[-1, model.j_azimuth]))
         win.x[:] = x_new
+        self.newest.epoch(win, self.solve.Q, self.envelope.factor, self._theta_range)
         self.propagation.restart(list(x_new[-1]), t, can)
         return self._estimate(list(x_new[-1]), t, status, mode)
 
@@ -294,7 +304,13 @@ class MovingHorizonEstimator(StreamEstimator):
             win.offset[j, :md] = win.x[j, :md] - np.array(pred[:md])
 
     def _estimate(self, x: list[float], t: float, status: GpsStatus, mode: str) -> StateEstimate:
-        model = self.model
+        """The estimate of the state ``x`` at ``t`` (the newest step's, or the newest solution moved on by CAN), with
+        the newest state's bound box and covariance carried to it (:mod:`.newest`)."""
+        model, win = self.model, self.window
+        h = t - float(win.t[-1])
+        q = self.solve.q_caps * (max(h, 0.0) / self.period_s) ** np.array(model.q_power)
+        alpha, P = self.newest.at(np.asarray(x), h, win.y[-1], q)
+        bound_east, bound_north = half_widths(model, alpha)
         i_e, i_n = model.position
         return StateEstimate(
             t=t,
@@ -305,6 +321,9 @@ class MovingHorizonEstimator(StreamEstimator):
             yaw_rate_rps=float(x[model.i_omega]),
             gps=status,
             mode=mode,
-            window=len(self.window),
+            bound_east_m=bound_east,
+            bound_north_m=bound_north,
+            window=len(win),
             solve_ms=self.elapsed_ms(),
+            spread=self.newest.spread(P),
         )

@@ -1,0 +1,164 @@
+"""What the MHE says of its newest state's error: the SU bound box and a linearised covariance, carried from epoch to
+epoch along the window's solution.
+
+The bound box (``bound_east``/``bound_north``): half-widths, centred on the estimate, of an interval box that holds
+the feasible set of the newest state (the states consistent with the SU model's bounded noise: every output within
+its bound ``R``, every transition within its state bound ``Q``), carried as the arrival box is
+(:mod:`.arrival`): at each epoch the previous newest state's box, widened by how far the new solution moved that
+state, is moved one step on, ``alpha <- |dT/dx| alpha + 2 Q`` (twice: the box is centred on the estimate, not on the
+set), and cut by what the new step's outputs bound directly, ``alpha <- min(alpha, m + |e|)`` (``m`` the half-width
+the outputs bound, :func:`~sumhe.estimator.mhe.arrival.measured_bounds`; ``|e|`` the estimate's residual, since the
+box is centred on the estimate). ``Q`` is the solve's own: the CAN data's bound over the step where it has one
+(:mod:`.preintegration`), else the vehicle's limits. Through an outage the box grows with the CAN propagation's
+bounded error and the azimuth's bound, as the set does; a fix cuts it back to (about) the fix's bound.
+
+The error estimate (``eph`` ...): the covariance of the newest state under the same model linearised at the
+solution (an extended Kalman filter's covariance recursion run along the MHE's own trajectory: for a linear model
+with Gaussian noise, the covariance of the newest state of a full-information window). The noises are the window's
+bounds read back as the sigmas they were made from: every output and CAN bound is ``estimator.r_cap_sigmas`` sigmas
+of what the sensor claims (:mod:`.outputs`, :mod:`.preintegration`), so its sigma is the bound over
+``r_cap_sigmas`` (the vehicle's limits, where they bound a step, become a ``r_cap_sigmas``-sigma event too). Why
+not the bound box scaled: the box is a worst case, and grows linearly with the azimuth bound through an outage,
+where the errors of a real drive grow as their sigmas do; a 95 % figure from it would be several times too wide.
+
+Between epochs (the CAN-rate estimates) both are carried to the estimate's time by the model and the state bounds
+of the vehicle's limits for the part of a step. The CAN states (yaw-rate bias, speed scale, ...) drift in the
+covariance as the arrival cost lets them: ``estimator.mhe.theta_drift`` of their ranges per square-root minute, as
+a sigma.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sumhe.estimator.mhe.arrival import StepJacobians, measured_bounds
+from sumhe.estimator.mhe.window import Window
+from sumhe.estimator.uncertainty import Spread
+from sumhe.model.su import SuModel
+
+FloatArray = NDArray[np.float64]
+
+
+def transition_matrices(
+    step_jac: StepJacobians, xp: FloatArray, xn: FloatArray, h: float, y: FloatArray, md: int
+) -> tuple[FloatArray, FloatArray]:
+    """The step's ``dx_n/dx_p`` (m x m: the CAN states carried unchanged) and ``dx_n/dw`` (m x md) of the
+    transition ``w = W(x_p, x_n)`` solved for ``x_n``."""
+    _, dwp, dwn, _, _ = step_jac(xp, xn, h, y)
+    m = len(xp)
+    inv = np.linalg.inv(dwn[:, :md])
+    A = np.eye(m)
+    A[:md] = -inv @ dwp
+    A[:md, md:] -= inv @ dwn[:, md:]
+    G = np.zeros((m, md))
+    G[:md] = inv
+    return A, G
+
+
+def grow_box(alpha: FloatArray, A: FloatArray, q: FloatArray) -> FloatArray:
+    """The box ``alpha`` (dynamic states, ``inf`` unknown) moved by one step: ``|A| alpha + 2 q``; a state that
+    depends on an unknown one is unknown."""
+    md = len(alpha)
+    F = np.abs(A[:md, :md])
+    unknown = ~np.isfinite(alpha)
+    grown = F @ np.where(unknown, 0.0, alpha) + 2.0 * q
+    return np.where((F[:, unknown] > 0).any(axis=1), np.inf, grown)
+
+
+class NewestError:
+    """The newest state's bound box and covariance (module docstring), carried along the MHE's solutions."""
+
+    def __init__(
+        self, model: SuModel, step_jac: StepJacobians, sigmas_per_bound: float, drift_per_s: FloatArray
+    ) -> None:
+        self.model, self.step_jac = model, step_jac
+        self.scale = 1.0 / sigmas_per_bound
+        self.drift = np.zeros(model.n_states)
+        self.drift[model.n_dynamic :] = drift_per_s
+        self.reset()
+
+    def reset(self) -> None:
+        self.limits = np.full(self.model.n_dynamic, np.inf)
+        self.alpha: FloatArray | None = None
+        self.P: FloatArray | None = None
+        self.x: FloatArray | None = None
+
+    def start(
+        self, win: Window, half_widths: FloatArray, limits: FloatArray, out_factor: FloatArray, theta_range: FloatArray
+    ) -> None:
+        """At a start: the prior of ``half_widths`` around the window's one state (the covariance; the box: within
+        ``limits`` of the estimate, dynamic states, ``inf`` none: the azimuth within pi, speed and yaw rate within
+        the width of their ranges, always), cut by its outputs."""
+        self.limits = limits
+        self.alpha = limits.copy()
+        self.P = np.diag(np.square(self.scale * half_widths))
+        self.x = win.x[0].copy()
+        self._measure(win, out_factor, theta_range)
+
+    def epoch(self, win: Window, Q: FloatArray, out_factor: FloatArray, theta_range: FloatArray) -> None:
+        """After a solve: carry box and covariance from the previous newest state (now ``win.x[-2]``) to the newest
+        through the last transition (state bound ``Q[-1]``), then cut them by the newest step's outputs."""
+        assert self.alpha is not None and self.P is not None and self.x is not None  # set at the start
+        md = self.model.n_dynamic
+        if len(win) < 2:
+            self.x = win.x[-1].copy()
+            self._measure(win, out_factor, theta_range)
+            return
+        xp, xn = win.x[-2], win.x[-1]
+        moved = np.abs(xp[:md] - self.x[:md])
+        A, G = transition_matrices(self.step_jac, xp, xn, float(win.t[-1] - win.t[-2]), win.y[-2], md)
+        q = Q[-1] if len(Q) else np.zeros(md)
+        self.alpha = np.minimum(grow_box(self.alpha + moved, A, q), self.limits)
+        self.P = self._moved(self.P, A, G, q, float(win.t[-1] - win.t[-2]))
+        self.x = xn.copy()
+        self._measure(win, out_factor, theta_range)
+
+    def _measure(self, win: Window, out_factor: FloatArray, theta_range: FloatArray) -> None:
+        """Cut the box by what the newest step's outputs bound, and update the covariance with them."""
+        assert self.alpha is not None and self.P is not None
+        model, k = self.model, len(win) - 1
+        avail = win.avail[k]
+        bound = win.allow[k] * out_factor
+        _, _, _, e, de = self.step_jac(win.x[k], win.x[k], 0.0, win.y[k])
+        direct = measured_bounds(model, win, k, theta_range, out_factor)
+        for j, i in (*zip(model.j_position, model.position, strict=True), (model.j_azimuth, model.i_phi)):
+            if avail[j]:
+                direct[i] += abs(float(e[j]))
+        self.alpha = np.minimum(self.alpha, direct)
+        if avail.any():
+            H = de[avail]
+            R = np.diag(np.square(self.scale * bound[avail]))
+            PHt = self.P @ H.T
+            K = np.linalg.solve(H @ PHt + R, PHt.T).T
+            IKH = np.eye(len(self.P)) - K @ H
+            P = IKH @ self.P @ IKH.T + K @ R @ K.T
+            self.P = 0.5 * (P + P.T)
+
+    def at(self, x: FloatArray, h: float, y: FloatArray, q: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """The box (dynamic states) and covariance carried ``h`` s on from the newest state to ``x`` (a CAN-rate
+        estimate), with the state bound ``q`` over that part of a step."""
+        assert self.alpha is not None and self.P is not None and self.x is not None
+        if h <= 0.0:
+            return self.alpha, self.P
+        A, G = transition_matrices(self.step_jac, self.x, x, h, y, self.model.n_dynamic)
+        P = self._moved(self.P, A, G, q, h)
+        return np.minimum(grow_box(self.alpha, A, q), self.limits), P
+
+    def _moved(self, P: FloatArray, A: FloatArray, G: FloatArray, q: FloatArray, h: float) -> FloatArray:
+        """The covariance one transition (``h`` s) on: the state noise of the bounds ``q`` and the CAN states'
+        drift."""
+        return A @ P @ A.T + G @ np.diag(np.square(self.scale * q)) @ G.T + np.diag(self.drift * h)
+
+    def spread(self, P: FloatArray) -> Spread:
+        """The error figures of a covariance of the model's states."""
+        m = self.model
+        return Spread.from_covariance(P, m.position[0], m.position[1], m.i_v, m.i_phi)
+
+
+def half_widths(model: SuModel, alpha: FloatArray) -> tuple[float | None, float | None]:
+    """The position's half-widths (east, north; m) of a box, None where unknown."""
+    out = [float(alpha[i]) for i in model.position]
+    return tuple(v if math.isfinite(v) else None for v in out)  # type: ignore[return-value]

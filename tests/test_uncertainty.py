@@ -1,0 +1,202 @@
+"""Error estimates (issue 13): gpsd's 95 % figures, their JSON and NMEA (GST, GGA) output, every estimator's through
+an outage, the MHE's SU bound box on a bounded-noise drive, and the calibration figures of the benchmarks."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pynmea2
+import pytest
+
+from sumhe.baseline.ekf import Ekf
+from sumhe.bench import metrics
+from sumhe.bench.mhe import drive_stream
+from sumhe.bench.report import calibration_cells
+from sumhe.commands.candump import reference_config
+from sumhe.estimator.base import to_estimate
+from sumhe.estimator.registry import make_estimator
+from sumhe.estimator.uncertainty import K1, K2, Spread, exact_radius_95, gpsd_errors, radius_95
+from sumhe.geo import LocalFrame
+from sumhe.io.nmea_format import nmea_checksum
+from sumhe.io.udp import encode_json, encode_nmea
+from sumhe.messages import ErrorEstimate, Estimate
+from sumhe.sim import SimSettings, simulate
+
+from estimators import estimator_params
+
+
+@pytest.mark.parametrize(("s1", "s2"), [(2.0, 2.0), (2.0, 1.0), (3.0, 0.3), (1.0, 0.01)])
+def test_radius_95_holds_95_percent_of_a_gaussian_error(s1: float, s2: float) -> None:
+    e = np.random.default_rng(7).standard_normal((400_000, 2)) * [s1, s2]
+    r = radius_95(s1, s2)
+    assert np.mean(np.hypot(*e.T) <= r) == pytest.approx(0.95, abs=0.002)
+    assert r == pytest.approx(exact_radius_95(s1, s2), rel=2e-3)
+    assert K1 * s1 <= r <= K2 * s1 + 1e-9
+
+
+def test_gpsd_figures_of_a_spread() -> None:
+    # 2 m east, 1 m north, correlated: the ellipse's major axis points north-east of east
+    spread = Spread(var_east_m2=4.0, var_north_m2=1.0, cov_en_m2=1.0, sigma_speed_mps=0.1, sigma_azimuth_rad=0.01)
+    err = gpsd_errors(spread)
+    assert err.epx_m == pytest.approx(1.96 * 2.0, rel=1e-3)
+    assert err.epy_m == pytest.approx(1.96 * 1.0, rel=1e-3)
+    assert err.eps_mps == pytest.approx(0.196, rel=1e-3)
+    assert err.epd_rad == pytest.approx(0.0196, rel=1e-3)
+    values, vectors = np.linalg.eigh([[4.0, 1.0], [1.0, 1.0]])
+    assert err.sigma_major_m == pytest.approx(math.sqrt(values[1]))
+    assert err.sigma_minor_m == pytest.approx(math.sqrt(values[0]))
+    east, north = vectors[:, 1]
+    assert err.orient_rad == pytest.approx(math.atan2(east, north) % math.pi)
+    assert 60.0 < math.degrees(err.orient_rad) < 90.0
+    assert err.eph_m == pytest.approx(radius_95(err.sigma_major_m, err.sigma_minor_m))
+
+
+def _estimate(gps: str = "outage") -> Estimate:
+    error = ErrorEstimate(
+        eph_m=5.0,
+        epx_m=3.92,
+        epy_m=2.94,
+        eps_mps=0.2,
+        epd_rad=math.radians(1.5),
+        sigma_major_m=2.1,
+        sigma_minor_m=1.4,
+        orient_rad=math.radians(80.0),
+        sigma_east_m=2.0,
+        sigma_north_m=1.5,
+    )
+    return Estimate(
+        t=1_780_000_000.25,
+        east_m=1.0,
+        north_m=2.0,
+        lat_deg=50.1,
+        lon_deg=14.4,
+        alt_m=200.0,
+        track_rad=0.5,
+        speed_mps=12.0,
+        yaw_rate_rps=0.01,
+        gps=gps,  # type: ignore[arg-type]
+        mode="mhe",
+        bound_east_m=7.5,
+        bound_north_m=6.5,
+        error=error,
+        sats=0 if gps != "ok" else 9,
+        hdop=2.4,
+    )
+
+
+def test_json_carries_gpsd_error_fields_and_the_bound() -> None:
+    out = json.loads(encode_json(_estimate()))
+    assert out["eph"] == 5.0 and out["epx"] == 3.92 and out["epy"] == 2.94 and out["eps"] == 0.2
+    assert out["epd"] == pytest.approx(1.5)  # degrees at the edge
+    assert out["bound_east"] == 7.5 and out["bound_north"] == 6.5
+    assert out["sats"] == 0 and out["hdop"] == 2.4
+    bare = json.loads(encode_json(Estimate(**{**_fields(_estimate()), "error": None, "sats": None, "hdop": None})))
+    assert not {"eph", "epx", "epy", "eps", "epd", "sats", "hdop"} & bare.keys()
+
+
+def _fields(est: Estimate) -> dict:
+    return {name: getattr(est, name) for name in est.__dataclass_fields__}
+
+
+@pytest.mark.parametrize("gps", ["ok", "outage"])
+def test_nmea_has_gga_with_satellites_and_hdop_and_a_gst(gps: str) -> None:
+    lines = encode_nmea(_estimate(gps)).decode("ascii").split("\r\n")
+    assert lines[-1] == "" and len(lines) == 4
+    for line in lines[:-1]:
+        body, checksum = line[1:].split("*")
+        assert checksum == nmea_checksum(body)
+    gga, rmc, gst = (pynmea2.parse(line) for line in lines[:3])
+    assert (gga.sentence_type, rmc.sentence_type, gst.sentence_type) == ("GGA", "RMC", "GST")
+    assert int(gga.num_sats) == (9 if gps == "ok" else 0)
+    assert float(gga.horizontal_dil) == 2.4
+    assert gga.gps_qual == (1 if gps == "ok" else 6)
+    _, rms, major, minor, orient, sigma_lat, sigma_lon, sigma_alt = gst.data
+    assert (float(sigma_lat), float(sigma_lon)) == (1.5, 2.0)
+    assert (float(major), float(minor)) == (2.1, 1.4) and float(orient) == pytest.approx(80.0)
+    assert rms == "" and sigma_alt == ""
+    assert gst.timestamp == gga.timestamp
+
+
+def test_no_gst_without_an_error_estimate() -> None:
+    lines = encode_nmea(Estimate(**{**_fields(_estimate()), "error": None})).decode().split("\r\n")
+    assert [line[3:6] for line in lines[:-1]] == ["GGA", "RMC"]
+
+
+def test_calibration_counts_errors_within_eph_and_inside_the_box() -> None:
+    # four estimates: errors (3, 4) -> 5 m, (1, 0), (0, 2), (6, 8) -> 10 m
+    cols = metrics.calibration_columns(
+        [3.0, 1.0, 0.0, 6.0], [4.0, 0.0, 2.0, 8.0], [6.0, 0.5, 2.0, np.nan], [3.0, 2.0, 1.0, 7.0], [4.0, 2.0, 1.0, 9.0]
+    )
+    c = metrics.calibration(cols)
+    assert c["n"] == 3  # the one without eph is left out
+    assert c["eph_coverage"] == pytest.approx(2 / 3)  # 5 <= 6 and 2 <= 2, not 1 <= 0.5
+    assert c["median_eph_m"] == 2.0 and c["median_error_m"] == 2.0 and c["eph_over_error"] == 1.0
+    assert c["box_n"] == 4
+    assert c["box_coverage"] == pytest.approx(3 / 4)  # (0, 2) lies outside a 1 m box
+    assert c["median_box_half_m"] == pytest.approx(3.0)
+    cells = calibration_cells(c)
+    assert "(missed)" in cells[0] and "(met)" in cells[1] and "(< 99 %)" in cells[2]
+    no_box = metrics.calibration(metrics.calibration_columns([1.0], [1.0], [3.0], [np.nan], [np.nan]))
+    assert no_box["box_n"] == 0 and calibration_cells(no_box)[2] == "no box"
+
+
+@pytest.fixture(scope="module")
+def outage_drive():
+    return simulate(SimSettings(scenario="urban", seed=3, duration_s=60.0, outages=((30.0, 15.0),)))
+
+
+WITH_COVARIANCE = ("mhe", "ekf", "ukf", "rts", "imm", "pf", "gtsam-fls", "dead-reckoning")
+"""The live estimators that report an error estimate (a recursive filter does through ``_covariance()``)."""
+
+
+@pytest.mark.parametrize("name", estimator_params(WITH_COVARIANCE))
+def test_every_estimate_has_an_error_estimate_that_grows_through_an_outage(name: str, outage_drive) -> None:
+    estimator = make_estimator(name, reference_config())
+    out = [e for s in drive_stream(outage_drive) for e in estimator.push(s)]
+    assert out and all(e.spread is not None for e in out)
+    sigma = np.array([math.sqrt(e.spread.var_east_m2 + e.spread.var_north_m2) for e in out])
+    t = np.array([e.t for e in out])
+    t0 = outage_drive.truth.t[0]
+    inside = np.array([e.gps == "outage" for e in out]) & (t > t0 + 30.0) & (t < t0 + 45.0)
+    before = (t > t0 + 20.0) & (t < t0 + 29.0) & np.array([e.gps == "ok" for e in out])
+    assert inside.any() and before.any()
+    assert np.all(np.isfinite(sigma)) and np.all(sigma > 0)
+    late = sigma[inside][t[inside] > t0 + 42.0]
+    first = sigma[inside][np.argmin(t[inside])]
+    assert late.min() > max(first, np.median(sigma[before])), (name, np.median(sigma[before]), first, late.min())
+    assert all(e.sats == 0 for e in np.array(out)[inside])
+
+
+@pytest.mark.slow
+def test_the_mhe_bound_box_holds_the_truth_on_a_bounded_noise_drive() -> None:
+    drive = simulate(
+        SimSettings(scenario="urban", seed=11, duration_s=120.0, gps_error="uniform", outages=((50.0, 20.0),))
+    )
+    estimator = make_estimator("mhe", reference_config())
+    out = [e for s in drive_stream(drive) for e in estimator.push(s)]
+    out = [e for e in out if e.t > drive.truth.t[0] + 5.0]
+    t = np.array([e.t for e in out])
+    at = drive.truth.at(t)
+    de = np.array([e.east_m for e in out]) - at.east
+    dn = np.array([e.north_m for e in out]) - at.north
+    be = np.array([e.bound_east_m for e in out], dtype=float)
+    bn = np.array([e.bound_north_m for e in out], dtype=float)
+    assert np.all(np.isfinite(be)) and np.all(np.isfinite(bn))
+    inside = (np.abs(de) <= be) & (np.abs(dn) <= bn)
+    assert inside.mean() >= 0.99, inside.mean()
+    outage = np.array([e.gps == "outage" for e in out])
+    assert np.median(be[outage]) > np.median(be[~outage])  # the set grows while no fix cuts it
+
+
+def test_a_filter_without_a_covariance_sends_no_error_estimate(outage_drive) -> None:
+    class NoCovariance(Ekf):
+        def _covariance(self) -> None:
+            return None
+
+    frame = LocalFrame(50.0, 14.0, 0.0)
+    out = [e for s in drive_stream(outage_drive)[:3000] for e in NoCovariance().push(s)]
+    assert out and all(e.spread is None for e in out)
+    sent = json.loads(encode_json(to_estimate(out[-1], frame)))
+    assert "lat" in sent and not {"eph", "epx", "epy", "eps", "epd"} & sent.keys()
