@@ -147,7 +147,7 @@ def outage_drive():
     return simulate(SimSettings(scenario="urban", seed=3, duration_s=60.0, outages=((30.0, 15.0),)))
 
 
-WITH_COVARIANCE = ("mhe", "ekf", "ukf", "rts", "imm", "pf", "gtsam-fls", "dead-reckoning")
+WITH_COVARIANCE = ("mhe", "ekf", "ukf", "rts", "imm", "pf", "gtsam-fls", "dead-reckoning", "mskf-em", "sr-upf")
 """The live estimators that report an error estimate (a recursive filter does through ``_covariance()``)."""
 
 

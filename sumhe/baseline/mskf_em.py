@@ -319,6 +319,21 @@ class MskfEm(RecursiveEstimator):
             x[self.layout.k] = 1.0 / self.position.x[2]
         return x
 
+    def _covariance(self) -> FloatArray:
+        """The two stages' covariances in the shared layout (the stages are independent: no cross terms between
+        them; the speed's from the scale's, times the CAN speed)."""
+        P = np.zeros((self.layout.n, self.layout.n))
+        pos, head = self.position.P, self.heading.P
+        P[np.ix_([E, N], [E, N])] = pos[:2, :2]
+        P[V, V] = pos[2, 2] * self._u**2
+        P[[E, N], V] = P[V, [E, N]] = pos[:2, 2] * self._u
+        P[PHI, PHI] = head[0, 0]
+        if self.layout.b is not None:
+            b = self.layout.b
+            P[b, b] = head[1, 1]
+            P[PHI, b] = P[b, PHI] = head[0, 1]
+        return P
+
     # ---- EM on the block that ended ------------------------------------------------------------------------------
 
     def _em(self) -> None:

@@ -320,3 +320,9 @@ class SrUpf(RecursiveEstimator):
 
     def _mean(self) -> FloatArray:
         return kin.weighted_mean(self.X, self.w)
+
+    def _covariance(self) -> FloatArray:
+        """The mixture's covariance: the particles' weighted spread plus their own (square-root) covariances'
+        weighted mean."""
+        own = np.einsum("m,mij,mkj->ik", self.w, self.S, self.S)
+        return kin.weighted_covariance(self.X, self.w, self._mean()) + own
