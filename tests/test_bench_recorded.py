@@ -14,6 +14,7 @@ from sumhe.bench.floors import CanTrack, Fixes, calibrated_floor, fit_before, pl
 from sumhe.bench.recorded import (
     FLOORS,
     RecordedBenchSettings,
+    floor_errors,
     load_recording,
     place_outages,
     run_estimator,
@@ -22,6 +23,7 @@ from sumhe.cli import main
 from sumhe.commands.candump import reference_config
 from sumhe.estimator.registry import ESTIMATORS
 from sumhe.sim import SimSettings, simulate, write_drive
+from sumhe.sim.measure import true_antenna
 
 
 class OffsetEkf(Ekf):
@@ -113,6 +115,8 @@ def test_the_command_reports_every_estimator_and_both_floors(drive_dir, tmp_path
         ekf = length["rows"]["ekf"]
         assert ekf["truth"]["n"] > 0 and ekf["truth"]["mean_m"] < 10.0
         assert ekf["widened_share"] == 0.0 and ekf["x_real_time"] > 1.0
+        for name in FLOORS:  # a simulated drive: the floors against the true antenna too
+            assert length["rows"][name]["truth"]["n"] == length["rows"][name]["fixes"]["n"]
         # the error estimates against the removed fixes: every scored fix has an eph; the EKF has no bound box
         c = ekf["calibration"]
         assert c["n"] == ekf["fixes"]["n"] and 0.0 <= c["eph_coverage"] <= 1.0 and c["median_eph_m"] > 0.0
@@ -120,3 +124,36 @@ def test_the_command_reports_every_estimator_and_both_floors(drive_dir, tmp_path
     assert "| floor: calibrated dead reckoning |" in printed and "vs truth" in printed
     assert "| removed fix within eph |" in printed and "| `ekf` |" in printed
     assert (out / "recorded.md").read_text().startswith(f"## {drive_dir.name}")
+
+
+def test_the_floors_are_scored_against_where_the_antenna_truly_was(tmp_path):
+    # near-exact fixes of an antenna 1.5 m ahead, tagged 0.2 s early on the CAN clock: they lie on the true antenna,
+    # metres from the reference point at their tags
+    settings = SimSettings(
+        scenario="highway",
+        seed=4,
+        duration_s=200.0,
+        antenna_forward_m=1.5,
+        gps_time_offset_s=0.2,
+        gps_error="uniform",
+        gps_error_m=0.02,
+    )
+    write_drive(simulate(settings), tmp_path)
+    rec = load_recording([str(tmp_path)], None, reference_config())
+    assert rec.sim is not None and rec.sim.antenna_forward_m == 1.5
+    fixes = np.column_stack([rec.fixes.east, rec.fixes.north])
+    at = rec.truth.at(rec.fixes.t)
+    assert np.median(np.hypot(*(fixes - true_antenna(rec.truth, rec.fixes.t, rec.sim)).T)) < 0.1
+    assert np.median(np.hypot(*(fixes - np.column_stack([at.east, at.north])).T)) > 1.5
+    windows = place_outages(rec, 10.0, RecordedBenchSettings(first_s=60.0))
+    vs_fixes, vs_truth = floor_errors(rec, windows)
+    for name in FLOORS:
+        assert vs_truth[name].size == vs_fixes[name].size > 0
+        assert abs(vs_truth[name].mean() - vs_fixes[name].mean()) < 0.1, name
+
+
+def test_without_the_simulators_settings_the_floors_have_no_truth(drive_dir):
+    rec = load_recording([str(drive_dir / "drive.log"), str(drive_dir / "drive.nmea")], None, reference_config())
+    assert rec.truth is None and rec.sim is None
+    vs_fixes, vs_truth = floor_errors(rec, place_outages(rec, 10.0, RecordedBenchSettings()))
+    assert vs_truth == {} and all(vs_fixes[name].size for name in FLOORS)

@@ -17,11 +17,13 @@ from sumhe.estimator.batch import model_for, state_box
 from sumhe.estimator.bounds import noise_bounds
 from sumhe.estimator.grid import build_grid
 from sumhe.estimator.mhe import MovingHorizonEstimator
+from sumhe.estimator.mhe.gate import GATE_RESET_S, REACQUIRE_FIXES, FixGate
 from sumhe.estimator.mhe.nlp import NlpSolver
 from sumhe.estimator.mhe.problem import WindowProblem
 from sumhe.estimator.mhe.sqp import SqpSolver
 from sumhe.estimator.registry import make_estimator
 from sumhe.frontend.fixes import LocalFix
+from sumhe.frontend.stream import FixMeasurement
 from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample, GnssFix
 from sumhe.settings import EstimationSettings, with_changes
@@ -189,6 +191,52 @@ def test_gnss_is_reacquired_within_a_second_after_a_60_s_outage() -> None:
     assert all(e.gps == "ok" for e in out if e.t >= back + 1.0)
     assert max(e.window for e in out) == SETTINGS.estimator.mhe.max_steps
     assert np.mean(errors(drive, [e for e in out if e.t >= back + 2.0])) < 2.0
+
+
+def test_a_multipath_episode_that_begins_as_an_outage_ends_is_left_for_the_good_fixes_after_it() -> None:
+    # after a 20 s outage the first 8 s of fixes lie 12 m east (multipath); the wide gate must take them, and the
+    # good fixes after them agree with the outage's dead reckoning: re-acquired within a second, not 30 s later
+    drive = simulate(SimSettings(scenario="highway", seed=5, duration_s=75.0, outages=((20.0, 20.0),)))
+    t0 = drive.settings.start_unix_s
+    bad = (t0 + 40.0, t0 + 48.0)
+    stream = [
+        dataclasses.replace(s, east_m=s.east_m + 12.0) if isinstance(s, LocalFix) and bad[0] <= s.t < bad[1] else s
+        for s in drive_stream(drive)
+    ]
+    est = MovingHorizonEstimator(SETTINGS)
+    out = [e for e in run_stream(est, stream).estimates if e.mode != "can"]
+    assert est.stats()["reacquired"] == 1
+    after = [e for e in out if e.t >= bad[1] + 1.5]
+    assert all(e.gps == "ok" for e in after)
+    assert np.mean(errors(drive, after)) < 2.0
+
+
+def test_the_gate_tells_the_end_of_a_multipath_episode_from_its_start() -> None:
+    def fix(t: float, east: float) -> FixMeasurement:
+        return FixMeasurement(t, east, 0.0, 1.0, 1.0, None, 0.01, False, None, 0.1, LocalFix(t=t, valid=True))
+
+    def run(reentry_east: float, streak_east: float, streak_t: float) -> bool:
+        """The outage's dead reckoning at 0; the first fix after it at ``reentry_east`` (the estimate follows it);
+        then a streak of fixes at ``streak_east``: whether the gate re-acquires on it."""
+        gate = FixGate(SETTINGS)
+        gate.start(heading_known=True)
+        gate.used_fixes = 100
+        gate.drove(500.0)
+        assert gate.passes(fix(0.0, reentry_east), 0.0, 0.0)
+        gate.done(0.0, "ok", True)
+        answers = []
+        for k in range(REACQUIRE_FIXES):
+            gate.drove(0.1)
+            t = streak_t + 0.1 * k
+            assert not gate.passes(fix(t, streak_east), reentry_east, 0.0)
+            answers.append(gate.reacquire(fix(t, streak_east), reentry_east, 0.0))
+            gate.done(t, "rejected", False)
+        assert not any(answers[:-1])
+        return answers[-1]
+
+    assert run(12.0, 0.5, 8.0)  # the fixes taken at the outage's end were the outliers
+    assert not run(0.5, 12.5, 8.0)  # good fixes at the outage's end, then multipath
+    assert not run(12.0, 0.5, 8.0 + GATE_RESET_S)  # long after the outage: the gate's reset rule applies
 
 
 def test_an_injected_solver_failure_falls_back_to_the_prediction(drive: Drive, stream: list) -> None:

@@ -12,7 +12,10 @@ forked process with a time limit, as ``sumhe bench`` runs); its estimates, inter
 are compared with the fix (:func:`~sumhe.bench.outages.outage_errors`). An estimator that reports a learned GNSS
 time offset in ``stats()`` as ``gps_time_offset_s`` is compared with the fixes at their stamped time plus that
 offset (its estimates are on that clock); others, and the floors, at the stamped time. With ``truth.csv`` the
-estimates inside the outages are also compared with the truth at their own times.
+estimates inside the outages are also compared with the truth at their own times, and, where the folder has the
+simulator's ``scenario.toml`` too, the floors (which dead-reckon the antenna from the last fix) with where the
+antenna truly was at the removed fixes' times (:func:`~sumhe.sim.measure.true_antenna`: the GNSS clock's offset and
+the lever arm applied): each is scored on the point it estimates.
 
 Per length: mean / p95 / max of the errors for each estimator and both floors, the share of epochs on widened
 bounds and of solver failures (:func:`~sumhe.bench.outages.mode_shares`), and x real time (seconds of data over
@@ -45,7 +48,8 @@ from sumhe.geo import LocalFrame
 from sumhe.io.replay import RecordedDrive
 from sumhe.messages import Estimate, Sample
 from sumhe.service.pipeline import Pipeline
-from sumhe.sim import Truth, load_truth
+from sumhe.sim import SimSettings, Truth, load_settings, load_truth
+from sumhe.sim.measure import true_antenna
 
 FLOORS = ("floor: dead reckoning", "floor: calibrated dead reckoning")
 """The floors' names in the report (:func:`~sumhe.bench.floors.plain_floor`, ``calibrated_floor``)."""
@@ -78,7 +82,8 @@ class RecordedBenchSettings:
 @dataclass(frozen=True, eq=False)
 class Recording:
     """A recorded drive as the bench runs it: its samples (every fix kept), its valid fixes in a local frame, its
-    CAN track, the first CAN frame's time (s) and its truth if it has one (east/north in ``frame``)."""
+    CAN track, the first CAN frame's time (s), its truth if it has one (east/north in ``frame``) and the simulator's
+    settings of a simulated drive."""
 
     name: str
     config: Config
@@ -88,6 +93,7 @@ class Recording:
     track: CanTrack
     t0: float
     truth: Truth | None
+    sim: SimSettings | None = None
 
     @property
     def span_s(self) -> float:
@@ -98,7 +104,7 @@ def load_recording(spec: Sequence[str], config_path: str | None, fallback: Confi
     """One drive from a folder or log files (see the module docstring), with the config of ``config_path``, else
     the folder's ``config.toml``, else ``fallback``; ConfigError naming what is missing."""
     paths = [Path(p) for p in spec]
-    truth_path = None
+    truth_path = scenario = None
     if len(paths) == 1 and paths[0].is_dir():
         d = paths[0]
         if not (d / "drive.log").is_file():
@@ -106,6 +112,7 @@ def load_recording(spec: Sequence[str], config_path: str | None, fallback: Confi
         can_logs, nmea_logs = [d / "drive.log"], [d / "drive.nmea"] if (d / "drive.nmea").is_file() else []
         config_path = config_path or (str(d / "config.toml") if (d / "config.toml").is_file() else None)
         truth_path = d / "truth.csv" if (d / "truth.csv").is_file() else None
+        scenario = d / "scenario.toml" if truth_path and (d / "scenario.toml").is_file() else None
         name = d.name or str(d)
     else:
         can_logs = [p for p in paths if p.suffix.lower() != ".nmea"]
@@ -120,6 +127,10 @@ def load_recording(spec: Sequence[str], config_path: str | None, fallback: Confi
     if truth is not None:
         en = frame.to_enu(truth.lat, truth.lon)
         truth = dataclasses.replace(truth, east=en[:, 0], north=en[:, 1])
+    try:
+        sim = load_settings(scenario) if scenario else None
+    except (OSError, ValueError) as e:
+        raise ConfigError(f"--drive {name}: {scenario}: {e}") from e
     if len(sig.t_yaw) < 2:
         raise ConfigError(f"--drive {name}: no CAN yaw rate decoded (can.signals.yaw_rate in {drive.config.source})")
     return Recording(
@@ -131,6 +142,7 @@ def load_recording(spec: Sequence[str], config_path: str | None, fallback: Confi
         CanTrack.of(sig.t_speed, sig.speed, sig.t_yaw, sig.yaw, drive.config.sensors.can.delay_s),
         drive.first_t if math.isfinite(drive.first_t) else samples[0].t,
         truth,
+        sim,
     )
 
 
@@ -226,29 +238,42 @@ def _row(est: Estimate) -> tuple[float, ...]:
 @dataclass(frozen=True)
 class LengthResult:
     """One length on one drive: the outages placed, each estimator's outcome (or its failure), each floor's errors
-    (m) against the removed fixes."""
+    (m) against the removed fixes and, on a simulated drive, against the true antenna (else empty)."""
 
     length_s: float
     windows: list[tuple[float, float]]
     runs: dict[str, RunOutcome | str]
     floors: dict[str, np.ndarray]
+    floors_truth: dict[str, np.ndarray]
 
 
-def floor_errors(rec: Recording, windows: Sequence[tuple[float, float]]) -> dict[str, np.ndarray]:
-    """Both floors' errors (m) at the fixes inside ``windows``, pooled (NaN-free)."""
-    out: dict[str, list[np.ndarray]] = {name: [] for name in FLOORS}
+def floor_errors(
+    rec: Recording, windows: Sequence[tuple[float, float]]
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Both floors' errors (m) at the fixes inside ``windows``, pooled (NaN-free): against the removed fixes, and
+    against the true antenna at their times where the drive is simulated (else no entries)."""
+    scored = (False, True) if rec.truth is not None and rec.sim is not None else (False,)
+    out: dict[bool, dict[str, list[np.ndarray]]] = {key: {name: [] for name in FLOORS} for key in scored}
     f = rec.fixes
     for a, b in windows:
         inside = (f.t >= a) & (f.t < b)
         t_eval = f.t[inside]
         if not len(t_eval):
             continue
-        ref = np.column_stack([f.east[inside], f.north[inside]])
+        refs = {False: np.column_stack([f.east[inside], f.north[inside]])}
+        if True in scored:
+            assert rec.truth is not None and rec.sim is not None
+            refs[True] = true_antenna(rec.truth, t_eval, rec.sim)
         for name, floor in zip(FLOORS, (plain_floor, calibrated_floor), strict=True):
             pos = floor(rec.track, f, a, t_eval)
-            err = np.hypot(*(pos - ref).T)
-            out[name].append(err[np.isfinite(err)])
-    return {name: np.concatenate(parts) if parts else np.zeros(0) for name, parts in out.items()}
+            for key, ref in refs.items():
+                err = np.hypot(*(pos - ref).T)
+                out[key][name].append(err[np.isfinite(err)])
+    pooled = {
+        key: {name: np.concatenate(parts) if parts else np.zeros(0) for name, parts in by_name.items()}
+        for key, by_name in out.items()
+    }
+    return pooled[False], pooled.get(True, {})
 
 
 def run_recording(
@@ -266,7 +291,7 @@ def run_recording(
                 runs[name] = call_isolated(lambda n=name, w=windows: run_estimator(n, rec, w), bs.timeout_s)
             except BenchRunError as e:
                 runs[name] = str(e)
-        results.append(LengthResult(length, windows, runs, floor_errors(rec, windows)))
+        results.append(LengthResult(length, windows, runs, *floor_errors(rec, windows)))
     return results
 
 
@@ -299,7 +324,8 @@ def summary(rec: Recording, results: Sequence[LengthResult]) -> dict[str, Any]:
                 "calibration": {k: _finite(float(v)) for k, v in run.calibration.items()},
             }
         for name, errors in r.floors.items():
-            rows[name] = {"fixes": stats(errors)}
+            truth_errors = r.floors_truth.get(name)
+            rows[name] = {"fixes": stats(errors), "truth": stats(truth_errors) if truth_errors is not None else None}
         lengths.append(
             {
                 "length_s": r.length_s,

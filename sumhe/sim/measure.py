@@ -10,6 +10,7 @@ against where the antenna truly was at the fix's tag + the clock offset (lever a
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -135,9 +136,8 @@ def _gps_rows(truth: Truth, path: Path, antenna: int, settings: SimSettings) -> 
         ),
     ]
     if antenna == 1 and is_real_car(settings):
-        true_t = t_fix + clock_offset_s(settings, t_fix - settings.start_unix_s)
-        at_true = truth.at(true_t)
-        ant = frame.to_enu(at_true.lat, at_true.lon, frame.alt0_m)[:, :2] + lever_arm(truth, true_t, settings)
+        local = frame.to_enu(truth.lat, truth.lon, frame.alt0_m)
+        ant = true_antenna(dataclasses.replace(truth, east=local[:, 0], north=local[:, 1]), t_fix, settings)
         err_ant = measured[:, :2] - ant
         rows.append(
             error_row(f"{label} error vs true antenna at tag + offset", "m", np.hypot(err_ant[:, 0], err_ant[:, 1]))
@@ -158,6 +158,16 @@ def lever_arm(truth: Truth, t: ArrayLike, settings: SimSettings) -> NDArray[np.f
     psi = at.azimuth - slip
     fwd, left = settings.antenna_forward_m, settings.antenna_left_m
     return np.column_stack([fwd * np.sin(psi) - left * np.cos(psi), fwd * np.cos(psi) + left * np.sin(psi)])
+
+
+def true_antenna(truth: Truth, t_tag: ArrayLike, settings: SimSettings) -> NDArray[np.float64]:
+    """(n, 2) east/north (m, in the frame of ``truth.east``/``truth.north``) where antenna 1 truly was when the fixes
+    tagged ``t_tag`` (Unix s, GNSS time) were taken: the reference point at the tag plus the GNSS clock's offset on
+    the CAN clock (:func:`~sumhe.sim.gps.clock_offset_s`), plus the lever arm (:func:`lever_arm`)."""
+    t = np.asarray(t_tag, dtype=float)
+    true_t = t + clock_offset_s(settings, t - settings.start_unix_s)
+    at = truth.at(true_t)
+    return np.column_stack([at.east, at.north]) + lever_arm(truth, true_t, settings)
 
 
 def _fix_time(fix: GnssFix) -> float:

@@ -205,7 +205,9 @@ class MovingHorizonEstimator(StreamEstimator):
                 self._restart()
                 return self._begin(fix)
             if status == "rejected" and self.gate.reacquire(fix, x_pred[i_e], x_pred[i_n]):
-                self.tally.count("reacquired", "GNSS re-acquired after an outage: %d agreeing fixes", REACQUIRE_FIXES)
+                self.tally.count(
+                    "reacquired", "GNSS re-acquired: %d rejected fixes agreeing against the prediction", REACQUIRE_FIXES
+                )
                 self._restart()
                 return self._begin(fix)
         used = fix if status == "ok" else None
