@@ -12,7 +12,8 @@ Definitions (the CAN values as the config decodes them, its mapping's ``scale`` 
 * ``speed_scale``: true speed = scale x CAN speed (negative: the mapping has the wrong sign).
 * ``yaw_rate_bias_dps`` and ``yaw_rate_scale``: true yaw rate = scale x (CAN - bias) (deg/s; negative scale: the
   wrong sign), from the rate of the receiver's azimuth against the CAN yaw rate
-  (:func:`~sumhe.frontend.alignment.course_lag`).
+  (:func:`~sumhe.frontend.alignment.course_lag`); where the car stood still long enough, the bias is that fit and
+  the CAN yaw rate at standstill combined by their variances, if they agree (:func:`combined_bias`).
 * ``can_delay_s``: how much older the CAN speed is than the CAN yaw rate (s): the azimuth's lag minus the speed's.
   This is what the two fits determine of the CAN sensors' ages; their common age ``d`` is not observable from
   GNSS and CAN, and ``[sensors.can] delay_s`` holds one age for both.
@@ -77,6 +78,9 @@ TURN_RATE_RPS = math.radians(2.0)
 """A yaw rate above this is a turn (for the message saying why a scale is undetermined)."""
 STANDSTILL_MIN_S = 5.0
 SIGN_SIGMAS = 3.0
+AGREE_SIGMAS = 3.0
+"""The moving fit's bias and the standstill mean are combined only while they differ by at most this many of their
+combined standard errors (a bias that depends on the motion, or a wrong fit, is reported, not averaged away)."""
 """A yaw rate's sign is told when its scale is this many standard errors from zero."""
 SPEED_SCALE_PLAUSIBLE = (0.8, 1.25)
 YAW_SCALE_PLAUSIBLE = (0.5, 2.0)
@@ -446,6 +450,26 @@ def _standstill_bias(sig: DriveSignals) -> tuple[float, float, float] | None:
     return float(np.mean(values)), float(np.std(values)) / math.sqrt(blocks), duration
 
 
+def combined_bias(fit: tuple[float, float], still: tuple[float, float], quantum: float) -> tuple[float, float] | None:
+    """The yaw-rate bias (value, standard error; rad/s) of the moving fit ``fit`` and the standstill mean ``still``
+    (each value and standard error) weighted by their variances; the standstill's error at least a ``quantum``
+    step's rounding (``quantum / sqrt 12``: a sensor that reads one value all along averages none of it away).
+    None where they disagree (:data:`AGREE_SIGMAS`) or the fit's error is not finite."""
+    (b_fit, s_fit), (b_still, s_still) = fit, (still[0], max(still[1], quantum / math.sqrt(12.0)))
+    if not (math.isfinite(s_fit) and s_fit > 0.0 and s_still > 0.0):
+        return None
+    if abs(b_fit - b_still) > AGREE_SIGMAS * math.hypot(s_fit, s_still):
+        return None
+    w_fit, w_still = s_fit**-2, s_still**-2
+    return (w_fit * b_fit + w_still * b_still) / (w_fit + w_still), (w_fit + w_still) ** -0.5
+
+
+def _quantum(values: FloatArray) -> float:
+    """The smallest step between the distinct values of a signal (its resolution as logged; 0 with fewer than two)."""
+    steps = np.diff(np.unique(values[np.isfinite(values)]))
+    return float(np.min(steps)) if len(steps) else 0.0
+
+
 # ---- the calibration -----------------------------------------------------------------------------------------------
 
 
@@ -576,9 +600,15 @@ def _yaw_parameters(yf: _YawFit | None, sig: DriveSignals, notes: list[str]) -> 
     lever = f", antenna {fit.lever_m:.2f} m ahead of the rear axle fitted" if yf.lever else ""
     method = f"the rate of {yf.source} against the CAN yaw rate ({fit.n} pairs of fixes, {lag}{lever})"
     determined = yf.scale_std <= MAX_YAW_SCALE_STD
-    bias = Parameter(
-        math.degrees(fit.offset), math.degrees(yf.bias_std_rps), method + ("" if determined else ", the scale at 1")
-    )
+    method_bias = method + ("" if determined else ", the scale at 1")
+    both = combined_bias((fit.offset, yf.bias_std_rps), still[:2], _quantum(sig.yaw)) if still is not None else None
+    if both is not None:
+        assert still is not None
+        method_bias += f", combined with the CAN yaw rate at standstill ({still[2]:.0f} s) by their variances"
+    elif still is not None:
+        notes.append("the CAN yaw rate at standstill disagrees with the moving fit: the fit's bias is reported")
+    value, std = both if both is not None else (fit.offset, yf.bias_std_rps)
+    bias = Parameter(math.degrees(value), math.degrees(std), method_bias)
     if yf.lever:
         notes.append(f"the GNSS antenna sits {fit.lever_m:.2f} m ahead of the rear axle (from the course in turns)")
     if determined:

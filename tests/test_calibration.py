@@ -18,6 +18,7 @@ from sumhe.calibration import (
     KEYS,
     DriveSignals,
     calibrate,
+    combined_bias,
     jackknife_std,
     read_signals,
     speed_scale_fit,
@@ -246,6 +247,19 @@ def test_speed_scale_fit_tells_rounded_from_truncated_steps():
         assert k == pytest.approx(1 / 1.02, rel=max(3 * std, 0.001))
     k, found, _ = speed_scale_fit(gnss, np.round(can, 2), 0.01)  # a fine quantum: no offset tried
     assert found == 0.0 and k == pytest.approx(1 / 1.02, rel=0.001)
+
+
+def test_the_bias_combines_the_moving_fit_and_the_standstill_by_their_variances():
+    # a moving fit of 0.53 +- 0.046 and 44 s at standstill reading 0.463 +- 0.014 (deg/s; a realistic offroad drive
+    # whose true bias is 0.466): the standstill carries most of the weight
+    value, std = combined_bias((0.530, 0.046), (0.463, 0.014), 0.0)
+    assert value == pytest.approx(0.4687, abs=1e-4) and std == pytest.approx(0.0134, abs=1e-4)
+    # a sensor that read one quantum all along: its rounding bounds what the standstill can say
+    value, std = combined_bias((0.530, 0.046), (0.463, 0.0), 0.244)
+    assert std == pytest.approx((0.046**-2 + 12 / 0.244**2) ** -0.5) and 0.463 < value < 0.530
+    # disagreeing (more than 3 combined standard errors) or an unusable fit: nothing combined
+    assert combined_bias((0.70, 0.046), (0.463, 0.014), 0.0) is None
+    assert combined_bias((0.530, math.inf), (0.463, 0.014), 0.0) is None
 
 
 def test_jackknife_of_a_mean():
