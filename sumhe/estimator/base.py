@@ -100,6 +100,11 @@ class StreamEstimator(ABC):
     ``uses_gps_speed = False`` leaves the fixes' speed over ground out of the measurements; ``averages_fixes``: see
     :class:`Receiver`. ``self.tally`` counts
     what the estimator reports in ``stats()``.
+
+    Error estimates: each estimate's own spread (the estimator's 1-sigma figures) has its position covariance scaled
+    by ``self.consistency`` (:class:`~sumhe.estimator.uncertainty.InnovationScale`), fed at every fix used with the
+    innovation of the estimator's own prediction of it (:func:`predicted_at`: its estimates since the previous
+    epoch), then the fix's offset added (:class:`Receiver`). The estimates themselves are not changed.
     """
 
     name: ClassVar[str] = ""
@@ -166,11 +171,15 @@ class StreamEstimator(ABC):
 
     def stats(self) -> Mapping[str, float | int | str]:
         """The estimator's name, the nominal GNSS period, the GNSS time offset applied (s: a fix's stamped time plus
-        it is its time on the CAN clock) and every counter (front-end and estimator)."""
+        it is its time on the CAN clock), the consistency scales of its error estimates (:class:`InnovationScale`:
+        ``eph_scale`` at a fix, ``eph_growth_scale`` of the growth since) and every counter (front-end and
+        estimator)."""
         out: dict[str, float | int | str] = {
             "estimator": self.name,
             "period_s": self.frontend.period_s,
             "gps_time_offset_s": self.frontend.time_offset_s,
+            "eph_scale": self.consistency.scale,
+            "eph_growth_scale": self.consistency.growth_scale,
         }
         out.update(self.tally.counts)
         return out
