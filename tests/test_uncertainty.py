@@ -275,6 +275,7 @@ def test_the_prediction_of_a_fix_is_interpolated_from_the_estimates_since_the_pr
     # later than the newest (the CAN data lag the fix): moved on with its speed (10 m/s) and azimuth (north)
     east, north, trace = predicted_at(estimates, 10.7)
     assert (east, north, trace) == pytest.approx((5.0, -3.0, 4.0))
+    assert predicted_at(estimates, 10.7, ahead_s=0.1) is None  # too far on (a gap in the CAN data): no prediction
     assert predicted_at(estimates, 9.9) is None
     assert predicted_at([], 10.0) is None
 

@@ -138,7 +138,9 @@ class StreamEstimator(ABC):
         out = []
         for event in self.frontend.push(sample):
             if isinstance(event, Epoch):
-                prior = predicted_at(self._since_epoch, event.fix.t) if event.fix is not None else None
+                fix = event.fix
+                ahead = self.settings.can.max_gap_s  # farther on, the CAN data are missing: no prediction
+                prior = predicted_at(self._since_epoch, fix.t, ahead) if fix is not None else None
                 estimate: StateEstimate | None = self.on_epoch(event)
                 self._since_epoch = []
                 if estimate is not None and estimate.gps == "ok" and event.fix is not None:
@@ -241,13 +243,16 @@ class Receiver:
         return replace(estimate, spread=spread, sats=0, hdop=hdop)
 
 
-def predicted_at(estimates: Sequence[StateEstimate], t: float) -> tuple[float, float, float] | None:
+def predicted_at(
+    estimates: Sequence[StateEstimate], t: float, ahead_s: float = math.inf
+) -> tuple[float, float, float] | None:
     """An estimator's prediction of a fix at ``t`` (s) from its estimates since its previous GNSS epoch (that epoch's
     included): their position (east, north; m) interpolated linearly to ``t``, or moved on from the newest with its
-    speed and azimuth where ``t`` is later (the CAN data may lag the fix by more than the receiver's latency), and
-    the trace of their own position covariance there (m^2). None before their times or without a spread."""
+    speed and azimuth where ``t`` is later by at most ``ahead_s`` (the CAN data may lag the fix by more than the
+    receiver's latency; the estimator passes ``sensors.can.max_gap_s``), and the trace of their own position
+    covariance there (m^2). None before their times, more than ``ahead_s`` after them, or without a spread."""
     pts = sorted((e for e in estimates if e.spread is not None), key=lambda e: e.t)
-    if not pts or t < pts[0].t:
+    if not pts or not pts[0].t <= t <= pts[-1].t + ahead_s:
         return None
     if t >= pts[-1].t:
         last = pts[-1]
