@@ -3,6 +3,7 @@ an outage, the MHE's SU bound box on a bounded-noise drive, and the calibration 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -15,13 +16,22 @@ from sumhe.bench import metrics
 from sumhe.bench.mhe import drive_stream
 from sumhe.bench.report import calibration_cells
 from sumhe.commands.candump import reference_config
-from sumhe.estimator.base import to_estimate
+from sumhe.estimator.base import StateEstimate, predicted_at, to_estimate
 from sumhe.estimator.registry import make_estimator
-from sumhe.estimator.uncertainty import K1, K2, Spread, exact_radius_95, gpsd_errors, radius_95
+from sumhe.estimator.uncertainty import (
+    K1,
+    K2,
+    InnovationScale,
+    Spread,
+    exact_radius_95,
+    gpsd_errors,
+    radius_95,
+)
 from sumhe.geo import LocalFrame
 from sumhe.io.nmea_format import nmea_checksum
 from sumhe.io.udp import encode_json, encode_nmea
 from sumhe.messages import ErrorEstimate, Estimate
+from sumhe.settings.peers import EKF_TUNED
 from sumhe.sim import SimSettings, simulate
 
 from estimators import estimator_params
@@ -200,3 +210,96 @@ def test_a_filter_without_a_covariance_sends_no_error_estimate(outage_drive) -> 
     assert out and all(e.spread is None for e in out)
     sent = json.loads(encode_json(to_estimate(out[-1], frame)))
     assert "lat" in sent and not {"eph", "epx", "epy", "eps", "epd"} & sent.keys()
+
+
+def _innovations(scale: InnovationScale, n: int, var_p: float, var_r: float, var_g: float, periods: float) -> None:
+    """``n`` fixes at 1 s whose innovations have the covariance ``var_p + var_g + var_r`` per axis, fed to ``scale``
+    as predictions of own variance ``1`` at the fix and ``1`` of growth (per axis) and fixes of variance ``var_r``."""
+    rng = np.random.default_rng(5)
+    t0 = scale._fix.t if math.isfinite(scale._fix.t) else 0.0
+    for k in range(n):
+        nu = rng.standard_normal(2) * math.sqrt(var_p + var_g + var_r)
+        scale.add(t0 + 1.0 + k, nu, 2.0 * var_r, 2.0, 2.0 if var_g else 0.0, periods)
+
+
+def test_the_consistency_scale_is_one_for_consistent_innovations_and_rises_for_too_large_ones() -> None:
+    scale = InnovationScale()
+    assert scale.scale == 1.0 and scale.growth_scale == 1.0  # nothing seen: the estimator's own figures
+    _innovations(scale, 2000, var_p=1.0, var_r=4.0, var_g=0.0, periods=1.0)
+    assert scale.scale == pytest.approx(1.0, abs=0.4) and scale.growth_scale == 1.0
+    # an overconfident filter: its prediction errs 3 times as far as its covariance says (9 times the variance)
+    _innovations(scale, 2000, var_p=9.0, var_r=4.0, var_g=0.0, periods=1.0)
+    assert scale.scale == pytest.approx(9.0, rel=0.2)
+    assert scale.growth_scale == 1.0  # no gap seen: the growth is the estimator's own
+    # fixes after gaps: the drift through them is 4 times the growth the estimator claimed (variance)
+    _innovations(scale, 2000, var_p=9.0, var_r=4.0, var_g=4.0, periods=30.0)
+    assert scale.growth_scale == pytest.approx(4.0, rel=0.25)
+    assert scale.scale == pytest.approx(9.0, rel=0.2)  # the gaps leave the scale at a fix alone
+    scale.reset()
+    assert scale.scale == 1.0 and scale.growth_scale == 1.0
+
+
+def test_a_consistent_or_underconfident_covariance_is_never_shrunk() -> None:
+    scale = InnovationScale()
+    _innovations(scale, 500, var_p=0.01, var_r=4.0, var_g=0.0, periods=1.0)
+    _innovations(scale, 500, var_p=0.01, var_r=4.0, var_g=0.01, periods=30.0)
+    assert scale.scale == 1.0 and scale.growth_scale == 1.0
+
+
+def test_the_calibrated_spread_scales_the_covariance_at_the_fix_and_its_growth_apart() -> None:
+    scale = InnovationScale()
+    _innovations(scale, 3000, var_p=9.0, var_r=4.0, var_g=0.0, periods=1.0)
+    _innovations(scale, 3000, var_p=9.0, var_r=4.0, var_g=4.0, periods=30.0)
+    c, g = scale.scale, scale.growth_scale
+    at_fix = Spread(1.0, 1.0, 0.0, 0.1, 0.01)
+    later = Spread(3.0, 1.0, 0.5, 0.2, 0.02)  # grew by 2 m^2 east since the fix
+    out = scale.calibrated(later, at_fix)
+    factor = (c * 2.0 + g * 2.0) / 4.0
+    assert out.var_east_m2 == pytest.approx(3.0 * factor) and out.var_north_m2 == pytest.approx(factor)
+    assert out.cov_en_m2 == pytest.approx(0.5 * factor)
+    assert (out.sigma_speed_mps, out.sigma_azimuth_rad) == (0.2, 0.02)  # only the position is checked by fixes
+    assert scale.calibrated(at_fix, None).var_east_m2 == pytest.approx(c)  # no fix yet: all of it is at a fix
+
+
+def _state(t: float, east: float, var: float | None) -> StateEstimate:
+    spread = None if var is None else Spread(var, var, 0.0, 0.1, 0.01)
+    return StateEstimate(t, east, -east, 0.0, 10.0, 0.0, "ok", "x", spread=spread)
+
+
+def test_the_prediction_of_a_fix_is_interpolated_from_the_estimates_since_the_previous_epoch() -> None:
+    # the epoch's estimate may come after CAN-rate ones of later times (the Kalman family): sorted by time
+    estimates = [_state(10.0, 0.0, 1.0), _state(10.5, 5.0, 2.0), _state(10.2, 2.0, 1.5), _state(10.4, 9.0, None)]
+    east, north, trace = predicted_at(estimates, 10.35)
+    assert east == pytest.approx(3.5) and north == pytest.approx(-3.5) and trace == pytest.approx(2 * 1.75)
+    assert predicted_at(estimates, 10.0)[0] == pytest.approx(0.0)
+    # later than the newest (the CAN data lag the fix): moved on with its speed (10 m/s) and azimuth (north)
+    east, north, trace = predicted_at(estimates, 10.7)
+    assert (east, north, trace) == pytest.approx((5.0, -3.0, 4.0))
+    assert predicted_at(estimates, 10.7, ahead_s=0.1) is None  # too far on (a gap in the CAN data): no prediction
+    assert predicted_at(estimates, 9.9) is None
+    assert predicted_at([], 10.0) is None
+
+
+def test_an_overconfident_filter_gets_a_consistency_scale_and_wider_error_estimates(outage_drive) -> None:
+    # little process noise and CAN sigmas far below the sensors': a covariance of centimetres on a filter that
+    # trusts its dead reckoning and lags the fixes by metres; the same filter tuned is consistent on this drive
+    tuned, overconfident = Ekf(), Ekf(noise=OVERCONFIDENT)
+    for estimator in (tuned, overconfident):
+        out = [e for s in drive_stream(outage_drive) for e in estimator.push(s)]
+    assert tuned.consistency.scale < 2.0
+    assert overconfident.consistency.scale > 10.0 and overconfident.consistency.growth_scale > 10.0
+    own = overconfident._covariance()
+    assert out[-1].spread is not None
+    assert out[-1].spread.var_east_m2 + out[-1].spread.var_north_m2 > 10.0 * (own[0, 0] + own[1, 1])
+
+
+OVERCONFIDENT = dataclasses.replace(
+    EKF_TUNED,
+    pos_rw=1e-6,
+    heading_rw=1e-6,
+    speed_rw=1e-3,
+    yaw_rate_rw=1e-4,
+    can_speed_mps=1e-3,
+    can_yaw_rate_rps=1e-5,
+    gps_scale=10.0,
+)

@@ -31,11 +31,13 @@ import logging
 import math
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import ClassVar, Protocol, runtime_checkable
 
-from sumhe.estimator.uncertainty import Spread, gpsd_errors
+import numpy as np
+
+from sumhe.estimator.uncertainty import InnovationScale, Spread, gpsd_errors
 from sumhe.frontend.fixes import LocalFix
 from sumhe.frontend.stream import CanTick, Epoch, FixMeasurement, FrontEnd, Tally
 from sumhe.geo import LocalFrame
@@ -98,6 +100,11 @@ class StreamEstimator(ABC):
     ``uses_gps_speed = False`` leaves the fixes' speed over ground out of the measurements; ``averages_fixes``: see
     :class:`Receiver`. ``self.tally`` counts
     what the estimator reports in ``stats()``.
+
+    Error estimates: each estimate's own spread (the estimator's 1-sigma figures) has its position covariance scaled
+    by ``self.consistency`` (:class:`~sumhe.estimator.uncertainty.InnovationScale`), fed at every fix used with the
+    innovation of the estimator's own prediction of it (:func:`predicted_at`: its estimates since the previous
+    epoch), then the fix's offset added (:class:`Receiver`). The estimates themselves are not changed.
     """
 
     name: ClassVar[str] = ""
@@ -112,11 +119,17 @@ class StreamEstimator(ABC):
         self.frontend = FrontEnd(settings, self.tally, self.uses_gps_speed)
         self._push_t0 = time.perf_counter()
         self._receiver: Receiver | None = None
+        self.consistency = InnovationScale()
+        self._since_epoch: list[StateEstimate] = []
+        self._at_fix: tuple[float, Spread | None] = (math.nan, None)
 
     def reset(self) -> None:
-        """Forget the estimate and the stream (CAN data, GNSS timing); counters are kept."""
+        """Forget the estimate, the stream (CAN data, GNSS timing) and the consistency scales; counters are kept."""
         self.frontend.reset()
         self._receiver = None
+        self.consistency.reset()
+        self._since_epoch = []
+        self._at_fix = (math.nan, None)
         self.reset_state()
 
     def push(self, sample: LocalFix | CanSample) -> list[StateEstimate]:
@@ -125,22 +138,50 @@ class StreamEstimator(ABC):
         out = []
         for event in self.frontend.push(sample):
             if isinstance(event, Epoch):
+                fix = event.fix
+                ahead = self.settings.can.max_gap_s  # farther on, the CAN data are missing: no prediction
+                prior = predicted_at(self._since_epoch, fix.t, ahead) if fix is not None else None
                 estimate: StateEstimate | None = self.on_epoch(event)
+                self._since_epoch = []
                 if estimate is not None and estimate.gps == "ok" and event.fix is not None:
-                    self._receiver = Receiver(event.fix, estimate.spread, self.averages_fixes)
+                    if prior is not None and not event.start:
+                        self._match(event.fix, *prior)
+                    self._at_fix = (event.fix.t, estimate.spread)
+                    self._receiver = Receiver(event.fix, self._calibrated(estimate).spread, self.averages_fixes)
             else:
                 estimate = self.on_can(event)
             if estimate is not None:
+                self._since_epoch.append(estimate)
+                estimate = self._calibrated(estimate)
                 out.append(self._receiver.tag(estimate) if self._receiver is not None else estimate)
         return out
 
+    def _match(self, fix: FixMeasurement, east_m: float, north_m: float, trace_p: float) -> None:
+        """Feed the consistency scales one used fix and the own prediction at its time (:class:`InnovationScale`)."""
+        t0, spread0 = self._at_fix
+        trace0 = min(spread0.var_east_m2 + spread0.var_north_m2, trace_p) if spread0 is not None else trace_p
+        nu = np.array([fix.east_m - east_m, fix.north_m - north_m])
+        periods = (fix.t - t0) / self.frontend.period_s if math.isfinite(t0) else 0.0
+        trace_r = fix.sigma_east_m**2 + fix.sigma_north_m**2
+        self.consistency.add(fix.t, nu, trace_r, trace0, trace_p - trace0, periods)
+
+    def _calibrated(self, estimate: StateEstimate) -> StateEstimate:
+        """The estimate with its own position covariance scaled by the consistency scales."""
+        if estimate.spread is None:
+            return estimate
+        return replace(estimate, spread=self.consistency.calibrated(estimate.spread, self._at_fix[1]))
+
     def stats(self) -> Mapping[str, float | int | str]:
         """The estimator's name, the nominal GNSS period, the GNSS time offset applied (s: a fix's stamped time plus
-        it is its time on the CAN clock) and every counter (front-end and estimator)."""
+        it is its time on the CAN clock), the consistency scales of its error estimates (:class:`InnovationScale`:
+        ``eph_scale`` at a fix, ``eph_growth_scale`` of the growth since) and every counter (front-end and
+        estimator)."""
         out: dict[str, float | int | str] = {
             "estimator": self.name,
             "period_s": self.frontend.period_s,
             "gps_time_offset_s": self.frontend.time_offset_s,
+            "eph_scale": self.consistency.scale,
+            "eph_growth_scale": self.consistency.growth_scale,
         }
         out.update(self.tally.counts)
         return out
@@ -200,6 +241,36 @@ class Receiver:
         if hdop is not None and sigma is not None and self.sigma_m:
             hdop = hdop * max(sigma / self.sigma_m, 1.0)
         return replace(estimate, spread=spread, sats=0, hdop=hdop)
+
+
+def predicted_at(
+    estimates: Sequence[StateEstimate], t: float, ahead_s: float = math.inf
+) -> tuple[float, float, float] | None:
+    """An estimator's prediction of a fix at ``t`` (s) from its estimates since its previous GNSS epoch (that epoch's
+    included): their position (east, north; m) interpolated linearly to ``t``, or moved on from the newest with its
+    speed and azimuth where ``t`` is later by at most ``ahead_s`` (the CAN data may lag the fix by more than the
+    receiver's latency; the estimator passes ``sensors.can.max_gap_s``), and the trace of their own position
+    covariance there (m^2). None before their times, more than ``ahead_s`` after them, or without a spread."""
+    pts = sorted((e for e in estimates if e.spread is not None), key=lambda e: e.t)
+    if not pts or not pts[0].t <= t <= pts[-1].t + ahead_s:
+        return None
+    if t >= pts[-1].t:
+        last = pts[-1]
+        assert last.spread is not None  # filtered above
+        run = last.speed_mps * (t - last.t)
+        trace = last.spread.var_east_m2 + last.spread.var_north_m2
+        return last.east_m + run * math.sin(last.azimuth_rad), last.north_m + run * math.cos(last.azimuth_rad), trace
+    i = next(k for k, e in enumerate(pts) if e.t >= t)
+    a, b = pts[max(i - 1, 0)], pts[i]
+    w = (t - a.t) / (b.t - a.t) if b.t > a.t else 1.0
+    assert a.spread is not None and b.spread is not None  # filtered above
+
+    def mix(u: float, v: float) -> float:
+        return (1.0 - w) * u + w * v
+
+    trace_a = a.spread.var_east_m2 + a.spread.var_north_m2
+    trace_b = b.spread.var_east_m2 + b.spread.var_north_m2
+    return mix(a.east_m, b.east_m), mix(a.north_m, b.north_m), mix(trace_a, trace_b)
 
 
 def horizontal_sigma(spread: Spread | None) -> float | None:

@@ -65,6 +65,16 @@ class Spread:
         orient = 0.5 * math.atan2(2.0 * c, b - a)
         return major, minor, orient % math.pi
 
+    def scaled(self, factor: float) -> Spread:
+        """The spread with the position covariance ``factor`` times as large (speed and azimuth as they are)."""
+        return Spread(
+            factor * self.var_east_m2,
+            factor * self.var_north_m2,
+            factor * self.cov_en_m2,
+            self.sigma_speed_mps,
+            self.sigma_azimuth_rad,
+        )
+
     def grown(self, var_east_m2: float, var_north_m2: float) -> Spread:
         """The spread with independent position errors of these variances (m^2) added."""
         return Spread(
@@ -129,3 +139,92 @@ def gpsd_errors(spread: Spread) -> ErrorEstimate:
         sigma_east_m=sigma_east,
         sigma_north_m=sigma_north,
     )
+
+
+INNOVATION_MEMORY_S = 300.0
+"""Time constant (s) of :class:`InnovationScale`'s exponential forgetting: a few GNSS error correlation times."""
+GAP_PERIODS = 2.5
+"""A fix more than this many GNSS periods after the previous one used ends a gap (:class:`InnovationScale`)."""
+
+
+class _Ratio:
+    """A ratio of two sums that forget exponentially in time (time constant ``memory_s``)."""
+
+    def __init__(self, memory_s: float) -> None:
+        self.memory_s = memory_s
+        self.t, self.num, self.den = math.nan, 0.0, 0.0
+
+    def add(self, t: float, num: float, den: float) -> None:
+        decay = math.exp(-max(t - self.t, 0.0) / self.memory_s) if math.isfinite(self.t) else 0.0
+        self.t, self.num, self.den = t, decay * self.num + num, decay * self.den + den
+
+    def at_least_one(self) -> float:
+        """``num / den``, at least 1 (1 before any ``den``)."""
+        return max(self.num / self.den, 1.0) if self.den > 0.0 else 1.0
+
+
+class InnovationScale:
+    """On-line consistency scales of an estimator's own position covariance, from the innovations of the fixes it
+    uses (covariance matching: Mehra 1972, Mohamed & Schwarz 1999).
+
+    Before a fix is used, the estimator's estimate at the fix's time is a prediction whose own position covariance
+    ``P`` (by the estimator's account) is the covariance ``P0`` it had at the previous fix used plus what it grew
+    by since, ``G``; the innovation ``nu = z - p`` of a fix ``z`` whose error has the covariance ``R`` (the
+    front-end's sigmas) has ``E|nu|^2 = tr P + tr R`` when the figures are right and the errors independent. Two
+    scales make them right, each the ratio, over the recent fixes, of what ``|nu|^2 - tr R`` says to what the
+    estimator said (at least 1: a ratio below 1 may be the fixes' own correlated error, which the innovations
+    cannot see, and is not taken as a licence to shrink):
+
+    * :attr:`scale`, of the covariance at a fix, from the fixes that follow the previous one within
+      ``gap_periods`` GNSS periods (``tr P`` there is nearly all ``P0``): a filter tuned for accuracy with little
+      process noise, whose covariance says centimetres where it lags the fixes by metres, gets a large one;
+    * :attr:`growth_scale`, of the growth since, from the fixes after a longer gap (missed fixes, outages):
+      ``(|nu|^2 - tr R - scale tr P0) / tr G``, so the growth through an outage is checked against what the
+      fixes at its end say; 1 until a gap has been seen (the estimator's own model is trusted until then).
+
+    The shared offset of correlated GNSS errors drops out of ``nu`` (the estimate carries it as the fixes do), so
+    the scales measure only what the estimator adds: its lag behind the fixes, its drift between them. The sums
+    forget exponentially in time (``memory_s``), so the scales follow a change of conditions; the rule is the same
+    on every drive, from what each drive's own fixes say.
+    """
+
+    def __init__(self, memory_s: float = INNOVATION_MEMORY_S, gap_periods: float = GAP_PERIODS) -> None:
+        if not memory_s > 0.0:
+            raise ValueError(f"memory_s: must be positive, got {memory_s!r}")
+        self.memory_s, self.gap_periods = memory_s, gap_periods
+        self.reset()
+
+    def reset(self) -> None:
+        self._fix = _Ratio(self.memory_s)
+        self._growth = _Ratio(self.memory_s)
+
+    def add(self, t: float, nu: np.ndarray, trace_r: float, trace_p0: float, trace_g: float, periods: float) -> None:
+        """One used fix at ``t`` (s): its innovation ``nu`` (m, east and north) and the trace of its covariance
+        ``trace_r``; the prediction's own position covariance as the trace at the previous fix used,
+        ``trace_p0``, and the trace of the growth since, ``trace_g`` (m^2); ``periods``: GNSS periods since that
+        fix."""
+        excess = float(nu @ nu) - trace_r
+        if periods <= self.gap_periods:
+            self._fix.add(t, excess, trace_p0 + trace_g)
+        elif trace_g > 0.0:
+            self._growth.add(t, excess - self.scale * trace_p0, trace_g)
+
+    @property
+    def scale(self) -> float:
+        """How many times the own position covariance at a fix is too small (>= 1)."""
+        return self._fix.at_least_one()
+
+    @property
+    def growth_scale(self) -> float:
+        """How many times its growth since a fix is too small (>= 1)."""
+        return self._growth.at_least_one()
+
+    def calibrated(self, spread: Spread, at_fix: Spread | None) -> Spread:
+        """An estimate's own spread with its position covariance scaled: ``scale P0 + growth_scale (P - P0)``
+        (traces; the covariance keeps its shape), ``at_fix`` the own spread at the newest fix used (None: none
+        yet, all of it is ``P0``)."""
+        trace = spread.var_east_m2 + spread.var_north_m2
+        if trace <= 0.0:
+            return spread
+        trace0 = min(at_fix.var_east_m2 + at_fix.var_north_m2, trace) if at_fix is not None else trace
+        return spread.scaled((self.scale * trace0 + self.growth_scale * (trace - trace0)) / trace)
