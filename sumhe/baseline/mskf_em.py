@@ -89,6 +89,21 @@ class Moments:
     r_rows: int
 
 
+@dataclass(frozen=True, slots=True)
+class StageState:
+    """A :class:`LinearStage` at one time: mean, covariance, noise scale, its block's start and steps, and how far
+    the steps had come (steps and their updates are only appended; a new block takes a new list)."""
+
+    x: FloatArray
+    P: FloatArray
+    q: float
+    x0: FloatArray
+    P0: FloatArray
+    steps: list[Step]
+    n_steps: int
+    n_updates: int
+
+
 def residual(z: FloatArray, zhat: FloatArray, wrap: bool) -> FloatArray:
     """``z - zhat``, wrapped to (-pi, pi] for an angle."""
     d = z - zhat
@@ -174,6 +189,19 @@ class LinearStage:
         self.x0, self.P0 = self.x.copy(), self.P.copy()
         self.steps: list[Step] = []
 
+    def snapshot(self) -> StageState:
+        """The stage now, for :meth:`restore`."""
+        updates = len(self.steps[-1].updates) if self.steps else 0
+        return StageState(self.x.copy(), self.P.copy(), self.q, self.x0, self.P0, self.steps, len(self.steps), updates)
+
+    def restore(self, state: StageState) -> None:
+        """Set the stage back to a :meth:`snapshot` (the block's steps and updates after it are dropped)."""
+        self.x, self.P, self.q = state.x.copy(), state.P.copy(), state.q
+        self.x0, self.P0, self.steps = state.x0, state.P0, state.steps
+        del self.steps[state.n_steps :]
+        if self.steps:
+            del self.steps[-1].updates[state.n_updates :]
+
     def predict(self, step: Step, r: float) -> None:
         _, _, self.x, self.P = kf_step(self.x, self.P, step, self.q, r, bool(self.wrap_rows))
         self.steps.append(step)
@@ -194,6 +222,8 @@ class MskfEm(RecursiveEstimator):
     """Multi-stage Kalman filter with on-line block EM of the noise scales (``mskf-em``)."""
 
     name = "mskf-em"
+    snapshot_attrs = ("r", "_r_blocks", "_u", "_omega", "_t_block")
+    """... and the two stages (:meth:`LinearStage.snapshot`)."""
 
     def __init__(self, settings: EstimationSettings | None = None, table: MskfSettings | None = None) -> None:
         settings = settings or EstimationSettings()
@@ -228,6 +258,16 @@ class MskfEm(RecursiveEstimator):
         self.position.P = np.diag([P0[E, E], P0[N, N], P0[k, k] if k is not None else 0.0])
         self._u = float(x0[V])
         self._begin_blocks()
+
+    def _snapshot(self) -> object:
+        return super()._snapshot(), self.heading.snapshot(), self.position.snapshot()
+
+    def _restore(self, state: object) -> None:
+        assert isinstance(state, tuple)
+        own, heading, position = state
+        super()._restore(own)
+        self.heading.restore(heading)
+        self.position.restore(position)
 
     def _begin_blocks(self) -> None:
         self.heading.begin_block()
