@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from test_estimator_contract import errors, synthetic_drive
 
+from sumhe.baseline.rts import Rts
 from sumhe.baseline.stream import Entry, History, RecursiveEstimator
 from sumhe.bench.live import arrival_order, live_drive, replayed_outage_errors, service_config
 from sumhe.config import load_config
@@ -206,6 +207,16 @@ def test_history_rewinds_to_the_newest_state_at_or_before_the_fix() -> None:
     entry, later = found
     assert entry.t == pytest.approx(2.7) and later == ticks[28:]
     assert len(history) == 9
+
+
+def test_an_rts_window_shorter_than_the_history_keeps_the_steps_a_re_run_needs() -> None:
+    timed = sorted(synthetic_drive(8.0).samples, key=lambda s: s.t)
+    settings = load_config().estimation
+    ordered_epochs, ordered_last = fed(Rts(settings, history_s=0.1), timed)
+    late_epochs, late_last = fed(Rts(settings, history_s=0.1), late_after_start(timed, 1, 0.25))
+    for t, e in ordered_epochs.items():
+        assert figures(late_epochs[t]) == pytest.approx(figures(e), abs=1e-9)
+    assert figures(late_last) == pytest.approx(figures(ordered_last), abs=1e-9)
 
 
 def test_rts_smooths_the_same_drive_in_arrival_order() -> None:

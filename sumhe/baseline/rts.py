@@ -129,8 +129,8 @@ class Rts(Ekf):
         super()._predict(dt, inputs)
         t = self._t_state + dt
         self._steps.append(_Step(last.index + 1, t, dt, self.x.copy(), self.P.copy()))
-        keep_s = max(self.history_s, self._history.span_s if self._history is not None else 0.0)  # a re-run's too
-        while self._steps[0].t < t - keep_s:
+        oldest = self._history.oldest_t if self._history is not None else math.inf  # where a re-run may go back to
+        while self._steps[0].t < min(t - self.history_s, oldest):
             self._steps.popleft()
         while self._reports and self._reports[0][0] < self._steps[0].t:
             self._reports.popleft()

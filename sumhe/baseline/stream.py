@@ -185,6 +185,11 @@ class History:
     def __len__(self) -> int:
         return len(self._entries)
 
+    @property
+    def oldest_t(self) -> float:
+        """The time of the oldest state kept (inf: none)."""
+        return self._entries[0].t if self._entries else math.inf
+
     def clear(self) -> None:
         self._entries.clear()
 
