@@ -11,12 +11,15 @@ import numpy as np
 import pytest
 from test_estimator_contract import errors, synthetic_drive
 
+from sumhe.baseline.rts import Rts
+from sumhe.baseline.stream import Entry, History, RecursiveEstimator
 from sumhe.bench.live import arrival_order, live_drive, replayed_outage_errors, service_config
 from sumhe.config import load_config
-from sumhe.estimator.base import Estimator
-from sumhe.estimator.registry import estimator_names, make_estimator
+from sumhe.errors import ConfigError
+from sumhe.estimator.base import Estimator, StateEstimate
+from sumhe.estimator.registry import estimator_class, estimator_names, make_estimator
 from sumhe.frontend.fixes import LocalFix
-from sumhe.frontend.stream import MAX_FIX_LAG_S
+from sumhe.frontend.stream import MAX_FIX_LAG_S, CanTick
 from sumhe.messages import CanSample
 
 from estimators import estimator_params
@@ -101,3 +104,136 @@ def test_mhe_outage_errors_in_arrival_order_match_time_order(tmp_path) -> None:
     held, arrival = got["held"][0], got["arrival"][0]
     assert math.isfinite(held) and held > 0.0
     assert arrival <= 1.05 * held, got
+
+
+# ---- the recursive filters: a late fix re-runs the filter from its stored history ---------------------------------
+
+REWOUND = [n for n in estimator_names(live_only=True) if getattr(estimator_class(n), "snapshot_attrs", None)]
+"""The recursive filters that keep a history (``gtsam-fls`` places a late fix in its graph itself)."""
+
+
+def recursive(name: str, **overrides: object) -> RecursiveEstimator:
+    est = make_estimator(name, load_config(overrides=overrides))
+    assert isinstance(est, RecursiveEstimator)
+    return est
+
+
+def fed(est: Estimator, samples: Sequence[LocalFix | CanSample]) -> tuple[dict[float, StateEstimate], StateEstimate]:
+    """Feed ``samples``: the estimates of the epochs by time, and the estimate at one CAN speed sample after all."""
+    epochs = {}
+    for s in samples:
+        out = est.push(s)
+        if isinstance(s, LocalFix):
+            epochs.update((e.t, e) for e in out)
+    end = max(s.t for s in samples) + 0.02
+    (last,) = est.push(CanSample(end, "speed", 10.0))
+    return epochs, last
+
+
+def late_after_start(timed: Sequence[LocalFix | CanSample], size: int, delay_s: float) -> list[LocalFix | CanSample]:
+    """Time-ordered ``samples`` with the fixes after the first delivered late (:func:`bursts`); the first, where
+    the filter starts, in time order (the CAN samples a late start fix comes after make no estimates)."""
+    first = next(s.t for s in timed if isinstance(s, LocalFix))
+    return [s for s in timed if s.t <= first] + bursts([s for s in timed if s.t > first], size, delay_s)
+
+
+def figures(e: StateEstimate) -> list[float]:
+    return [e.east_m, e.north_m, e.azimuth_rad, e.speed_mps, e.yaw_rate_rps]
+
+
+@pytest.mark.parametrize("name", estimator_params(REWOUND))
+@pytest.mark.parametrize("size, delay_s", [(1, 0.25), (3, 0.05)], ids=["late", "burst"])
+def test_a_late_fix_gives_the_state_of_time_order(name: str, size: int, delay_s: float) -> None:
+    """Fixes that come after the CAN samples of the next 0.25 s (or in bursts of three) give the estimates the
+    same data give in time order: at each fix's epoch, and at the CAN sample after the last (a seeded particle
+    filter draws the same numbers: the random generator's state is part of the history)."""
+    timed = sorted(synthetic_drive(8.0).samples, key=lambda s: s.t)
+    late = recursive(name)
+    ordered_epochs, ordered_last = fed(recursive(name), timed)
+    late_epochs, late_last = fed(late, late_after_start(timed, size, delay_s))
+    assert late.stats()["late_fixes_rerun"] > 0.9 * len(late_epochs)
+    assert late.stats().get("late_fixes_run_back", 0) == 0
+    assert late_epochs.keys() == ordered_epochs.keys()
+    for t, e in ordered_epochs.items():
+        assert figures(late_epochs[t]) == pytest.approx(figures(e), abs=1e-9), t
+        assert late_epochs[t].gps == e.gps
+    assert figures(late_last) == pytest.approx(figures(ordered_last), abs=1e-9)
+    assert late_last.spread is not None and ordered_last.spread is not None
+    assert late_last.spread.var_east_m2 == pytest.approx(ordered_last.spread.var_east_m2, rel=1e-9)
+
+
+def test_a_fix_older_than_the_history_is_run_back_and_counted() -> None:
+    """A history shorter than the fixes' delay: each late fix is compared with the state through the model run
+    back by the lag, as with no history at all, and counted; the counters say which path each fix took."""
+    timed = sorted(synthetic_drive(8.0).samples, key=lambda s: s.t)
+    arrival = late_after_start(timed, 1, 0.25)
+    short = recursive("ekf", **{"estimator.late_fix_history_s": 0.1})
+    none = recursive("ekf", **{"estimator.late_fix_history_s": 0.0})
+    assert none.history is None
+    short_epochs, short_last = fed(short, arrival)
+    none_epochs, none_last = fed(none, arrival)
+    fixes = short.stats()["gps_ok"] + short.stats().get("gps_rejected", 0) - 1  # the start is not late
+    assert short.stats()["late_fixes_run_back"] == fixes == none.stats()["late_fixes_run_back"]
+    assert short.stats().get("late_fixes_rerun", 0) == 0
+    for t, e in none_epochs.items():
+        assert figures(short_epochs[t]) == pytest.approx(figures(e), abs=1e-9)
+    assert figures(short_last) == pytest.approx(figures(none_last), abs=1e-9)
+    _, rerun_last = fed(recursive("ekf"), arrival)
+    assert figures(rerun_last) != pytest.approx(figures(none_last), abs=1e-6)  # the re-run is another path
+
+
+def test_the_history_stays_within_its_span_over_a_long_feed() -> None:
+    est = recursive("ekf", **{"estimator.late_fix_history_s": 0.5})
+    assert est.history is not None
+    drive = synthetic_drive(60.0)
+    longest = 0
+    for s in drive.samples:
+        est.push(s)
+        longest = max(longest, len(est.history))
+    assert 0.5 * 50 <= longest <= 0.5 * (50 + 10) + 2  # a state per CAN speed tick (50 Hz) and per fix (10 Hz)
+    assert est.stats()["late_fixes_rerun"] > 500
+
+
+def test_history_rewinds_to_the_newest_state_at_or_before_the_fix() -> None:
+    history = History(span_s=1.0)
+    ticks = [CanTick(0.1 * k, 0.1 * k, "speed", 10.0, True) for k in range(30)]
+    for tick in ticks:
+        history.add(Entry(tick.t, tick.t, tick, tick.t))
+    assert len(history) == 11  # 1.0 s covered: the oldest at or before the newest - 1 s
+    assert history.rewind(0.5) is None  # older than the history: nothing changes
+    assert len(history) == 11
+    found = history.rewind(2.75)
+    assert found is not None
+    entry, later = found
+    assert entry.t == pytest.approx(2.7) and later == ticks[28:]
+    assert len(history) == 9
+
+
+def test_an_rts_window_shorter_than_the_history_keeps_the_steps_a_re_run_needs() -> None:
+    timed = sorted(synthetic_drive(8.0).samples, key=lambda s: s.t)
+    settings = load_config().estimation
+    ordered_epochs, ordered_last = fed(Rts(settings, history_s=0.1), timed)
+    late_epochs, late_last = fed(Rts(settings, history_s=0.1), late_after_start(timed, 1, 0.25))
+    for t, e in ordered_epochs.items():
+        assert figures(late_epochs[t]) == pytest.approx(figures(e), abs=1e-9)
+    assert figures(late_last) == pytest.approx(figures(ordered_last), abs=1e-9)
+
+
+def test_rts_smooths_the_same_drive_in_arrival_order() -> None:
+    """The RTS's backward pass after late fixes re-ran its forward pass: the smoothed epochs of time order."""
+    timed = sorted(synthetic_drive(8.0).samples, key=lambda s: s.t)
+    smoothed = []
+    for samples in (timed, late_after_start(timed, 1, 0.25)):
+        est = make_estimator("rts-batch", load_config())
+        for s in samples:
+            est.push(s)
+        smoothed.append(est.finish())
+    assert [e.t for e in smoothed[0]] == [e.t for e in smoothed[1]]
+    for a, b in zip(*smoothed, strict=True):
+        assert figures(b) == pytest.approx(figures(a), abs=1e-9)
+
+
+@pytest.mark.parametrize("value", [-0.5, math.inf, "1 s"])
+def test_a_bad_history_span_stops_start_up_naming_the_key(value: object) -> None:
+    with pytest.raises(ConfigError, match=r"command line: estimator\.late_fix_history_s: "):
+        load_config(overrides={"estimator.late_fix_history_s": value})

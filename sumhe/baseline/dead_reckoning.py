@@ -41,6 +41,7 @@ class DeadReckoning(RecursiveEstimator):
     gated = False
     uses_gps_speed = False
     averages_fixes = False
+    snapshot_attrs = ("x", "P", "_anchor", "_anchor_t")
 
     def __init__(self, settings: EstimationSettings | None = None, noise: NoiseSettings | None = None) -> None:
         super().__init__(settings or EstimationSettings(), noise or NoiseSettings())

@@ -122,6 +122,7 @@ class GaussianFilter(RecursiveEstimator):
 
     x: FloatArray
     P: FloatArray
+    snapshot_attrs = ("x", "P")
 
     def __init__(self, settings: EstimationSettings | None = None, noise: NoiseSettings | None = None) -> None:
         settings = settings or EstimationSettings()

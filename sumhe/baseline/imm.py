@@ -86,6 +86,7 @@ class Imm(RecursiveEstimator):
     """IMM of a straight and a curved EKF cell (``imm``)."""
 
     name = "imm"
+    snapshot_attrs = ("xs", "Ps", "mu")
 
     def __init__(
         self,

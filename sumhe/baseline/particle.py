@@ -44,6 +44,7 @@ class ParticleFilter(RecursiveEstimator):
     """Bootstrap particle filter with ``particles`` particles; the same ``seed`` gives the same estimates."""
 
     name = "pf"
+    snapshot_attrs = ("X", "w", "rng")
     uses_gps_speed = False
     """A 0.05 m/s likelihood on the speed leaves a handful of the particles alive at each fix: with it, the error
     after the contract test's outage rose to 2.9-3.4 m (limit 3 m); a Rao-Blackwellised speed would be needed."""

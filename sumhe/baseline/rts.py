@@ -10,7 +10,9 @@ forward-backward Kalman smoothing paper 001 compares its SU estimator with. Back
 
 with ``F_k`` the Jacobian at ``x_k|k``, recomputed. A re-acquisition or a heading set-up resets the filter's
 prior; the smoother does not carry information back across such a step. A restart of the filter (numerical
-failure, data gap, :meth:`reset`) empties the window.
+failure, data gap, :meth:`reset`) empties the window. A late fix's re-run (:mod:`.stream`) drops the steps after
+the state it restarts from and makes them anew; each estimate returned is tied to the step at its state's time,
+which the re-run makes again.
 
 :class:`RtsBatch` (``rts-batch``) is the offline form for replays: ``push`` returns nothing and ``finish()`` the
 smoothed drive, as ``su-batch`` does.
@@ -18,6 +20,7 @@ smoothed drive, as ``su-batch`` does.
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import math
 from collections import deque
@@ -89,13 +92,13 @@ class Rts(Ekf):
             F = kin.step_jacobian(cur.x_post, nxt.dt)
             C = cur.P_post @ F.T @ np.linalg.pinv(nxt.P_prior, hermitian=True)
             xs[i] = kin.wrap_state(cur.x_post + C @ kin.state_difference(xs[i + 1], nxt.x_prior))
-        first = steps[0].index
+        times = [s.t for s in steps]
         out = []
-        for index, est, epoch in self._reports:
+        for t_step, est, epoch in self._reports:
             if epochs_only and not epoch:
                 continue
-            step = steps[index - first]
-            x = xs[index - first]
+            k = max(bisect.bisect_right(times, t_step) - 1, 0)
+            step, x = steps[k], xs[k]
             if est.t != step.t:
                 x = kin.step(x, est.t - step.t)
             out.append(
@@ -113,7 +116,8 @@ class Rts(Ekf):
     def _reset_filter(self) -> None:
         super()._reset_filter()
         self._steps: deque[_Step] = deque()
-        self._reports: deque[tuple[int, StateEstimate, bool]] = deque()
+        self._reports: deque[tuple[float, StateEstimate, bool]] = deque()
+        """Each estimate returned, with the time of the step it was made at (the state's then)."""
 
     def _start(self, x0: FloatArray, P0: FloatArray) -> None:
         super()._start(x0, P0)
@@ -125,10 +129,23 @@ class Rts(Ekf):
         super()._predict(dt, inputs)
         t = self._t_state + dt
         self._steps.append(_Step(last.index + 1, t, dt, self.x.copy(), self.P.copy()))
-        while self._steps[0].t < t - self.history_s:
+        oldest = self._history.oldest_t if self._history is not None else math.inf  # where a re-run may go back to
+        while self._steps[0].t < min(t - self.history_s, oldest):
             self._steps.popleft()
-        while self._reports and self._reports[0][0] < self._steps[0].index:
+        while self._reports and self._reports[0][0] < self._steps[0].t:
             self._reports.popleft()
+
+    def _snapshot(self) -> object:
+        return super()._snapshot(), self._steps[-1].index, self._steps[-1].restart
+
+    def _restore(self, state: object) -> None:
+        """The filter's state, and the steps as they were: those made since are dropped."""
+        assert isinstance(state, tuple)
+        own, index, restart = state
+        super()._restore(own)
+        while self._steps[-1].index > index:
+            self._steps.pop()
+        self._steps[-1].restart = restart
 
     def _inflate(self, kind: str, nu: FloatArray, R: FloatArray) -> None:
         super()._inflate(kind, nu, R)
@@ -139,7 +156,7 @@ class Rts(Ekf):
         self._steps[-1].restart = True
 
     def _on_report(self, estimate: StateEstimate, epoch: bool) -> None:
-        self._reports.append((self._steps[-1].index, estimate, epoch))
+        self._reports.append((self._steps[-1].t, estimate, epoch))
 
     def _window(self) -> int:
         return len(self._steps)

@@ -152,6 +152,7 @@ class SrUpf(RecursiveEstimator):
     """Square-root unscented particle filter with the SG-KDE GNSS noise (``sr-upf``); seeded."""
 
     name = "sr-upf"
+    snapshot_attrs = ("X", "S", "w", "rng", "_samples", "_since_fit", "_kde")
 
     def __init__(self, settings: EstimationSettings | None = None, table: UpfSettings | None = None) -> None:
         settings = settings or EstimationSettings()

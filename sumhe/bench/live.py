@@ -232,6 +232,7 @@ def run_live(duration_s: float, estimator: str, say: Any = print) -> dict[str, A
         "solve_ms_p50": last.get("solve_ms_p50"),
         "solve_ms_p99": last.get("solve_ms_p99"),
         "out_of_order": last.get("out_of_order"),
+        "late_fixes": {k: v for k, v in last.get("estimator", {}).items() if k.startswith("late_fixes")},
         "degraded_sent": last.get("degraded_sent"),
         "source_rates_hz": last.get("rates_hz"),
         "cpu_percent_of_one_core": run.cpu_percent,
@@ -258,7 +259,7 @@ def format_live(fig: dict[str, Any]) -> str:
             f"  solve p50 {fig['solve_ms_p50']} ms, p99 {fig['solve_ms_p99']} ms; sent degraded "
             f"{fig['degraded_sent']}; left out as out of order {fig['out_of_order']}; t decreasing between "
             f"datagrams {fig['nonmonotonic']}",
-            f"  CPU: {fig['cpu_percent_of_one_core']:.1f} % of one core",
+            f"  CPU: {fig['cpu_percent_of_one_core']:.1f} % of one core; late fixes {fig['late_fixes'] or 'none'}",
             "  outage error (m, mean / p95 / max): "
             f"live {err('outage_live')}; replayed in time order (held) {err('outage_held')}; "
             f"replayed in arrival order {err('outage_arrival')} "

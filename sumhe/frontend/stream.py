@@ -60,18 +60,18 @@ OFFSET_SLEW = 0.2
 
 class Tally:
     """Counters of one estimator (its ``stats()``), logged on its module's logger at the 1st, 10th, 100th, ...
-    occurrence of each."""
+    occurrence of each (at ``level``: a warning unless the caller says otherwise)."""
 
     def __init__(self, name: str, logger: logging.Logger) -> None:
         self.name = name
         self.log = logger
         self.counts: Counter[str] = Counter()
 
-    def count(self, key: str, msg: str, *args: object) -> None:
+    def count(self, key: str, msg: str, *args: object, level: int = logging.WARNING) -> None:
         self.counts[key] += 1
         n = self.counts[key]
         if n == 10 ** int(math.log10(n)):
-            self.log.warning("%s: " + msg + " (%d so far)", self.name, *args, n)
+            self.log.log(level, "%s: " + msg + " (%d so far)", self.name, *args, n)
 
 
 @dataclass(frozen=True, slots=True)

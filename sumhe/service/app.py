@@ -6,7 +6,7 @@ loop in a worker thread -> the output edge (time order) -> sinks (UDP JSON / NME
 * No hold: each sample goes to the estimator as it arrives, so a CAN sample's estimate leaves as soon as it is
   computed. Time order is judged per stream (:class:`~sumhe.service.pipeline.TimeGuard`): a GNSS fix arrives
   after the CAN samples of its latency and the estimators insert it at its time (the MHE builds its epoch from
-  its CAN buffer, the Kalman family compares the fix with its state run back by the lag). What waits while a
+  its CAN buffer, the Kalman family re-runs from its state stored before the fix). What waits while a
   push runs is taken earliest-stamped first (at most ``MAX_CHUNK`` samples at a time, :class:`Inbox`); after a
   stall (input older than ``STALL_S``: counted ``stalls``, a WARNING) the service waits ``STALL_WAIT_S`` once so
   the sources' backlogs meet, then takes them in time order.

@@ -101,7 +101,10 @@ class EstimatorSettings:
     """``[estimator]``: the estimator (``name``), the SU model (``model``, the optional states: CAN yaw-rate bias,
     speed scale and yaw-rate gain, the receiver's azimuth offset, the antenna's forward lever arm; the
     discretisation), what the SU estimators share (error allowances of ``r_cap_sigmas`` sigmas; bounds widened by
-    ``widen_factor`` while a problem is infeasible, 001 algorithm 3.3) and one table per estimator family."""
+    ``widen_factor`` while a problem is infeasible, 001 algorithm 3.3), what the recursive peers share (the span of
+    their stored history, ``late_fix_history_s`` seconds: a fix older than their state within it is put in at its
+    own time and the filter re-run, :mod:`sumhe.baseline.stream`; 0 turns it off) and one table per estimator
+    family."""
 
     name: str = "mhe"
     model: str = "su5"
@@ -113,6 +116,7 @@ class EstimatorSettings:
     discretisation: str = "trapezoid"
     r_cap_sigmas: float = 4.0
     widen_factor: float = 2.0
+    late_fix_history_s: float = 1.5
     mhe: MheSettings = field(default_factory=MheSettings)
     batch: BatchSettings = field(default_factory=BatchSettings)
     ekf: NoiseSettings = field(default_factory=lambda: EKF_TUNED)
@@ -128,6 +132,7 @@ class EstimatorSettings:
         one_of(self, "model", MODELS)
         one_of(self, "discretisation", DISCRETISATIONS)
         positive(self, "r_cap_sigmas")
+        non_negative(self, "late_fix_history_s")
         if not self.widen_factor > 1:
             raise ValueError(f"widen_factor: must be > 1, got {self.widen_factor!r}")
 
