@@ -80,6 +80,7 @@ IMM_STRAIGHT_YAW_RATE_RPS = 0.01
 model, the straight one holds its azimuth and draws its yaw rate about zero with this sigma (rad/s)."""
 GTSAM_TUNED = EKF_TUNED
 """The fixed-lag smoother's noise: the EKF's (its odometry model is the EKF's process model)."""
+GTSAM_SOG_SCALE = 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -122,17 +123,19 @@ class GtsamSettings:
 
     ``noise``: model error densities of the odometry (``pos_rw``, ``heading_rw``), the CAN sigmas per sample, the
     bias and scale random walks, ``gps_scale``, ``course_rad``, gate, priors (``[estimator.gtsam_fls.noise]``);
-    ``lag_s``: the smoother's lag (s; nodes older than this behind the newest are marginalised);
+    ``sog_scale``: the GNSS speed over ground's sigma as a multiple of the front-end's (``gps_scale``'s twin for the
+    speed factor); ``lag_s``: the smoother's lag (s; nodes older than this behind the newest are marginalised);
     ``relinearize_threshold`` and ``relinearize_skip``: iSAM2's (a variable is relinearised when its update exceeds
     the threshold, checked every ``relinearize_skip`` updates; GTSAM's defaults)."""
 
     noise: NoiseSettings = field(default_factory=lambda: GTSAM_TUNED)
+    sog_scale: float = GTSAM_SOG_SCALE
     lag_s: float = 5.0
     relinearize_threshold: float = 0.1
     relinearize_skip: int = 10
 
     def __post_init__(self) -> None:
-        positive(self, "lag_s", "relinearize_threshold")
+        positive(self, "sog_scale", "lag_s", "relinearize_threshold")
         at_least(self, 1, "relinearize_skip")
 
 
