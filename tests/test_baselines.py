@@ -372,6 +372,7 @@ def test_search_candidates_stay_within_the_bounds() -> None:
     assert tune.candidates("gps_scale", 1.0) == [0.5, 2.0, 4.0]  # 0.25 is below the bound
     assert tune.candidates("turn.heading_rw", 1e-3) == [0.25e-3, 0.5e-3, 2e-3, 4e-3]
     assert tune.candidates("course_rad", 0.1) == [0.025, 0.05, 0.2]
+    assert tune.candidates("pos_rw", 0.01, factors=(0.5, 2.0)) == [0.005, 0.02]
 
 
 @pytest.mark.parametrize("name", sorted(tune.SEARCH_PARAMETERS))

@@ -222,10 +222,10 @@ PEER_TABLES = {"gtsam-fls": "gtsam_fls", "mskf-em": "mskf_em", "sr-upf": "sr_upf
 TABLE_FIELDS = {"gtsam-fls": ("sog_scale",)}
 
 
-def candidates(param: str, current: float) -> list[float]:
-    """The values a sweep tries for ``param`` at ``current``: ``SEARCH_FACTORS`` times it, within its bounds."""
+def candidates(param: str, current: float, factors: Sequence[float] = SEARCH_FACTORS) -> list[float]:
+    """The values a sweep tries for ``param`` at ``current``: ``factors`` times it, within its bounds."""
     lo, hi = SEARCH_BOUNDS[param.rpartition(".")[2]]
-    return [current * f for f in SEARCH_FACTORS if lo <= current * f <= hi]
+    return [current * f for f in factors if lo <= current * f <= hi]
 
 
 def start_values(name: str, settings: EstimationSettings | None = None) -> dict[str, Any]:
@@ -304,16 +304,17 @@ def search(
     write: Callable[[str], None],
     params: Sequence[str] | None = None,
     start: dict[str, Any] | None = None,
+    factors: Sequence[float] = SEARCH_FACTORS,
 ) -> dict[str, Any]:
     """Coordinate-wise grid search of ``params`` (default ``SEARCH_PARAMETERS[name]``) within ``SEARCH_BOUNDS``,
-    from ``start`` (default: the current defaults)."""
+    from ``start`` (default: the current defaults), trying ``factors`` times each value in turn."""
     values = start if start is not None else start_values(name)
     best = score(name, values, cases)
     write(f"{name}: start J = {best:.4f} m")
     for sweep in range(sweeps):
         improved = False
         for param in params or SEARCH_PARAMETERS[name]:
-            for value in candidates(param, get_value(values, param)):
+            for value in candidates(param, get_value(values, param), factors):
                 candidate = with_value(values, param, value)
                 try:
                     j = score(name, candidate, cases)
@@ -380,6 +381,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p_search.add_argument("estimator", choices=sorted(SEARCH_PARAMETERS))
     p_search.add_argument("--sweeps", type=int, default=2)
     p_search.add_argument("--params", help="comma-separated subset of the estimator's searched parameters")
+    p_search.add_argument(
+        "--factors",
+        default=",".join(f"{f:g}" for f in SEARCH_FACTORS),
+        help="multiples of each value a sweep tries (a smaller grid for a slow estimator: 0.5,2)",
+    )
     p_eval = sub.add_parser("evaluate", help="position errors of the estimators on test drives")
     p_eval.add_argument("--estimators", default="dead-reckoning,ekf,rts,ukf,pf,imm")
     for p, seeds in ((p_search, TRAINING_SEEDS), (p_eval, TEST_SEEDS)):
@@ -400,7 +406,8 @@ def run(args: argparse.Namespace, write: Callable[[str], None]) -> int:
         unknown = set(params or ()) - set(SEARCH_PARAMETERS[args.estimator])
         if unknown:
             args._parser.error(f"--params: {args.estimator} searches {', '.join(SEARCH_PARAMETERS[args.estimator])}")
-        values = search(args.estimator, cases, args.sweeps, write, params)
+        factors = [float(f) for f in args.factors.split(",")]
+        values = search(args.estimator, cases, args.sweeps, write, params, factors=factors)
         for key, value in values.items():
             write(f"{key} = {value!r}")
     else:
