@@ -78,6 +78,18 @@ IMM_TURN_TUNED = dataclasses.replace(EKF_TUNED, heading_rw=0.00025, yaw_rate_rw=
 IMM_STRAIGHT_YAW_RATE_RPS = 0.01
 """The IMM's cells, searched from the EKF's values (``sumhe bench tune search imm``): the curved one is the EKF's
 model, the straight one holds its azimuth and draws its yaw rate about zero with this sigma (rad/s)."""
+MSKF_TUNED = dataclasses.replace(
+    EKF_TUNED,
+    pos_rw=0.003125,
+    heading_rw=0.0005,
+    bias_rw=0.0001,
+    scale_rw=2.5e-06,
+    gps_scale=0.5,
+    course_rad=0.00125,
+)
+"""The multi-stage filter's start values of its EM (``pos_rw``, ``heading_rw``, ``gps_scale``) and fixed noises,
+searched from the EKF's: ``sumhe bench tune search mskf-em --sweeps 1 --seeds 100-102`` (training seeds, 2026-11-24;
+J 2.245 -> 1.946 m; ``docs/baselines.md``)."""
 GTSAM_TUNED = EKF_TUNED
 """The fixed-lag smoother's noise: the EKF's (its odometry model is the EKF's process model)."""
 GTSAM_SOG_SCALE = 1.0
@@ -149,7 +161,7 @@ class MskfSettings:
     (002: 30-40 s); ``em_iterations``: EM iterations per block at most; ``scale_limit``: the re-estimated
     covariances stay within this factor of their start values."""
 
-    noise: NoiseSettings = field(default_factory=lambda: EKF_TUNED)
+    noise: NoiseSettings = field(default_factory=lambda: MSKF_TUNED)
     block_s: float = 5.0
     r_window_s: float = 30.0
     em_iterations: int = 3
