@@ -90,9 +90,20 @@ MSKF_TUNED = dataclasses.replace(
 """The multi-stage filter's start values of its EM (``pos_rw``, ``heading_rw``, ``gps_scale``) and fixed noises,
 searched from the EKF's: ``sumhe bench tune search mskf-em --sweeps 1 --seeds 100-102`` (training seeds, 2026-11-24;
 J 2.245 -> 1.946 m; ``docs/baselines.md``)."""
-GTSAM_TUNED = EKF_TUNED
-"""The fixed-lag smoother's noise: the EKF's (its odometry model is the EKF's process model)."""
+GTSAM_TUNED = dataclasses.replace(
+    EKF_TUNED,
+    pos_rw=0.000390625,
+    heading_rw=0.00025,
+    can_yaw_rate_rps=0.006,
+    bias_rw=5e-05,
+    scale_rw=2e-05,
+    gps_scale=4.0,
+    course_rad=0.0025,
+)
 GTSAM_SOG_SCALE = 1.0
+"""The fixed-lag smoother's noise and speed-over-ground sigma scale, searched from the EKF's values (its odometry is
+the EKF's process model): ``sumhe bench tune search gtsam-fls --sweeps 1 --seeds 100-102 --factors 0.5,2`` (training
+seeds, 2026-11-24; J 2.017 -> 1.834 m; ``can_speed_mps`` and ``sog_scale`` stayed; ``docs/baselines.md``)."""
 
 
 @dataclass(frozen=True, slots=True)
