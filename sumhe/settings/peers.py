@@ -3,7 +3,8 @@
 defaults.
 
 The defaults come from ``sumhe bench tune`` (:mod:`sumhe.bench.tune`: a coordinate-wise grid search on training
-drives, seeds 100-105, never the test seeds; ``docs/baselines.md``). ``rts`` and ``ukf`` run the EKF's values.
+drives, seeds 100-105 (100-102 for ``mskf-em``, ``sr-upf`` and ``gtsam-fls``), never the test seeds nor a real drive;
+``docs/baselines.md``); each table's command, seeds and date are beside it. ``rts`` and ``ukf`` run the EKF's values.
 """
 
 from __future__ import annotations
