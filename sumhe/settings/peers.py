@@ -74,6 +74,10 @@ PF_TUNED = NoiseSettings(
     scale_rw=0.00032,
     gps_scale=2.0,
 )
+UPF_TUNED = dataclasses.replace(PF_TUNED, pos_rw=0.00078125, bias_rw=2.5e-05)
+"""The square-root unscented particle filter's noise, searched from ``pf``'s: ``sumhe bench tune search sr-upf
+--sweeps 1 --seeds 100-102 --factors 0.5,2`` (training seeds, 2026-11-24; J 3.134 -> 2.094 m; the other four
+stayed; ``docs/baselines.md``)."""
 IMM_STRAIGHT_TUNED = dataclasses.replace(EKF_TUNED, heading_rw=0.0005)
 IMM_TURN_TUNED = dataclasses.replace(EKF_TUNED, heading_rw=0.00025, yaw_rate_rw=0.0375)
 IMM_STRAIGHT_YAW_RATE_RPS = 0.01
@@ -189,13 +193,13 @@ class MskfSettings:
 class UpfSettings:
     """``[estimator.sr_upf]``: paper 004's square-root unscented particle filter (:mod:`sumhe.baseline.sr_upf`).
 
-    ``noise`` (``[estimator.sr_upf.noise]``): the particle filter's tuned noise (``pf``'s) plus the CAN sigmas as
-    the inputs' noise; ``particles`` and ``seed``; the GNSS noise's sparse kernel density: fitted on the normalised
+    ``noise`` (``[estimator.sr_upf.noise]``): its tuned noise (searched from ``pf``'s) plus the CAN sigmas as the
+    inputs' noise; ``particles`` and ``seed``; the GNSS noise's sparse kernel density: fitted on the normalised
     innovations of the last ``kde_samples`` fixes, once ``kde_min_samples`` exist, again every ``kde_refit`` fixes,
     LASSO regularisation ``kde_lasso`` (times the largest density) and weights below ``kde_threshold`` times the
     largest dropped (004: 0.1 and 0.2)."""
 
-    noise: NoiseSettings = field(default_factory=lambda: PF_TUNED)
+    noise: NoiseSettings = field(default_factory=lambda: UPF_TUNED)
     particles: int = 100
     seed: int = 0
     kde_samples: int = 200
