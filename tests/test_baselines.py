@@ -15,6 +15,7 @@ from sumhe.baseline.particle import ParticleFilter, systematic_resample
 from sumhe.baseline.rts import Rts
 from sumhe.baseline.stream import Gate
 from sumhe.baseline.ukf import Ukf
+from sumhe.bench import tune
 from sumhe.cli import main as cli_main
 from sumhe.config import load_config
 from sumhe.errors import ConfigError
@@ -359,6 +360,28 @@ def test_search_refuses_test_seeds(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
         cli_main(["bench", "tune", "search", "ekf", "--seeds", "5-7"])
     assert "test seeds" in capsys.readouterr().err
+
+
+def test_search_refuses_parameters_the_estimator_does_not_search(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        cli_main(["bench", "tune", "search", "mskf-em", "--params", "gps_scale,sog_scale"])
+    assert "--params: mskf-em searches pos_rw" in capsys.readouterr().err
+
+
+def test_search_candidates_stay_within_the_bounds() -> None:
+    assert tune.candidates("gps_scale", 1.0) == [0.5, 2.0, 4.0]  # 0.25 is below the bound
+    assert tune.candidates("turn.heading_rw", 1e-3) == [0.25e-3, 0.5e-3, 2e-3, 4e-3]
+    assert tune.candidates("course_rad", 0.1) == [0.025, 0.05, 0.2]
+    assert tune.candidates("pos_rw", 0.01, factors=(0.5, 2.0)) == [0.005, 0.02]
+
+
+@pytest.mark.parametrize("name", sorted(tune.SEARCH_PARAMETERS))
+def test_the_tuned_defaults_load_and_lie_within_the_search_bounds(name: str) -> None:
+    values = tune.start_values(name, load_config().estimation)
+    assert values == tune.start_values(name)  # the config's defaults are the tables' tuned values
+    for param in tune.SEARCH_PARAMETERS[name]:
+        lo, hi = tune.SEARCH_BOUNDS[param.rpartition(".")[2]]
+        assert lo <= tune.get_value(values, param) <= hi, param
 
 
 def test_gnss_period_follows_the_epochs() -> None:

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sumhe.bench.tune import build, start_values, with_value
+from sumhe.bench.tune import SEARCH_BOUNDS, build, case_from, get_value, score, search, start_values, with_value
 from sumhe.cli import main as cli_main
 from sumhe.config import PACKAGE_DATA, DatumSettings, GpsSettings, load_config
 from sumhe.errors import ConfigError
@@ -318,6 +318,40 @@ def test_the_tuning_search_builds_it_with_the_noise_searched() -> None:
     settings = EstimationSettings()
     start = start_values("gtsam-fls", settings)
     assert start["noise"] == settings.estimator.gtsam_fls.noise
-    est = build("gtsam-fls", settings, with_value(start, "pos_rw", 0.01))
-    assert isinstance(est, GtsamFls) and est.noise.pos_rw == 0.01
+    assert start["sog_scale"] == settings.estimator.gtsam_fls.sog_scale
+    est = build("gtsam-fls", settings, with_value(with_value(start, "pos_rw", 0.01), "sog_scale", 2.5))
+    assert isinstance(est, GtsamFls) and est.noise.pos_rw == 0.01 and est.table.sog_scale == 2.5
     assert est.noise.bias_rw == start["noise"].bias_rw and est.table.lag_s == settings.estimator.gtsam_fls.lag_s
+
+
+def test_sog_scale_scales_the_speed_over_ground_sigma() -> None:
+    samples = synthetic_drive(20.0).samples
+    tight, loose = (
+        build("gtsam-fls", EstimationSettings(), with_value(start_values("gtsam-fls"), "sog_scale", scale))
+        for scale in (1.0, 1e3)
+    )
+    for est in (tight, loose):
+        run(est, samples)
+    # the speed factors tell the speed scale k; with a sigma 1000x wider only the fixes through the odometry do
+    # (sigma 0.42e-3 against 0.76e-3 when written)
+    k_sigma = [
+        math.sqrt(est._smoother.marginalCovariance(gtsam.symbol("c", est._node.index))[1, 1]) for est in (tight, loose)
+    ]
+    assert k_sigma[0] < 0.7 * k_sigma[1]
+
+
+@pytest.mark.slow
+def test_the_search_tunes_it_within_the_bounds_on_a_short_drive() -> None:
+    case = case_from(SimSettings(scenario="urban", seed=100, duration_s=45.0, gps_error="walk", outages=((22.0, 5.0),)))
+    start = with_value(start_values("gtsam-fls"), "gps_scale", SEARCH_BOUNDS["gps_scale"][0])
+    lines: list[str] = []
+    params = ("gps_scale", "sog_scale")
+    tuned = search("gtsam-fls", [case], 1, lines.append, params=params, start=start)
+    for param in params:
+        lo, hi = SEARCH_BOUNDS[param]
+        assert lo <= get_value(tuned, param) <= hi
+    assert tuned["noise"].pos_rw == start["noise"].pos_rw  # only the parameters asked for move
+    assert score("gtsam-fls", tuned, [case]) <= score("gtsam-fls", start, [case])
+    # the candidates below the lower bound (0.25 and 0.125) were never tried
+    assert not any(line.strip().startswith("gps_scale = 0.1") for line in lines)
+    assert lines[0].startswith("gtsam-fls: start J =") and lines[-1].startswith("gtsam-fls: best J =")

@@ -12,7 +12,8 @@ The factor graph, one node per GNSS epoch ``k`` (at the epoch's time on the CAN 
   densities (``pos_rw``, ``heading_rw``); a CAN value missing is held, its error a random walk (``speed_rw``,
   ``yaw_rate_rw``: the EKF's model of its speed and yaw-rate states);
 * GNSS factors on ``X_k``: position (the front-end's sigmas x ``gps_scale``), azimuth (course or heading, sigma
-  with ``course_rad``); on ``C_k``: speed over ground against the CAN speed (``k sog = CAN speed``).
+  with ``course_rad``); on ``C_k``: speed over ground against the CAN speed (``k sog = CAN speed``; the front-end's
+  sigma x ``sog_scale``).
 
 Without ``C_k`` (the odometry taken as it is) the smoother drifted to 25.7 m in the bundled drive's outages; with
 it, it matched the MHE (issue 17). The figures: ``docs/baselines.md``.
@@ -495,6 +496,7 @@ class GtsamFls(RecursiveEstimator):
             nu = np.array([wrap_angle(z[0] - (0.5 * math.pi - pose[2]))])
             S, factor = P[2:3, 2:3] + R, (azimuth_error(float(z[0])), R, "x")
         else:
+            R = R * self.table.sog_scale**2  # the speed over ground's sigma, scaled as the search tuned it
             measured = self.frontend.can["speed"].at(opened.t, self.settings.can.max_gap_s)
             can = float(z[0]) * float(calib[1]) if measured is None else measured  # no CAN: no factor below
             H = np.array([[0.0, 0.0, 0.0, 0.0, -can / calib[1] ** 2]])

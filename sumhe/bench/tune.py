@@ -31,14 +31,13 @@ import numpy as np
 from sumhe.baseline.dead_reckoning import DeadReckoning
 from sumhe.baseline.ekf import Ekf
 from sumhe.baseline.imm import Imm
-from sumhe.baseline.mskf_em import MskfEm
 from sumhe.baseline.particle import ParticleFilter
 from sumhe.baseline.rts import Rts
-from sumhe.baseline.sr_upf import SrUpf
 from sumhe.baseline.stream import RecursiveEstimator
 from sumhe.baseline.ukf import Ukf
 from sumhe.config import DatumSettings, GpsSettings
 from sumhe.estimator.base import StateEstimate
+from sumhe.estimator.registry import estimator_class
 from sumhe.frontend.fixes import FixConverter, LocalFix
 from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample
@@ -86,6 +85,11 @@ def make_case(seed: int, duration_s: float = 150.0, gps_error: str = "walk") -> 
         gps_error=gps_error,
         outages=((round(short, 1), OUTAGE_LENGTHS_S[0]), (round(long, 1), OUTAGE_LENGTHS_S[1])),
     )
+    return case_from(s)
+
+
+def case_from(s: SimSettings) -> Case:
+    """The simulated drive of ``s`` as the estimators see it."""
     drive = simulate(s)
     converter = FixConverter(DatumSettings("fixed", s.datum_lat_deg, s.datum_lon_deg, s.datum_alt_m))
     local = [converter.convert(stamp_fix(f, GpsSettings())) for f in drive.fixes()]
@@ -174,12 +178,54 @@ SEARCH_PARAMETERS: dict[str, tuple[str, ...]] = {
     "ekf": ("pos_rw", "heading_rw", "speed_rw", "yaw_rate_rw", "bias_rw", "gps_scale", "course_rad"),
     "ukf": ("pos_rw", "heading_rw", "yaw_rate_rw", "gps_scale"),
     "pf": ("pos_rw", "heading_rw", "bias_rw", "scale_rw", "gps_scale", "course_rad"),
-    "gtsam-fls": ("pos_rw", "heading_rw", "bias_rw", "scale_rw", "gps_scale", "course_rad"),
+    "gtsam-fls": (
+        "pos_rw",
+        "heading_rw",
+        "can_speed_mps",
+        "can_yaw_rate_rps",
+        "bias_rw",
+        "scale_rw",
+        "gps_scale",
+        "sog_scale",
+        "course_rad",
+    ),
     "mskf-em": ("pos_rw", "heading_rw", "bias_rw", "scale_rw", "gps_scale", "course_rad"),
     "sr-upf": ("pos_rw", "heading_rw", "bias_rw", "scale_rw", "gps_scale", "course_rad"),
     "imm": ("straight_yaw_rate_rps", "straight.heading_rw", "straight.pos_rw", "turn.yaw_rate_rw", "turn.heading_rw"),
 }
-"""What the search tunes per estimator (an estimator not tuned yet starts from the EKF's values)."""
+"""What the search tunes per estimator (an estimator not tuned yet starts from the EKF's values). ``gtsam-fls``: its
+odometry's model errors and CAN sigmas, the calibration's random walks, the GNSS position, speed-over-ground and course
+sigmas; not ``speed_rw`` and ``yaw_rate_rw``, which only widen a held CAN value (the training drives have no CAN gaps).
+"""
+
+SEARCH_BOUNDS: dict[str, tuple[float, float]] = {
+    "pos_rw": (1e-5, 1.0),
+    "heading_rw": (1e-6, 0.1),
+    "speed_rw": (1e-3, 10.0),
+    "yaw_rate_rw": (1e-4, 1.0),
+    "bias_rw": (1e-7, 1e-2),
+    "scale_rw": (1e-7, 1e-2),
+    "can_speed_mps": (0.005, 1.0),
+    "can_yaw_rate_rps": (2e-4, 0.05),
+    "gps_scale": (0.5, 10.0),
+    "sog_scale": (0.5, 10.0),
+    "course_rad": (1e-4, 0.2),
+    "straight_yaw_rate_rps": (1e-3, 0.2),
+}
+"""Where the search may go, by the parameter's field name (``turn.heading_rw`` is a ``heading_rw``), SI units: what
+real vehicles and receivers allow. A GNSS sigma at most halved (a receiver is not twice as good as it says), CAN
+sigmas from a quantum's rounding to 1 m/s and 3 deg/s, random walks from negligible to far beyond a real sensor's."""
+
+PEER_TABLES = {"gtsam-fls": "gtsam_fls", "mskf-em": "mskf_em", "sr-upf": "sr_upf"}
+"""The peers built from their table (``[estimator.NAME]``): the search sets its ``noise`` and the fields of
+``TABLE_FIELDS``."""
+TABLE_FIELDS = {"gtsam-fls": ("sog_scale",)}
+
+
+def candidates(param: str, current: float, factors: Sequence[float] = SEARCH_FACTORS) -> list[float]:
+    """The values a sweep tries for ``param`` at ``current``: ``factors`` times it, within its bounds."""
+    lo, hi = SEARCH_BOUNDS[param.rpartition(".")[2]]
+    return [current * f for f in factors if lo <= current * f <= hi]
 
 
 def start_values(name: str, settings: EstimationSettings | None = None) -> dict[str, Any]:
@@ -194,15 +240,10 @@ def start_values(name: str, settings: EstimationSettings | None = None) -> dict[
             "sojourn_straight_s": table.imm.sojourn_straight_s,
             "sojourn_turn_s": table.imm.sojourn_turn_s,
         }
-    noise = {
-        "dead-reckoning": NoiseSettings(),
-        "pf": table.pf.noise,
-        "ukf": table.ukf,
-        "rts": table.rts,
-        "gtsam-fls": table.gtsam_fls.noise,
-        "mskf-em": table.mskf_em.noise,
-        "sr-upf": table.sr_upf.noise,
-    }
+    if name in PEER_TABLES:
+        peer = getattr(table, PEER_TABLES[name])
+        return {"noise": peer.noise, **{key: getattr(peer, key) for key in TABLE_FIELDS.get(name, ())}}
+    noise = {"dead-reckoning": NoiseSettings(), "pf": table.pf.noise, "ukf": table.ukf, "rts": table.rts}
     return {"noise": noise.get(name, table.ekf)}
 
 
@@ -239,59 +280,50 @@ def build(name: str, settings: EstimationSettings, values: dict[str, Any] | None
             sojourn_s=(values["sojourn_straight_s"], values["sojourn_turn_s"]),
             straight_yaw_rate_rps=values["straight_yaw_rate_rps"],
         )
+    if name in PEER_TABLES:  # the registry imports it (GTSAM only when asked for: the optional ``sumhe[peers]``)
+        table = dataclasses.replace(getattr(settings.estimator, PEER_TABLES[name]), **values)
+        return estimator_class(name)(settings, table)  # type: ignore[no-any-return]
     classes: dict[str, Callable[..., RecursiveEstimator]] = {
         "dead-reckoning": DeadReckoning,
         "ekf": Ekf,
         "rts": Rts,
         "ukf": Ukf,
         "pf": ParticleFilter,
-        "gtsam-fls": _gtsam_fls,
-        "mskf-em": _mskf_em,
-        "sr-upf": _sr_upf,
     }
     return classes[name](settings, noise=values["noise"])
-
-
-def _gtsam_fls(settings: EstimationSettings, noise: NoiseSettings) -> RecursiveEstimator:
-    """``gtsam-fls`` with ``noise`` (imported only when asked for: GTSAM is the optional extra ``sumhe[peers]``)."""
-    from sumhe.baseline.gtsam_fls import GtsamFls
-
-    return GtsamFls(settings, dataclasses.replace(settings.estimator.gtsam_fls, noise=noise))
-
-
-def _mskf_em(settings: EstimationSettings, noise: NoiseSettings) -> RecursiveEstimator:
-    """``mskf-em`` with ``noise`` as the start of its EM."""
-    return MskfEm(settings, dataclasses.replace(settings.estimator.mskf_em, noise=noise))
-
-
-def _sr_upf(settings: EstimationSettings, noise: NoiseSettings) -> RecursiveEstimator:
-    """``sr-upf`` with ``noise``."""
-    return SrUpf(settings, dataclasses.replace(settings.estimator.sr_upf, noise=noise))
 
 
 def score(name: str, values: dict[str, Any], cases: Sequence[Case]) -> float:
     return objective([position_errors(c, run_case(build(name, case_settings(c), values), c).epochs) for c in cases])
 
 
-def search(name: str, cases: Sequence[Case], sweeps: int, write: Callable[[str], None]) -> dict[str, Any]:
-    """Coordinate-wise grid search of ``SEARCH_PARAMETERS[name]`` from the current defaults."""
-    values = start_values(name)
+def search(
+    name: str,
+    cases: Sequence[Case],
+    sweeps: int,
+    write: Callable[[str], None],
+    params: Sequence[str] | None = None,
+    start: dict[str, Any] | None = None,
+    factors: Sequence[float] = SEARCH_FACTORS,
+) -> dict[str, Any]:
+    """Coordinate-wise grid search of ``params`` (default ``SEARCH_PARAMETERS[name]``) within ``SEARCH_BOUNDS``,
+    from ``start`` (default: the current defaults), trying ``factors`` times each value in turn."""
+    values = start if start is not None else start_values(name)
     best = score(name, values, cases)
     write(f"{name}: start J = {best:.4f} m")
     for sweep in range(sweeps):
         improved = False
-        for param in SEARCH_PARAMETERS[name]:
-            current = get_value(values, param)
-            for factor in SEARCH_FACTORS:
-                candidate = with_value(values, param, current * factor)
+        for param in params or SEARCH_PARAMETERS[name]:
+            for value in candidates(param, get_value(values, param), factors):
+                candidate = with_value(values, param, value)
                 try:
                     j = score(name, candidate, cases)
                 except ValueError as e:
-                    write(f"  {param} = {current * factor:.4g}: invalid ({e})")
+                    write(f"  {param} = {value:.4g}: invalid ({e})")
                     continue
                 if j < best - 1e-4:
                     best, values, improved = j, candidate, True
-                    write(f"  sweep {sweep + 1}: {param} = {current * factor:.4g} -> J = {j:.4f} m")
+                    write(f"  sweep {sweep + 1}: {param} = {value:.4g} -> J = {j:.4f} m")
         if not improved:
             break
     write(f"{name}: best J = {best:.4f} m")
@@ -348,6 +380,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p_search = sub.add_parser("search", help="grid-search one estimator's noise on training drives")
     p_search.add_argument("estimator", choices=sorted(SEARCH_PARAMETERS))
     p_search.add_argument("--sweeps", type=int, default=2)
+    p_search.add_argument("--params", help="comma-separated subset of the estimator's searched parameters")
+    p_search.add_argument(
+        "--factors",
+        default=",".join(f"{f:g}" for f in SEARCH_FACTORS),
+        help="multiples of each value a sweep tries (a smaller grid for a slow estimator: 0.5,2)",
+    )
     p_eval = sub.add_parser("evaluate", help="position errors of the estimators on test drives")
     p_eval.add_argument("--estimators", default="dead-reckoning,ekf,rts,ukf,pf,imm")
     for p, seeds in ((p_search, TRAINING_SEEDS), (p_eval, TEST_SEEDS)):
@@ -364,7 +402,12 @@ def run(args: argparse.Namespace, write: Callable[[str], None]) -> int:
         args._parser.error("the search must not see the test seeds 1-99")
     cases = [make_case(s, args.duration, args.gps_error) for s in seeds]
     if args.command == "search":
-        values = search(args.estimator, cases, args.sweeps, write)
+        params = args.params.split(",") if args.params else None
+        unknown = set(params or ()) - set(SEARCH_PARAMETERS[args.estimator])
+        if unknown:
+            args._parser.error(f"--params: {args.estimator} searches {', '.join(SEARCH_PARAMETERS[args.estimator])}")
+        factors = [float(f) for f in args.factors.split(",")]
+        values = search(args.estimator, cases, args.sweeps, write, params, factors=factors)
         for key, value in values.items():
             write(f"{key} = {value!r}")
     else:

@@ -3,7 +3,8 @@
 defaults.
 
 The defaults come from ``sumhe bench tune`` (:mod:`sumhe.bench.tune`: a coordinate-wise grid search on training
-drives, seeds 100-105, never the test seeds; ``docs/baselines.md``). ``rts`` and ``ukf`` run the EKF's values.
+drives, seeds 100-105 (100-102 for ``mskf-em``, ``sr-upf`` and ``gtsam-fls``), never the test seeds nor a real drive;
+``docs/baselines.md``); each table's command, seeds and date are beside it. ``rts`` and ``ukf`` run the EKF's values.
 """
 
 from __future__ import annotations
@@ -73,13 +74,41 @@ PF_TUNED = NoiseSettings(
     scale_rw=0.00032,
     gps_scale=2.0,
 )
+UPF_TUNED = dataclasses.replace(PF_TUNED, pos_rw=0.00078125, bias_rw=2.5e-05)
+"""The square-root unscented particle filter's noise, searched from ``pf``'s: ``sumhe bench tune search sr-upf
+--sweeps 1 --seeds 100-102 --factors 0.5,2`` (training seeds, 2026-11-24; J 3.134 -> 2.094 m; the other four
+stayed; ``docs/baselines.md``)."""
 IMM_STRAIGHT_TUNED = dataclasses.replace(EKF_TUNED, heading_rw=0.0005)
 IMM_TURN_TUNED = dataclasses.replace(EKF_TUNED, heading_rw=0.00025, yaw_rate_rw=0.0375)
 IMM_STRAIGHT_YAW_RATE_RPS = 0.01
 """The IMM's cells, searched from the EKF's values (``sumhe bench tune search imm``): the curved one is the EKF's
 model, the straight one holds its azimuth and draws its yaw rate about zero with this sigma (rad/s)."""
-GTSAM_TUNED = EKF_TUNED
-"""The fixed-lag smoother's noise: the EKF's (its odometry model is the EKF's process model)."""
+MSKF_TUNED = dataclasses.replace(
+    EKF_TUNED,
+    pos_rw=0.003125,
+    heading_rw=0.0005,
+    bias_rw=0.0001,
+    scale_rw=2.5e-06,
+    gps_scale=0.5,
+    course_rad=0.00125,
+)
+"""The multi-stage filter's start values of its EM (``pos_rw``, ``heading_rw``, ``gps_scale``) and fixed noises,
+searched from the EKF's: ``sumhe bench tune search mskf-em --sweeps 1 --seeds 100-102`` (training seeds, 2026-11-24;
+J 2.245 -> 1.946 m; ``docs/baselines.md``)."""
+GTSAM_TUNED = dataclasses.replace(
+    EKF_TUNED,
+    pos_rw=0.000390625,
+    heading_rw=0.00025,
+    can_yaw_rate_rps=0.006,
+    bias_rw=5e-05,
+    scale_rw=2e-05,
+    gps_scale=4.0,
+    course_rad=0.0025,
+)
+GTSAM_SOG_SCALE = 1.0
+"""The fixed-lag smoother's noise and speed-over-ground sigma scale, searched from the EKF's values (its odometry is
+the EKF's process model): ``sumhe bench tune search gtsam-fls --sweeps 1 --seeds 100-102 --factors 0.5,2`` (training
+seeds, 2026-11-24; J 2.017 -> 1.834 m; ``can_speed_mps`` and ``sog_scale`` stayed; ``docs/baselines.md``)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -122,17 +151,19 @@ class GtsamSettings:
 
     ``noise``: model error densities of the odometry (``pos_rw``, ``heading_rw``), the CAN sigmas per sample, the
     bias and scale random walks, ``gps_scale``, ``course_rad``, gate, priors (``[estimator.gtsam_fls.noise]``);
-    ``lag_s``: the smoother's lag (s; nodes older than this behind the newest are marginalised);
+    ``sog_scale``: the GNSS speed over ground's sigma as a multiple of the front-end's (``gps_scale``'s twin for the
+    speed factor); ``lag_s``: the smoother's lag (s; nodes older than this behind the newest are marginalised);
     ``relinearize_threshold`` and ``relinearize_skip``: iSAM2's (a variable is relinearised when its update exceeds
     the threshold, checked every ``relinearize_skip`` updates; GTSAM's defaults)."""
 
     noise: NoiseSettings = field(default_factory=lambda: GTSAM_TUNED)
+    sog_scale: float = GTSAM_SOG_SCALE
     lag_s: float = 5.0
     relinearize_threshold: float = 0.1
     relinearize_skip: int = 10
 
     def __post_init__(self) -> None:
-        positive(self, "lag_s", "relinearize_threshold")
+        positive(self, "sog_scale", "lag_s", "relinearize_threshold")
         at_least(self, 1, "relinearize_skip")
 
 
@@ -146,7 +177,7 @@ class MskfSettings:
     (002: 30-40 s); ``em_iterations``: EM iterations per block at most; ``scale_limit``: the re-estimated
     covariances stay within this factor of their start values."""
 
-    noise: NoiseSettings = field(default_factory=lambda: EKF_TUNED)
+    noise: NoiseSettings = field(default_factory=lambda: MSKF_TUNED)
     block_s: float = 5.0
     r_window_s: float = 30.0
     em_iterations: int = 3
@@ -162,13 +193,13 @@ class MskfSettings:
 class UpfSettings:
     """``[estimator.sr_upf]``: paper 004's square-root unscented particle filter (:mod:`sumhe.baseline.sr_upf`).
 
-    ``noise`` (``[estimator.sr_upf.noise]``): the particle filter's tuned noise (``pf``'s) plus the CAN sigmas as
-    the inputs' noise; ``particles`` and ``seed``; the GNSS noise's sparse kernel density: fitted on the normalised
+    ``noise`` (``[estimator.sr_upf.noise]``): its tuned noise (searched from ``pf``'s) plus the CAN sigmas as the
+    inputs' noise; ``particles`` and ``seed``; the GNSS noise's sparse kernel density: fitted on the normalised
     innovations of the last ``kde_samples`` fixes, once ``kde_min_samples`` exist, again every ``kde_refit`` fixes,
     LASSO regularisation ``kde_lasso`` (times the largest density) and weights below ``kde_threshold`` times the
     largest dropped (004: 0.1 and 0.2)."""
 
-    noise: NoiseSettings = field(default_factory=lambda: PF_TUNED)
+    noise: NoiseSettings = field(default_factory=lambda: UPF_TUNED)
     particles: int = 100
     seed: int = 0
     kde_samples: int = 200
