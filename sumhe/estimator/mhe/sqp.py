@@ -21,7 +21,7 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 from numpy.typing import NDArray
-from scipy.linalg import solveh_banded
+from scipy.linalg import get_lapack_funcs
 
 from sumhe.errors import SolverError
 from sumhe.estimator.mhe.problem import SolveResult, WindowProblem, residual_functions
@@ -39,6 +39,9 @@ BOX_TOL = 1e-9
 """Slack allowed on the boxes when the banded (unconstrained) solution is checked against them."""
 REGULARISATION = 1e-6
 """Added to the normal matrix's diagonal: directions no data fixes (an azimuth at standstill) stay put."""
+(_PBSV,) = get_lapack_funcs(("pbsv",), (np.zeros(1),))
+"""LAPACK's banded Cholesky solve, called directly: what :func:`scipy.linalg.solveh_banded` calls, without its
+per-call checks (a fifth of the banded step's time on a 50-step window)."""
 
 
 def _free(mask: NDArray[np.bool_], lo: NDArray, hi: NDArray) -> tuple[NDArray, NDArray]:
@@ -92,16 +95,16 @@ class SqpSolver:
         """Index maps from products of Jacobian entries of one row to the normal matrix: its band (states, upper
         band storage of :func:`scipy.linalg.solveh_banded`), the state-CAN block and the CAN-CAN block."""
         rows, cols, nx, nt = self._rows, self._cols, self.capacity * self.md, self.nt
+        # every pair (a, b) of entries of one row, rows in order, a then b in the row's order (a row's
+        # np.meshgrid(idx, idx, indexing="ij")), kept where cols[a] <= cols[b]
         order = np.argsort(rows, kind="stable")
-        starts = np.searchsorted(rows[order], np.arange(self.nw + self.ne + 1))
-        first, second = [], []
-        for i in range(self.nw + self.ne):
-            idx = order[starts[i] : starts[i + 1]]
-            a, b = np.meshgrid(idx, idx, indexing="ij")
-            keep = cols[a] <= cols[b]
-            first.append(a[keep])
-            second.append(b[keep])
-        pa, pb = np.concatenate(first), np.concatenate(second)
+        per_row = np.bincount(rows, minlength=self.nw + self.ne)
+        count, row_start = per_row[rows[order]], (np.cumsum(per_row) - per_row)[rows[order]]
+        a = np.repeat(order, count)
+        within = np.arange(len(a)) - np.repeat(np.cumsum(count) - count, count)
+        b = order[np.repeat(row_start, count) + within]
+        keep = cols[a] <= cols[b]
+        pa, pb = a[keep], b[keep]
         ci, cj = cols[pa], cols[pb]
         xx, xt, tt = (ci < nx) & (cj < nx), (ci < nx) & (cj >= nx), (ci >= nx) & (cj >= nx)
         self._bw = int(np.max(cj[xx] - ci[xx], initial=0))
@@ -181,7 +184,9 @@ class SqpSolver:
         band = band[:, :n_live]
         band[bw] += REGULARISATION
         try:
-            sol = solveh_banded(band, np.column_stack([b[:n_live], Nxt[:n_live]]), check_finite=False)
+            _, sol, info = _PBSV(band, np.column_stack([b[:n_live], Nxt[:n_live]]), overwrite_ab=True, overwrite_b=True)
+            if info > 0:
+                raise np.linalg.LinAlgError(f"{info}th leading minor not positive definite")
             schur = Ntt - Nxt[:n_live].T @ sol[:, 1:]
             dtheta = np.linalg.solve(schur, b[nx:] - Nxt[:n_live].T @ sol[:, 0])
         except np.linalg.LinAlgError:
