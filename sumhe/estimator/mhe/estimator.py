@@ -141,8 +141,8 @@ class MovingHorizonEstimator(StreamEstimator):
         return self.window.t.copy(), self.window.x.copy()
 
     def warm_up(self) -> None:
-        """Build the solver of every window size now rather than at first use (milliseconds each for ``sqp``,
-        up to seconds for the NLP solvers)."""
+        """Build the solver of every window size now rather than at first use (10-60 ms each for ``sqp``, OSQP set
+        up at its first QP; up to seconds for the NLP solvers)."""
         self.solve.warm_up()
 
     # ---- epochs -----------------------------------------------------------------------------------------------
