@@ -188,7 +188,7 @@ class Recorder:
             if self._last is not None:
                 self.distance_m += math.hypot(est.east_m - self._last[0], est.north_m - self._last[1])
             self._last = (est.east_m, est.north_m)
-            if any(start - margin <= est.t <= end + margin for start, end in self.windows):
+            if self.windows and any(start - margin <= est.t <= end + margin for start, end in self.windows):
                 self.t.append(est.t)
                 self.lat.append(est.lat_deg)
                 self.lon.append(est.lon_deg)
