@@ -1,3 +1,4 @@
+import datetime as dt
 import json
 import math
 import socket
@@ -39,6 +40,16 @@ def receiver():
 
 def test_iso_utc_has_milliseconds_and_z():
     assert iso_utc(1780300800.1) == "2026-06-01T08:00:00.100Z"
+
+
+@pytest.mark.parametrize(
+    "t", [1780300800.9999996, 1780300800.9999994, 1780300800.0000005, 1780300800.0000015, 0.9999999, 1.5, 1e9 + 0.1]
+)
+def test_iso_utc_rounds_microseconds_as_datetime_does(t):
+    """The cached seconds and the millisecond arithmetic give what datetime's own formatting gives, where the
+    microseconds round half to even and carry into the next second."""
+    when = dt.datetime.fromtimestamp(t, tz=dt.timezone.utc)
+    assert iso_utc(t) == when.strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
 
 
 def test_json_keys_units_and_track_in_degrees():

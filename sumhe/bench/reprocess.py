@@ -39,7 +39,7 @@ from sumhe.errors import ConfigError
 from sumhe.estimator.base import Estimator
 from sumhe.geo import LocalFrame
 from sumhe.io.replay import RecordedDrive
-from sumhe.io.udp import estimate_to_json
+from sumhe.io.udp import json_line
 from sumhe.messages import Estimate
 from sumhe.service.pipeline import MonotonicOutput, Pipeline
 from sumhe.sim.truth import Truth
@@ -188,14 +188,14 @@ class Recorder:
             if self._last is not None:
                 self.distance_m += math.hypot(est.east_m - self._last[0], est.north_m - self._last[1])
             self._last = (est.east_m, est.north_m)
-            if any(start - margin <= est.t <= end + margin for start, end in self.windows):
+            if self.windows and any(start - margin <= est.t <= end + margin for start, end in self.windows):
                 self.t.append(est.t)
                 self.lat.append(est.lat_deg)
                 self.lon.append(est.lon_deg)
             if self._truth is not None:
                 self._truth.add(est)
             if self.out is not None and self.order.admit(est):
-                lines.append(json.dumps(estimate_to_json(est), separators=(",", ":")))
+                lines.append(json_line(est))
         if lines:
             self.out.write("\n".join(lines) + "\n")  # type: ignore[union-attr]
 

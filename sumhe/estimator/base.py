@@ -235,12 +235,20 @@ class Receiver:
         horizontal sigma grew since (so that a consumer who reads only HDOP sees the error grow)."""
         spread = self._grow(estimate.spread)
         if estimate.gps == "ok":
-            return replace(estimate, spread=spread, sats=self.sats, hdop=self.hdop)
+            return _tagged(estimate, spread, self.sats, self.hdop)
         sigma = horizontal_sigma(spread)
         hdop = self.hdop
         if hdop is not None and sigma is not None and self.sigma_m:
             hdop = hdop * max(sigma / self.sigma_m, 1.0)
-        return replace(estimate, spread=spread, sats=0, hdop=hdop)
+        return _tagged(estimate, spread, 0, hdop)
+
+
+def _tagged(e: StateEstimate, spread: Spread | None, sats: int | None, hdop: float | None) -> StateEstimate:
+    """``dataclasses.replace(e, spread=spread, sats=sats, hdop=hdop)``, a few times faster (one per estimate)."""
+    return StateEstimate(
+        e.t, e.east_m, e.north_m, e.azimuth_rad, e.speed_mps, e.yaw_rate_rps, e.gps, e.mode, e.bound_east_m,
+        e.bound_north_m, e.window, e.solve_ms, spread, sats, hdop
+    )  # fmt: skip
 
 
 def predicted_at(

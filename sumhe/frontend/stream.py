@@ -265,7 +265,10 @@ class FrontEnd:
 
     def _missed(self, t_fix_clock: float) -> list[Epoch | CanTick]:
         """The epochs missed up to ``t_fix_clock`` (s, on the fixes' own clock), at their times on the CAN clock."""
-        times = [t + self.time_offset_s for t in self.clock.missed(t_fix_clock)]
+        missed = self.clock.missed(t_fix_clock)
+        if not missed:  # nearly every call (one per sample)
+            return []
+        times = [t + self.time_offset_s for t in missed]
         times = [t for t in times if t >= self._t_epoch + SAME_EPOCH * self.period_s]
         if times:
             self.tally.counts["epochs"] += len(times)

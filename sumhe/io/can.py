@@ -871,6 +871,9 @@ def read_logs(
 def _merged(
     pending: deque[tuple[float, int, Path]], stats: LogStats, is_pause: PauseJudge | None
 ) -> Iterator[can.Message]:
+    if len(pending) == 1:  # one file: its frames as they come, without the heap
+        yield from read_log(pending[0][2], stats, is_pause)
+        return
     active: list[tuple[float, int, can.Message, Iterator[can.Message]]] = []
     order = itertools.count()
     while pending or active:

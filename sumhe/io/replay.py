@@ -16,6 +16,7 @@ import dataclasses
 import heapq
 import itertools
 import math
+import operator
 from collections.abc import AsyncIterator, Collection, Iterable, Iterator, Sequence
 from os import PathLike
 from pathlib import Path
@@ -33,9 +34,12 @@ REORDER_MARGIN_S = 0.1
 """Added to the longest a fix decoded from CAN can come after later-stamped samples (:func:`reorder_hold_s`)."""
 
 
+_time = operator.attrgetter("t")
+
+
 def merge_by_time(*streams: Iterable[Sample]) -> Iterator[Sample]:
     """Merge time-ordered streams into one, ordered by ``t`` (stable: ties keep stream order)."""
-    return heapq.merge(*streams, key=lambda s: s.t)
+    return heapq.merge(*streams, key=_time)
 
 
 def time_ordered(samples: Iterable[Sample], hold_s: float) -> Iterator[Sample]:

@@ -12,6 +12,7 @@ receiver is not an error (counted, logged once per destination). JSON keys are d
 from __future__ import annotations
 
 import datetime as dt
+import functools
 import ipaddress
 import json
 import logging
@@ -30,8 +31,21 @@ log = logging.getLogger(__name__)
 
 
 def iso_utc(t: float) -> str:
-    """Unix seconds -> ISO 8601 UTC with milliseconds, e.g. ``2026-06-01T08:00:00.100Z``."""
-    return dt.datetime.fromtimestamp(t, tz=dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
+    """Unix seconds -> ISO 8601 UTC with milliseconds, e.g. ``2026-06-01T08:00:00.100Z``: the microseconds
+    rounded half to even, as :meth:`datetime.datetime.fromtimestamp` rounds them, then cut to milliseconds."""
+    fraction, whole = math.modf(t)
+    us = round(fraction * 1e6)
+    if us >= 1_000_000:
+        us, whole = us - 1_000_000, whole + 1.0
+    elif us < 0:
+        us, whole = us + 1_000_000, whole - 1.0
+    return f"{_utc_second(int(whole))}.{us // 1000:03d}Z"
+
+
+@functools.lru_cache(maxsize=16)
+def _utc_second(t: int) -> str:
+    """Whole Unix seconds -> ``2026-06-01T08:00:00`` (cached: estimates come many to a second)."""
+    return dt.datetime.fromtimestamp(t, tz=dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S")
 
 
 def _round(value: float | None, digits: int) -> float | None:
@@ -73,9 +87,18 @@ def estimate_to_json(est: Estimate) -> dict[str, Any]:
     return out
 
 
+_COMPACT = json.JSONEncoder(separators=(",", ":"))
+"""``json.dumps(..., separators=(",", ":"))`` without building an encoder per call."""
+
+
+def json_line(est: Estimate) -> str:
+    """One estimate as compact JSON text (no newline): what a datagram and a line of ``sumhe replay --out`` hold."""
+    return _COMPACT.encode(estimate_to_json(est))
+
+
 def encode_json(est: Estimate) -> bytes:
     """One datagram: compact JSON, UTF-8, no trailing newline."""
-    return json.dumps(estimate_to_json(est), separators=(",", ":")).encode()
+    return json_line(est).encode()
 
 
 GGA_GPS = 1

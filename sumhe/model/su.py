@@ -229,7 +229,8 @@ class SuModel:
     length with which the state-noise bound of state ``i`` scales (2: Euler error of an integrated
     quantity, 1: one-step change of a random walk). ``gps_outputs`` are the outputs present only with a
     GNSS fix; ``position`` names the (east, north) state indices of the reported position. The first
-    ``n_dynamic`` states carry state noise; the rest (bias, scale) are constant over a window.
+    ``n_dynamic`` states carry state noise; the rest (bias, scale) are constant over a window. The indices
+    below are looked up once (cached: the estimators read them per CAN sample).
     """
 
     name: str
@@ -246,11 +247,11 @@ class SuModel:
     antennas: int
     n_dynamic: int
 
-    @property
+    @functools.cached_property
     def n_states(self) -> int:
         return len(self.states)
 
-    @property
+    @functools.cached_property
     def n_outputs(self) -> int:
         return len(self.outputs)
 
@@ -261,67 +262,67 @@ class SuModel:
     def _optional(self, state: str) -> int | None:
         return self.states.index(state) if state in self.states else None
 
-    @property
+    @functools.cached_property
     def i_phi(self) -> int:
         """The azimuth state."""
         return self.states.index("phi")
 
-    @property
+    @functools.cached_property
     def i_v(self) -> int:
         """The speed state."""
         return self.states.index("v")
 
-    @property
+    @functools.cached_property
     def i_omega(self) -> int:
         """The yaw-rate state."""
         return self.states.index("omega")
 
-    @property
+    @functools.cached_property
     def i_bias(self) -> int | None:
         """The CAN yaw-rate bias state, None without it."""
         return self._optional(BIAS_STATE)
 
-    @property
+    @functools.cached_property
     def i_scale(self) -> int | None:
         """The CAN speed-scale state, None without it."""
         return self._optional(SCALE_STATE)
 
-    @property
+    @functools.cached_property
     def i_gain(self) -> int | None:
         """The CAN yaw-rate gain state, None without it."""
         return self._optional(GAIN_STATE)
 
-    @property
+    @functools.cached_property
     def i_azimuth_offset(self) -> int | None:
         """The receiver's azimuth offset state, None without it."""
         return self._optional(AZIMUTH_OFFSET_STATE)
 
-    @property
+    @functools.cached_property
     def i_lever(self) -> int | None:
         """The antenna's lever arm ahead of the reference point, None without it."""
         return self._optional(LEVER_STATE)
 
-    @property
+    @functools.cached_property
     def j_azimuth(self) -> int:
         """The azimuth output (course/heading; su7: the antennas' xi)."""
         return self.angle_outputs[0]
 
-    @property
+    @functools.cached_property
     def j_gps_speed(self) -> int | None:
         """The GNSS speed-over-ground output, None without it."""
         return self.outputs.index(GPS_SPEED_OUTPUT) if GPS_SPEED_OUTPUT in self.outputs else None
 
-    @property
+    @functools.cached_property
     def j_can_speed(self) -> int:
         """The CAN speed output."""
         return self.outputs.index("can_speed")
 
-    @property
+    @functools.cached_property
     def j_can_yaw_rate(self) -> int:
         """The CAN yaw-rate output."""
         return self.outputs.index("can_yaw_rate")
 
-    @property
+    @functools.cached_property
     def j_position(self) -> tuple[int, int]:
         """The (east, north) outputs of the (first) antenna's position."""
         return self.gps_outputs[0], self.gps_outputs[1]

@@ -80,6 +80,7 @@ class MovingHorizonEstimator(StreamEstimator):
         ``"degraded"``) until it is cleared; the next epoch solved then solves the whole window."""
         self._unsolved = False
         self._step_jac = step_jacobians(model)
+        self._q_power = np.array(model.q_power)
         md = model.n_dynamic
         self._theta_range = (self.solve.hi[md:] - self.solve.lo[md:]) / 2.0
         drift = np.square(self.policy.theta_drift * self._theta_range) / 60.0
@@ -140,8 +141,8 @@ class MovingHorizonEstimator(StreamEstimator):
         return self.window.t.copy(), self.window.x.copy()
 
     def warm_up(self) -> None:
-        """Build the solver of every window size now rather than at first use (milliseconds each for ``sqp``,
-        up to seconds for the NLP solvers)."""
+        """Build the solver of every window size now rather than at first use (10-60 ms each for ``sqp``, OSQP set
+        up at its first QP; up to seconds for the NLP solvers)."""
         self.solve.warm_up()
 
     # ---- epochs -----------------------------------------------------------------------------------------------
@@ -310,7 +311,7 @@ class MovingHorizonEstimator(StreamEstimator):
         the newest state's bound box and covariance carried to it (:mod:`.newest`)."""
         model, win = self.model, self.window
         h = t - float(win.t[-1])
-        q = self.solve.q_caps * (max(h, 0.0) / self.period_s) ** np.array(model.q_power)
+        q = self.solve.q_caps * (max(h, 0.0) / self.period_s) ** self._q_power
         alpha, P = self.newest.at(np.asarray(x), h, win.y[-1], q)
         bound_east, bound_north = half_widths(model, alpha)
         i_e, i_n = model.position

@@ -64,6 +64,8 @@ def grow_box(alpha: FloatArray, A: FloatArray, q: FloatArray) -> FloatArray:
     md = len(alpha)
     F = np.abs(A[:md, :md])
     unknown = ~np.isfinite(alpha)
+    if not unknown.any():
+        return F @ alpha + 2.0 * q
     grown = F @ np.where(unknown, 0.0, alpha) + 2.0 * q
     return np.where((F[:, unknown] > 0).any(axis=1), np.inf, grown)
 
@@ -150,7 +152,9 @@ class NewestError:
     def _moved(self, P: FloatArray, A: FloatArray, G: FloatArray, q: FloatArray, h: float) -> FloatArray:
         """The covariance one transition (``h`` s) on: the state noise of the bounds ``q`` and the CAN states'
         drift."""
-        return A @ P @ A.T + G @ np.diag(np.square(self.scale * q)) @ G.T + np.diag(self.drift * h)
+        moved = A @ P @ A.T + (G * np.square(self.scale * q)) @ G.T
+        moved.flat[:: len(moved) + 1] += self.drift * h
+        return moved
 
     def spread(self, P: FloatArray) -> Spread:
         """The error figures of a covariance of the model's states."""

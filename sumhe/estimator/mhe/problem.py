@@ -128,11 +128,11 @@ def step_jacobians(
     parts = [w, ca.jacobian(w, xp), ca.jacobian(w, xn), e, ca.jacobian(e, xp)]
     shapes = [(md,), (md, m), (md, m), (n,), (n, m)]
     f = NumpyFunction(ca.Function("step_jac", [xp, xn, h, y], [ca.vertcat(*[ca.vec(ca.densify(q)) for q in parts])]))
-    ends = np.cumsum([int(np.prod(sh)) for sh in shapes])
+    ends = np.cumsum([int(np.prod(sh)) for sh in shapes]).tolist()
+    (a, b, c, d), sw, se = ends[:4], (m, md), (m, n)
 
     def evaluate(xp_: NDArray, xn_: NDArray, h_: float, y_: NDArray) -> tuple[NDArray, ...]:
         flat = f(xp_, xn_, h_, y_)
-        chunks = np.split(flat, ends[:-1])
-        return tuple(c.reshape(sh[::-1]).T if len(sh) == 2 else c for c, sh in zip(chunks, shapes, strict=True))
+        return flat[:a], flat[a:b].reshape(sw).T, flat[b:c].reshape(sw).T, flat[c:d], flat[d:].reshape(se).T
 
     return evaluate  # type: ignore[return-value]
