@@ -99,8 +99,23 @@ def test_the_inbox_hands_out_the_earliest_stamped_first_and_drops_them_when_full
 def test_the_output_edge_drops_estimates_stamped_before_the_last_sent():
     out = MonotonicOutput()
     times = [1.0, 1.1, 1.05, 1.1, 1.2, 0.9, 1.3]
-    sent = [t for t in times if out.admit(_estimate(t=t))]
+    sent = [e.t for t in times for e in out.release([_estimate(t=t)], now=t)]
     assert sent == [1.0, 1.1, 1.1, 1.2, 1.3]
     assert out.out_of_order == 2
-    out.reset()
-    assert out.admit(_estimate(t=0.5))
+    assert out.reset() == []
+    assert [e.t for e in out.release([_estimate(t=0.5)], now=0.5)] == [0.5]
+
+
+def test_the_output_edge_holds_an_estimate_stamped_ahead_of_the_input_until_its_time():
+    # an epoch estimate 0.3 s ahead of the CAN data (a positive GNSS time offset), then CAN-rate estimates: none of
+    # them is dropped, the epoch's goes out in its place
+    out = MonotonicOutput()
+    sent = [e.t for e in out.release([_estimate(t=1.0), _estimate(t=1.3)], now=1.0)]
+    for t in (1.1, 1.2, 1.3, 1.4):
+        sent += [e.t for e in out.release([_estimate(t=t)], now=t)]
+    assert sent == [1.0, 1.1, 1.2, 1.3, 1.3, 1.4] and out.out_of_order == 0 and out.held == 1
+    # held at the end: let out by flush (or before the next estimates after a clock jump back)
+    assert out.release([_estimate(t=2.0)], now=1.5) == [] and [e.t for e in out.flush()] == [2.0]
+    out.release([_estimate(t=3.0)], now=2.5)
+    assert [e.t for e in out.reset()] == [3.0]
+    assert [e.t for e in out.release([_estimate(t=0.1)], now=0.1)] == [0.1]

@@ -18,7 +18,7 @@ import json
 import math
 import time
 from collections import Counter
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, TextIO
 
@@ -159,7 +159,8 @@ class _TruthScore:
 
 class Recorder:
     """Writes estimates as JSON lines (to ``out``, or nowhere; in time order: one stamped before the last written
-    is left out, counted ``out_of_order``, :class:`~sumhe.service.pipeline.MonotonicOutput`) and keeps what the
+    is left out, counted ``out_of_order``, one stamped ahead of the input is written in its place,
+    :class:`~sumhe.service.pipeline.MonotonicOutput`) and keeps what the
     summary needs in bounded memory:
     solve times (ms, histogram), the count of each mode, the distance travelled (m, between consecutive
     estimates), the positions of the estimates near the outage ``windows`` (absolute, s) and, with a truth, the
@@ -178,9 +179,9 @@ class Recorder:
         self._last: tuple[float, float] | None = None
         self.order = MonotonicOutput()
 
-    def write(self, estimates: Iterable[Estimate]) -> None:
+    def write(self, estimates: list[Estimate], now: float) -> None:
+        """Take the estimates made when the input's clock was at ``now`` (s; ``inf`` at the end)."""
         margin = MAX_INTERPOLATION_GAP_S
-        lines = []
         for est in estimates:
             if est.solve_ms > 0:
                 self.solve_ms.add(est.solve_ms)
@@ -194,8 +195,11 @@ class Recorder:
                 self.lon.append(est.lon_deg)
             if self._truth is not None:
                 self._truth.add(est)
-            if self.out is not None and self.order.admit(est):
-                lines.append(json_line(est))
+        if self.out is None:
+            return
+        lines = [json_line(est) for est in self.order.release(estimates, now)]
+        if math.isinf(now):
+            lines += [json_line(est) for est in self.order.flush()]
         if lines:
             self.out.write("\n".join(lines) + "\n")  # type: ignore[union-attr]
 
@@ -320,13 +324,13 @@ def replay_drive(
         if keep(sample):
             estimates = push(sample)
             if estimates:
-                write(estimates)
+                write(estimates, last_t)
         if last_t >= next_report:  # the first sample, then once a minute of data
             first_t = last_t if math.isnan(first_t) else first_t
             next_report = last_t + PROGRESS_EVERY_S
             if progress is not None:
                 progress(last_t - first_t)
-    write(pipeline.finish())
+    write(pipeline.finish(), math.inf)
     wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     span = last_t - first_t if math.isfinite(first_t) and math.isfinite(last_t) else 0.0
     per_window: Sequence[OutageErrors] = []

@@ -219,6 +219,8 @@ class Service:
                 if close is not None:
                     with contextlib.suppress(Exception):
                         await close()
+            for est in self.output.flush():  # held ahead of the input's clock when it stopped
+                self._send(est)
             log.info("sumhe stopped after %.1f s: %s", time.monotonic() - self.stats.started_wall, self.status_line())
             self._send_status()
             self._udp.close()
@@ -293,10 +295,13 @@ class Service:
             self.stats.batches += 1
             estimates, epoch_ms = await asyncio.to_thread(self._push_all, chunk)
             self.stats.solve_ms.extend(epoch_ms)
+            ready: list[Estimate] = []
             if self.pipeline.guard.stats.clock_resets != self._clock_resets:
                 self._clock_resets = self.pipeline.guard.stats.clock_resets
-                self.output.reset()
-            for est in estimates:
+                ready = self.output.reset()
+            ready += self.output.release(estimates, max(sample.t for sample in chunk))
+            self.stats.out_of_order = self.output.out_of_order
+            for est in ready:
                 self._send(est)
 
     def _judge_backlog(self, backlog: float) -> None:
@@ -331,9 +336,6 @@ class Service:
         return out, epoch_ms
 
     def _send(self, est: Estimate) -> None:
-        if not self.output.admit(est):
-            self.stats.out_of_order = self.output.out_of_order
-            return
         if self.degraded_since is not None:
             est = dataclasses.replace(est, mode="degraded")
             self.stats.degraded_sent += 1

@@ -21,10 +21,11 @@ Time rules (s; ``t`` is the sample's time on the service clock):
 
 from __future__ import annotations
 
+import bisect
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 from sumhe.config import Config
@@ -211,24 +212,66 @@ class Pipeline:
             self.stats.last_estimate = estimates[-1]
 
 
+MAX_HELD = 1000
+"""Estimates the output edge holds at most (a GNSS time offset of a second at 100 Hz CAN data is a hundred)."""
+
+
+def _stamp(est: Estimate) -> float:
+    return est.t
+
+
 class MonotonicOutput:
-    """The output edge's time order: an estimate stamped before the last one let through is dropped and counted
-    (``out_of_order``). A Kalman filter reports an epoch at the epoch's own time, up to the receiver latency
-    before the CAN-rate estimate it already sent; the next CAN-rate estimate carries the fix anyway. Estimators
-    and benchmarks see every estimate; only what is sent or written goes through here."""
+    """The output edge's time order. An estimate stamped before the last one let through is dropped and counted
+    (``out_of_order``): a Kalman filter reports an epoch at the epoch's own time, up to the receiver latency before
+    the CAN-rate estimate it already sent, and the next CAN-rate estimate carries the fix anyway. An estimate stamped
+    after the input's clock (the newest sample's time) is held and let out in its place once the clock reaches it
+    (``held``): the MHE stamps an epoch at the fix's true time on the CAN clock, which a positive GNSS time offset
+    puts ahead of the CAN data; sent at once, it would drop every CAN-rate estimate up to its time (on a realistic
+    simulated drive with a +0.29 s offset, 14 494 of 18 000 estimates). At most :data:`MAX_HELD` are held (the
+    oldest goes out first beyond that); :meth:`flush` lets out the rest at the end. Estimators and benchmarks see
+    every estimate; only what is sent or written goes through here."""
 
     def __init__(self) -> None:
         self.last_t = -math.inf
         self.out_of_order = 0
+        self.held = 0
+        self._held: list[Estimate] = []
 
-    def admit(self, estimate: Estimate) -> bool:
-        """Whether ``estimate`` may go out (its ``t`` is not before the last one let through)."""
-        if estimate.t < self.last_t:
+    def release(self, estimates: Iterable[Estimate], now: float) -> list[Estimate]:
+        """What may go out now, in time order: ``estimates`` (just made, the input's clock at ``now``) and the held
+        ones whose time ``now`` has reached."""
+        out: list[Estimate] = []
+        for est in estimates:
+            if est.t > now:
+                bisect.insort(self._held, est, key=_stamp)
+                self.held += 1
+                if len(self._held) > MAX_HELD:
+                    self._admit(self._held.pop(0), out)
+                continue
+            self._release_until(est.t, out)
+            self._admit(est, out)
+        self._release_until(now, out)
+        return out
+
+    def flush(self) -> list[Estimate]:
+        """The held estimates, in time order (the input has ended)."""
+        out: list[Estimate] = []
+        self._release_until(math.inf, out)
+        return out
+
+    def _release_until(self, t: float, out: list[Estimate]) -> None:
+        while self._held and self._held[0].t <= t:
+            self._admit(self._held.pop(0), out)
+
+    def _admit(self, est: Estimate, out: list[Estimate]) -> None:
+        if est.t < self.last_t:
             self.out_of_order += 1
-            return False
-        self.last_t = estimate.t
-        return True
+            return
+        self.last_t = est.t
+        out.append(est)
 
-    def reset(self) -> None:
-        """A clock jump back: start over from the next estimate."""
+    def reset(self) -> list[Estimate]:
+        """A clock jump back: start over from the next estimate; the held ones, to go out before it."""
+        held = self.flush()
         self.last_t = -math.inf
+        return held
