@@ -27,10 +27,13 @@ from sumhe.io.nmea import NmeaCounters
 from sumhe.messages import GnssFix
 
 BUDGET = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+SEEDS = st.integers(0, 2**32 - 1).map(random.Random)
+"""The lines' random source, drawn as a seed: a ``st.randoms()`` draws its numbers from hypothesis's own buffer, and
+300 generated lines overran it now and then (``FailedHealthCheck: data_too_large``, a flaky failure)."""
 
 
 @BUDGET
-@given(st.randoms(use_true_random=False), st.integers(1, 300))
+@given(SEEDS, st.integers(1, 300))
 def test_fuzzed_nmea_lines_never_crash_and_every_fix_is_in_range(rng, n):
     report = FuzzReport()
     fuzz_nmea(generate(rng, n, nmea_line), report)
@@ -40,7 +43,7 @@ def test_fuzzed_nmea_lines_never_crash_and_every_fix_is_in_range(rng, n):
 
 
 @BUDGET
-@given(st.randoms(use_true_random=False), st.integers(1, 300))
+@given(SEEDS, st.integers(1, 300))
 def test_fuzzed_candump_lines_never_crash_and_every_line_is_accounted_for(rng, n):
     report = FuzzReport()
     with tempfile.TemporaryDirectory() as tmp:
