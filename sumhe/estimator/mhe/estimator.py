@@ -85,9 +85,7 @@ class MovingHorizonEstimator(StreamEstimator):
         self._theta_range = (self.solve.hi[md:] - self.solve.lo[md:]) / 2.0
         drift = np.square(self.policy.theta_drift * self._theta_range) / 60.0
         self.newest = NewestError(model, self._step_jac, s.estimator.r_cap_sigmas, drift)
-        self.envelope = OutputEnvelope(
-            model.n_outputs, self.policy.bound_history, self.policy.bound_margin, self.policy.bound_max_factor
-        )
+        self.envelope = self._new_envelope()
         self.reset_state()
 
     @classmethod
@@ -100,6 +98,16 @@ class MovingHorizonEstimator(StreamEstimator):
         return estimator
 
     # ---- the StreamEstimator's methods ------------------------------------------------------------------------
+
+    def _new_envelope(self) -> OutputEnvelope:
+        p = self.policy
+        return OutputEnvelope(self.model.n_outputs, p.bound_history, p.bound_margin, p.bound_max_factor)
+
+    def reset(self) -> None:
+        """Forget everything, the output bounds learned from the data too (a restart within a drive keeps them: the
+        same sensors; a reset may be the next drive, as a fleet worker reuses its estimator)."""
+        super().reset()
+        self.envelope = self._new_envelope()
 
     def reset_state(self) -> None:
         """Forget the window, the arrival, the gate's streaks and the CAN states (counters are kept)."""
