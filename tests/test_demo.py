@@ -1,6 +1,5 @@
 """The README's main job: ``sumhe demo`` plays the bundled drive through the full live path."""
 
-import logging
 import re
 import subprocess
 from pathlib import Path
@@ -19,21 +18,21 @@ LOAD_WARNINGS = (
     "sumhe.service.app: estimator behind",
     "sumhe.service.app: input",
     "sumhe.service.pipeline: samples dropped for their time",
+    "sumhe.estimator.mhe.estimator: mhe: GNSS fix",
 )
 """What a stall of the shared cores of more than ~0.1 s (at 4x: a few epochs) causes in the daemon, as it would in a
 car's: counted and logged. Nothing else may warn."""
 
 
-def test_demo_at_the_default_speed_runs_clean_and_beats_dead_reckoning(capsys, caplog, tmp_path):
+def test_demo_at_the_default_speed_runs_clean_and_beats_dead_reckoning(capsys, tmp_path):
     """A clean run logs no warning: no solver failure, no source timeout, no sample dropped for its time because of
     the demo's clocks (each had a cause, fixed in the demo, not hidden by the log level); only a stall of the
     machine may cost a few epochs (of 2100)."""
     png = tmp_path / "figures" / "demo.png"
-    with caplog.at_level(logging.WARNING):
-        assert main(["demo", "--out", str(png)]) == 0
-    messages = [f"{r.name}: {r.getMessage()}" for r in caplog.records if r.levelno >= logging.WARNING]
-    assert [m for m in messages if not m.startswith(LOAD_WARNINGS)] == []
-    out = capsys.readouterr().out
+    assert main(["demo", "--out", str(png)]) == 0
+    out, err = capsys.readouterr()
+    messages = re.findall(r"^\S+ \S+ (?:WARNING|ERROR|CRITICAL) (.*)$", err, re.M)
+    assert [m for m in messages if not m.startswith(LOAD_WARNINGS)] == [], err
     rate = float(re.search(r"output rate ([\d.]+) Hz", out).group(1))
     assert rate >= 9.0
     assert re.search(r"estimates sent degraded (\d+)", out)
@@ -48,7 +47,7 @@ def test_demo_at_the_default_speed_runs_clean_and_beats_dead_reckoning(capsys, c
     ours = next(v for k, v in rows.items() if k.startswith("sumhe"))
     dr = rows["dead reckoning"]
     assert ours[0] < 1.5, "mean error with GPS"
-    assert ours[3] < dr[3], "mean error during the outages below dead reckoning's"
+    assert ours[3] < dr[3], f"mean error during the outages below dead reckoning's:\n{out}\n{err}"
     assert ours[5] < 6.0, "max error during the outages"
     try:
         import matplotlib  # noqa: F401

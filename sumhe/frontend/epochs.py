@@ -67,6 +67,20 @@ class EpochClock:
             self._intervals.append(t - self._last_real)
             self.period_s = nominal_period(self._intervals, self.default_period_s)
         self._last_real = t
+        self._delay(t, newest_can)
+
+    def observe_late(self, t: float, newest_can: float, max_delay_s: float) -> bool:
+        """Whether a fix at ``t`` (s), whose epoch was already handed out, came after the last fix (its epoch was
+        declared missed before it came; else it is a duplicate). Its delay behind the CAN data (up to
+        ``max_delay_s``) is then learned, so the epochs after it wait for their fixes (else a receiver whose fixes
+        begin to come later than before would find every epoch declared missed, for good)."""
+        if self._last_real is None or t <= self._last_real:
+            return False
+        if newest_can - t <= max_delay_s:
+            self._delay(t, newest_can)
+        return True
+
+    def _delay(self, t: float, newest_can: float) -> None:
         if newest_can > t:
             self._delays.append(newest_can - t)
             self.delay_s = max(self._delays)

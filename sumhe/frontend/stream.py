@@ -195,13 +195,15 @@ class FrontEnd:
         stamp = fix.t
         bad = bad_epoch_time(stamp, self.clock.last_epoch)
         if bad is not None:
-            self.tally.count(*bad[:2], *bad[2])
+            if bad[0] != "dropped_backwards" or not self._after_missed(stamp):
+                self.tally.count(*bad[:2], *bad[2])
             return []
         fix = self._on_can_clock(fix)
         t = fix.t
         if t < self._t_epoch + SAME_EPOCH * self.period_s:  # the epoch already handed out (declared missed before
             # its fix came after CAN data newer than any fix's so far), or behind it by the time offset's slew since
-            self.tally.count("dropped_backwards", "GNSS epoch %.3f s back in time dropped", self._t_epoch - t)
+            if not self._after_missed(stamp):
+                self.tally.count("dropped_backwards", "GNSS epoch %.3f s back in time dropped", self._t_epoch - t)
             return []
         newest_can = self.can.newest
         if self.started and t < newest_can - MAX_FIX_LAG_S:
@@ -229,6 +231,19 @@ class FrontEnd:
         events.append(Epoch(t, self.measure(fix, sigmas) if usable else None))
         self._t_epoch = t
         return events
+
+    def _after_missed(self, stamp: float) -> bool:
+        """Whether a fix whose epoch was already handed out came after that epoch was declared missed (counted
+        ``fixes_after_missed``, its delay learned: :meth:`EpochClock.observe_late`) rather than again."""
+        newest_can = self.can.newest
+        if not (self.started and self.clock.observe_late(stamp, newest_can, MAX_FIX_LAG_S)):
+            return False
+        self.tally.count(
+            "fixes_after_missed",
+            "GNSS fix %.3f s behind the CAN data came after its epoch was declared missed: dropped, its delay learned",
+            newest_can - stamp,
+        )
+        return True
 
     def _on_can_clock(self, fix: LocalFix) -> LocalFix:
         """The fix at its time on the CAN clock: its stamped time plus the GNSS time offset (module docstring)."""
