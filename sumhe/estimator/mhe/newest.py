@@ -34,6 +34,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
+from sumhe.estimator import linalg
 from sumhe.estimator.mhe.arrival import StepJacobians, measured_bounds
 from sumhe.estimator.mhe.window import Window
 from sumhe.estimator.uncertainty import Spread
@@ -49,7 +50,7 @@ def transition_matrices(
     transition ``w = W(x_p, x_n)`` solved for ``x_n``."""
     _, dwp, dwn, _, _ = step_jac(xp, xn, h, y)
     m = len(xp)
-    inv = np.linalg.inv(dwn[:, :md])
+    inv = linalg.inv(dwn[:, :md])
     A = np.eye(m)
     A[:md] = -inv @ dwp
     A[:md, md:] -= inv @ dwn[:, md:]
@@ -63,9 +64,9 @@ def grow_box(alpha: FloatArray, A: FloatArray, q: FloatArray) -> FloatArray:
     depends on an unknown one is unknown."""
     md = len(alpha)
     F = np.abs(A[:md, :md])
-    unknown = ~np.isfinite(alpha)
-    if not unknown.any():
+    if np.isfinite(alpha).all():
         return F @ alpha + 2.0 * q
+    unknown = ~np.isfinite(alpha)
     grown = F @ np.where(unknown, 0.0, alpha) + 2.0 * q
     return np.where((F[:, unknown] > 0).any(axis=1), np.inf, grown)
 
@@ -134,7 +135,7 @@ class NewestError:
             H = de[avail]
             R = np.diag(np.square(self.scale * bound[avail]))
             PHt = self.P @ H.T
-            K = np.linalg.solve(H @ PHt + R, PHt.T).T
+            K = linalg.solve(H @ PHt + R, PHt.T).T
             IKH = np.eye(len(self.P)) - K @ H
             P = IKH @ self.P @ IKH.T + K @ R @ K.T
             self.P = 0.5 * (P + P.T)
