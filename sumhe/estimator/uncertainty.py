@@ -15,7 +15,6 @@ its window's newest state); :func:`gpsd_errors` turns them into what the sinks s
 
 from __future__ import annotations
 
-import bisect
 import math
 from dataclasses import dataclass
 from statistics import NormalDist
@@ -24,6 +23,7 @@ import numpy as np
 from scipy.optimize import brentq
 from scipy.special import ndtr
 
+from sumhe.floats import interp
 from sumhe.messages import ErrorEstimate
 
 CONFIDENCE = 0.95
@@ -122,18 +122,7 @@ def radius_95(sigma_major_m: float, sigma_minor_m: float) -> float:
     s1 = max(sigma_major_m, 0.0)
     if s1 <= 0.0:
         return 0.0
-    return s1 * _interp(min(max(sigma_minor_m, 0.0) / s1, 1.0), _RATIO_LIST, _RADIUS_LIST)
-
-
-def _interp(x: float, xp: list[float], fp: list[float]) -> float:
-    """``float(numpy.interp(x, xp, fp))`` for one ``x`` within ``xp`` or NaN (numpy's formula: the same bits), in
-    plain floats (a fifth of the time: one per estimate)."""
-    if math.isnan(x):
-        return x
-    j = bisect.bisect_right(xp, x) - 1
-    if j >= len(xp) - 1 or xp[j] == x:
-        return fp[j]
-    return (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j]) * (x - xp[j]) + fp[j]
+    return s1 * interp(min(max(sigma_minor_m, 0.0) / s1, 1.0), _RATIO_LIST, _RADIUS_LIST)
 
 
 def gpsd_errors(spread: Spread) -> ErrorEstimate:
