@@ -107,9 +107,10 @@ def arrival_update(
     nx = (drop + 1) * md
     # the quadratic d' H d + 2 g' d over (x_0 .. x_drop dynamic states, CAN states) of the dropped terms
     H, g = np.zeros((nx + nt, nx + nt)), np.zeros(nx + nt)
-    first = np.r_[0:md, nx : nx + nt]
-    H[np.ix_(first, first)] = old.weight
-    g[first] = old.weight @ (win.x[0] - old.prior)
+    # the old arrival cost on the first state: its dynamic states are the first md variables, its CAN states the last
+    W, pull = old.weight, old.weight @ (win.x[0] - old.prior)
+    H[:md, :md], H[:md, nx:], H[nx:, :md], H[nx:, nx:] = W[:md, :md], W[:md, md:], W[md:, :md], W[md:, md:]
+    g[:md], g[nx:] = pull[:md], pull[md:]
     alpha = old.alpha
     for k in range(drop):
         q = Q[k] if k < len(Q) else q_caps
