@@ -23,6 +23,7 @@ import numpy as np
 from scipy.optimize import brentq
 from scipy.special import ndtr
 
+from sumhe.floats import interp
 from sumhe.messages import ErrorEstimate
 
 CONFIDENCE = 0.95
@@ -112,6 +113,7 @@ def exact_radius_95(sigma_major_m: float, sigma_minor_m: float) -> float:
 
 _RATIOS = np.linspace(0.0, 1.0, 201)
 _RADII = np.array([exact_radius_95(1.0, q) for q in _RATIOS])
+_RATIO_LIST, _RADIUS_LIST = _RATIOS.tolist(), _RADII.tolist()
 
 
 def radius_95(sigma_major_m: float, sigma_minor_m: float) -> float:
@@ -120,7 +122,7 @@ def radius_95(sigma_major_m: float, sigma_minor_m: float) -> float:
     s1 = max(sigma_major_m, 0.0)
     if s1 <= 0.0:
         return 0.0
-    return s1 * float(np.interp(min(max(sigma_minor_m, 0.0) / s1, 1.0), _RATIOS, _RADII))
+    return s1 * interp(min(max(sigma_minor_m, 0.0) / s1, 1.0), _RATIO_LIST, _RADIUS_LIST)
 
 
 def gpsd_errors(spread: Spread) -> ErrorEstimate:

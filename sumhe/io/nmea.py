@@ -55,6 +55,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as dt
+import functools
 import logging
 import math
 import os
@@ -65,6 +66,7 @@ from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 
 import pynmea2
+import pynmea2.nmea_utils
 
 from sumhe.errors import DecodeError, SourceError
 from sumhe.messages import GnssFix
@@ -271,7 +273,7 @@ def _rmc(msg: pynmea2.TalkerSentence) -> _Part:
     pos = _position(msg)
     fix = quality in GOOD_QUALITY and pos is not None
     speed_kn = _non_negative(msg.spd_over_grnd, "speed")
-    date = msg.datestamp
+    date = _datestamp(msg)
     if date is not None and not isinstance(date, dt.date):
         raise DecodeError(f"date: not ddmmyy: {date!r}")
     values = _fix_values(
@@ -282,6 +284,22 @@ def _rmc(msg: pynmea2.TalkerSentence) -> _Part:
         course_rad=_angle_rad(msg.true_course, "course"),
     )
     return _Part("RMC", msg.talker, _tod(msg), date=date, fix=fix, values=values)
+
+
+def _datestamp(msg: pynmea2.TalkerSentence) -> object:
+    """``msg.datestamp`` (pynmea2's: None for an empty field, the text where it is not a date), through a cache
+    (the date repeats for every fix of a day, and ``strptime`` was a tenth of the NMEA decoding)."""
+    i = type(msg).name_to_idx["datestamp"]
+    text = msg.data[i] if i < len(msg.data) else ""
+    return _date_of(text) if text else None
+
+
+@functools.lru_cache(maxsize=16)
+def _date_of(text: str) -> object:
+    try:
+        return pynmea2.nmea_utils.datestamp(text)
+    except Exception:  # pynmea2 gives the field's text back for any failure
+        return text
 
 
 def _gll(msg: pynmea2.TalkerSentence) -> _Part:

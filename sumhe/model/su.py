@@ -23,7 +23,8 @@ paper 000 (2), with no state noise.
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -371,6 +372,26 @@ def integrate_odometry(
     east = east0 + np.concatenate([[0.0], np.cumsum(mid_v * np.sin(mid_phi) * dt)])
     north = north0 + np.concatenate([[0.0], np.cumsum(mid_v * np.cos(mid_phi) * dt)])
     return east, north, phi
+
+
+def odometry_end(
+    t: Sequence[float], v: Sequence[float], w: Sequence[float], east0: float, north0: float, phi0: float
+) -> tuple[float, float, float]:
+    """The last point (east, north, azimuth) of :func:`integrate_odometry` of plain floats (at least two times),
+    its sums run in the same order: the same bits, without numpy's set-up on the few samples of a GNSS step."""
+    phi_sum = east_sum = north_sum = math.nan
+    phi_prev = phi0 - 0.0
+    for k in range(1, len(t)):
+        dt = t[k] - t[k - 1]
+        turn = 0.5 * (w[k] + w[k - 1]) * dt
+        phi_sum = turn if k == 1 else phi_sum + turn
+        phi = phi0 - phi_sum
+        mid_phi, mid_v = 0.5 * (phi + phi_prev), 0.5 * (v[k] + v[k - 1])
+        east, north = mid_v * math.sin(mid_phi) * dt, mid_v * math.cos(mid_phi) * dt
+        east_sum = east if k == 1 else east_sum + east
+        north_sum = north if k == 1 else north_sum + north
+        phi_prev = phi
+    return east0 + east_sum, north0 + north_sum, phi_prev
 
 
 @functools.lru_cache(maxsize=64)

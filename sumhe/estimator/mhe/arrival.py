@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from sumhe.estimator import linalg
 from sumhe.estimator.mhe.window import Window
 from sumhe.model.su import MIN_COURSE_SPEED_MPS, SuModel
 
@@ -106,9 +107,10 @@ def arrival_update(
     nx = (drop + 1) * md
     # the quadratic d' H d + 2 g' d over (x_0 .. x_drop dynamic states, CAN states) of the dropped terms
     H, g = np.zeros((nx + nt, nx + nt)), np.zeros(nx + nt)
-    first = np.r_[0:md, nx : nx + nt]
-    H[np.ix_(first, first)] = old.weight
-    g[first] = old.weight @ (win.x[0] - old.prior)
+    # the old arrival cost on the first state: its dynamic states are the first md variables, its CAN states the last
+    W, pull = old.weight, old.weight @ (win.x[0] - old.prior)
+    H[:md, :md], H[:md, nx:], H[nx:, :md], H[nx:, nx:] = W[:md, :md], W[:md, md:], W[md:, :md], W[md:, md:]
+    g[:md], g[nx:] = pull[:md], pull[md:]
     alpha = old.alpha
     for k in range(drop):
         q = Q[k] if k < len(Q) else q_caps
@@ -126,7 +128,7 @@ def arrival_update(
         g += J.T @ (w / q) + Je.T @ (e[ok] / r)
         alpha = np.minimum(alpha, measured_bounds(model, win, k, theta_range, out_factor))
         # x_{k+1} = T(x_k, x_{k+1}) + w: dx_{k+1}/dx_k = (dw/dx_{k+1})^-1 (-dw/dx_k)
-        F = np.abs(np.linalg.solve(dwn[:, :md], -dwp[:, :md]))
+        F = np.abs(linalg.solve(dwn[:, :md], -dwp[:, :md]))
         unknown = ~np.isfinite(alpha)
         grown = F @ np.where(unknown, 0.0, alpha) + 2.0 * q
         alpha = np.where((F[:, unknown] > 0).any(axis=1), np.inf, grown)
@@ -141,14 +143,14 @@ def reduce(
     """Eliminate the first ``na`` variables (the dropped states) from the quadratic ``d' H d + 2 g' d``: the
     arrival cost's centre and weight on the new first state (its dynamic states, then the ``nt`` CAN states), the
     CAN states' variance grown by ``drift``."""
-    K = np.linalg.solve(H[:na, :na] + EPS * np.eye(na), np.column_stack([H[:na, na:], g[:na]]))
+    K = linalg.solve(H[:na, :na] + EPS * np.eye(na), np.column_stack([H[:na, na:], g[:na]]))
     Hr = H[na:, na:] - H[na:, :na] @ K[:, :-1]
     gr = g[na:] - H[na:, :na] @ K[:, -1]
     Hr = 0.5 * (Hr + Hr.T) + EPS * np.eye(len(gr))
-    prior = x_new - np.linalg.solve(Hr, gr)
+    prior = x_new - linalg.solve(Hr, gr)
     if nt == 0:
         return prior, Hr
     # the CAN states drift: W <- (W^-1 + E D E')^-1 by Woodbury, D = drift variance
     E = Hr[:, -nt:]
-    weight = Hr - E @ np.linalg.solve(Hr[-nt:, -nt:] + np.diag(1.0 / np.maximum(drift, 1e-30)), E.T)
+    weight = Hr - E @ linalg.solve(Hr[-nt:, -nt:] + np.diag(1.0 / np.maximum(drift, 1e-30)), E.T)
     return prior, 0.5 * (weight + weight.T)

@@ -15,6 +15,7 @@ solution then raise the factors at once, so the same excess does not make the ne
 
 from __future__ import annotations
 
+import math
 from collections import deque
 
 import numpy as np
@@ -31,20 +32,22 @@ class OutputEnvelope:
     def __init__(self, n_outputs: int, history: int, margin: float, max_factor: float) -> None:
         self.margin, self.max_factor = margin, max_factor
         self._blocks: list[deque[float]] = [deque(maxlen=max(history // BLOCK, 1)) for _ in range(n_outputs)]
-        self._current = np.zeros(n_outputs)
-        self._count = np.zeros(n_outputs, dtype=int)
+        self._current = [0.0] * n_outputs
+        self._count = [0] * n_outputs
         self.factor = np.ones(n_outputs)
 
     def observe(self, ratios: NDArray[np.float64]) -> None:
         """Take the residual-to-allowance ratios of some steps (steps x outputs; NaN where an output is missing)
-        and update the factors."""
-        for j in range(ratios.shape[1]):
-            values = ratios[:, j][np.isfinite(ratios[:, j])]
-            for value in values:
-                self._current[j] = max(self._current[j], value)
-                self._count[j] += 1
-                if self._count[j] == BLOCK:
-                    self._blocks[j].append(float(self._current[j]))
-                    self._current[j], self._count[j] = 0.0, 0
-            peak = max(max(self._blocks[j], default=0.0), self._current[j])
+        and update the factors (in plain floats: a few steps of a few outputs at every epoch)."""
+        current, count = self._current, self._count
+        for j, column in enumerate(ratios.T.tolist()):
+            for value in column:
+                if not math.isfinite(value):
+                    continue
+                current[j] = max(current[j], value)
+                count[j] += 1
+                if count[j] == BLOCK:
+                    self._blocks[j].append(current[j])
+                    current[j], count[j] = 0.0, 0
+            peak = max(max(self._blocks[j], default=0.0), current[j])
             self.factor[j] = min(max(peak * self.margin, 1.0), self.max_factor)

@@ -320,7 +320,7 @@ class MovingHorizonEstimator(StreamEstimator):
         model, win = self.model, self.window
         h = t - float(win.t[-1])
         q = self.solve.q_caps * (max(h, 0.0) / self.period_s) ** self._q_power
-        alpha, P = self.newest.at(np.asarray(x), h, win.y[-1], q)
+        alpha, P = self.newest.at(np.asarray(x), h, q)
         bound_east, bound_north = half_widths(model, alpha)
         i_e, i_n = model.position
         return StateEstimate(

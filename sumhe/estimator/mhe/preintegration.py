@@ -21,29 +21,35 @@ and ``r_cap_sigmas`` sigmas of the samples' mean, integrated over the step.
 from __future__ import annotations
 
 import bisect
+import itertools
 import math
 
 import numpy as np
 from numpy.typing import NDArray
 
+from sumhe.floats import interp
 from sumhe.frontend.can import CanBuffer
 from sumhe.frontend.measurements import can_allowance
-from sumhe.model.su import SuModel, can_motion, integrate_odometry
+from sumhe.model.su import SuModel, can_motion, odometry_end
 from sumhe.settings import EstimationSettings
 
 FloatArray = NDArray[np.float64]
 
 
-def _samples(can: CanBuffer, quantity: str, t0: float, t1: float, max_gap: float) -> tuple[FloatArray, FloatArray]:
+def _samples(can: CanBuffer, quantity: str, t0: float, t1: float, max_gap: float) -> tuple[list[float], list[float]]:
     """The samples of ``quantity`` from the last one at or before ``t0`` to the first one at or after ``t1`` (within
     ``max_gap`` s of the interval)."""
     store = can[quantity]
-    ts = store.t
+    ts, vs = store.t, store.v
     i = max(bisect.bisect_right(ts, t0) - 1, 0)
     j = min(bisect.bisect_left(ts, t1) + 1, len(ts))
-    t, v = np.asarray(ts[i:j]), np.asarray(store.v[i:j])
-    keep = (t >= t0 - max_gap) & (t <= t1 + max_gap)
-    return t[keep], v[keep]
+    keep = [k for k in range(i, j) if t0 - max_gap <= ts[k] <= t1 + max_gap]
+    return [ts[k] for k in keep], [vs[k] for k in keep]
+
+
+def _widest_gap(t0: float, times: list[float], t1: float) -> float:
+    """The longest time (s) between consecutive ones of ``t0``, ``times``, ``t1``."""
+    return max(b - a for a, b in itertools.pairwise([t0, *times, t1]))
 
 
 def can_step_bound(
@@ -84,31 +90,30 @@ def step_motion(
     gap = settings.can.max_gap_s
     tv, v = _samples(can, "speed", t0, t1, gap)
     tw, w = _samples(can, "yaw_rate", t0, t1, gap)
-    if len(tv) == 0 or len(tw) == 0 or np.max(np.diff(np.concatenate([[t0], tv, [t1]]))) > 2.0 * gap:
+    if not tv or not tw or _widest_gap(t0, tv, t1) > 2.0 * gap or _widest_gap(t0, tw, t1) > 2.0 * gap:
         return None
-    if np.max(np.diff(np.concatenate([[t0], tw, [t1]]))) > 2.0 * gap:
-        return None
-    inner = tw[(tw > t0) & (tw < t1)]
-    grid = np.concatenate([[t0], inner, [t1]])
-    theta = (model.i_bias, model.i_scale, model.i_gain)
-    raw_speed, raw_yaw = np.interp(grid, tv, v), np.interp(grid, tw, w)
+    # in plain floats (numpy's formulas in numpy's order: the same bits), a few samples twice an epoch
+    inner = [t for t in tw if t0 < t < t1]
+    grid = [t0, *inner, t1]
+    raw_speed, raw_yaw = [interp(g, tv, v) for g in grid], [interp(g, tw, w) for g in grid]
     if ends is not None:
         for k, end in ((0, ends[0]), (-1, ends[1])):
-            raw_speed[k] = end[0] if math.isfinite(end[0]) else raw_speed[k]
-            raw_yaw[k] = end[1] if math.isfinite(end[1]) else raw_yaw[k]
-    speed, yaw_rate = can_motion(raw_speed, raw_yaw, x0, *theta)
-    east, north, phi = integrate_odometry(
-        grid, speed, yaw_rate, float(x0[model.position[0]]), float(x0[model.position[1]]), float(x0[model.i_phi])
-    )
-    start, end = x0.copy(), x1.copy()
+            raw_speed[k] = float(end[0]) if math.isfinite(end[0]) else raw_speed[k]
+            raw_yaw[k] = float(end[1]) if math.isfinite(end[1]) else raw_yaw[k]
+    x_start = x0.tolist()
+    theta = (model.i_bias, model.i_scale, model.i_gain)
+    moving = [can_motion(rv, rw, x_start, *theta) for rv, rw in zip(raw_speed, raw_yaw, strict=True)]
+    speed, yaw_rate = [m[0] for m in moving], [m[1] for m in moving]
+    i_e, i_n = model.position
+    east, north, phi = odometry_end(grid, speed, yaw_rate, x_start[i_e], x_start[i_n], x_start[model.i_phi])
+    start, end = list(x_start), x1.tolist()
     start[model.i_v], start[model.i_omega] = speed[0], yaw_rate[0]
     end[model.i_v], end[model.i_omega] = speed[-1], yaw_rate[-1]
-    pred = model.transition(start, end, t1 - t0)
+    pred = model.transition(start, end, t1 - t0, math)
     offset = np.zeros(model.n_states)
-    i_e, i_n = model.position
-    offset[i_e], offset[i_n] = east[-1] - pred[i_e], north[-1] - pred[i_n]
-    offset[model.i_phi] = phi[-1] - pred[model.i_phi]
-    n_speed = int(np.count_nonzero((tv > t0) & (tv <= t1)))
+    offset[i_e], offset[i_n] = east - pred[i_e], north - pred[i_n]
+    offset[model.i_phi] = phi - pred[model.i_phi]
+    n_speed = sum(1 for t in tv if t0 < t <= t1)
     bound = can_step_bound(model, t1 - t0, n_speed, len(inner) + 1, float(np.mean(np.abs(speed))), settings)
     if not math.isfinite(float(offset[model.i_phi])):
         return None

@@ -71,6 +71,8 @@ class WindowSolve:
         self.last_result: SolveResult | None = None
         self.Q = np.zeros((0, model.n_dynamic))
         self.q_caps = mhe_q_caps(model, settings.gnss.period_s, settings)
+        self._q_caps_period = settings.gnss.period_s
+        """The GNSS period (s) ``q_caps`` are for: they are made again only when the stream's period changes."""
         lo, hi = state_box(model, 1, settings)
         self.lo, self.hi = lo[0], hi[0]
         """The state box (11) of one step."""
@@ -163,7 +165,8 @@ class WindowSolve:
         if capacity != self._capacity:
             shift = None
         self._capacity = capacity
-        self.q_caps = mhe_q_caps(self.model, period_s, s)
+        if period_s != self._q_caps_period:
+            self.q_caps, self._q_caps_period = mhe_q_caps(self.model, period_s, s), period_s
         Q, R = self.noise_bounds(win, period_s, out_factor)
         self.Q = Q
         iterations = m.sqp_iterations if m.steps <= L else max(m.sqp_iterations, STARTUP_ITERATIONS)

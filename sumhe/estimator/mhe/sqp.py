@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from scipy.linalg import get_lapack_funcs
 
 from sumhe.errors import SolverError
+from sumhe.estimator import linalg
 from sumhe.estimator.mhe.problem import SolveResult, WindowProblem, residual_functions
 from sumhe.model.compiled import NumpyFunction
 from sumhe.model.su import SuModel
@@ -198,7 +199,7 @@ class SqpSolver:
             if info > 0:
                 raise np.linalg.LinAlgError(f"{info}th leading minor not positive definite")
             schur = Ntt - Nxt[:n_live].T @ sol[:, 1:]
-            dtheta = np.linalg.solve(schur, b[nx:] - Nxt[:n_live].T @ sol[:, 0])
+            dtheta = linalg.solve(schur, b[nx:] - Nxt[:n_live].T @ sol[:, 0])
         except np.linalg.LinAlgError:
             return None
         dz = np.zeros(self.nz)
