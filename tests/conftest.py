@@ -7,6 +7,7 @@ fixtures may hold their own); threads and child processes get a short grace peri
 from __future__ import annotations
 
 import gc
+import logging
 import os
 import threading
 import time
@@ -87,3 +88,19 @@ def nothing_left_open() -> Iterator[None]:
     yield
     left = leaks(before)
     assert not left, "left open by the test: " + ", ".join(left)
+
+
+@pytest.fixture(autouse=True)
+def root_logging_put_back() -> Iterator[None]:
+    """``sumhe.cli.main`` configures the root logger (``logging.basicConfig(force=True)``: its handler writes to the
+    test's captured stderr, pytest's own handlers removed): the root logger is put back as it was after each test,
+    so that later tests do not log into a closed capture stream ("I/O operation on closed file") and caplog sees
+    their records."""
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    yield
+    for handler in root.handlers:
+        if handler not in handlers:
+            handler.close()
+    root.handlers[:] = handlers
+    root.setLevel(level)
