@@ -55,7 +55,7 @@ import numpy as np
 from sumhe import __version__
 from sumhe.config import Config, describe
 from sumhe.estimator.base import Estimator
-from sumhe.io.fixtime import stamp_fix
+from sumhe.io.fixtime import FixClock
 from sumhe.io.source import SourceTimeout
 from sumhe.io.udp import UdpSender, UdpSink
 from sumhe.messages import Estimate, GnssFix, Sample
@@ -181,6 +181,7 @@ class Service:
         self.stats = ServiceStats()
         self.inbox = Inbox()
         self.output = MonotonicOutput()
+        self.fix_clock = FixClock(config.gps)
         self.degraded_since: float | None = None
         self._clock_resets = 0
         self._udp = UdpSink(config.output, config.blame)
@@ -269,7 +270,7 @@ class Service:
                 return
             self.stats.received[name] += 1
             if isinstance(sample, GnssFix):
-                sample = stamp_fix(sample, self.config.gps)
+                sample = self.fix_clock.stamp(sample)
             self.inbox.put(sample, time.monotonic())
 
     async def _estimate(self) -> None:
