@@ -34,6 +34,7 @@ from sumhe.frontend.fixes import LocalFix
 from sumhe.io.replay import log_samples
 from sumhe.io.serial import IDLE_S
 from sumhe.messages import CanSample, Sample
+from sumhe.service.inputs import read_inputs
 from sumhe.service.pipeline import Pipeline
 from sumhe.sim import Drive, SimSettings, simulate, write_drive
 
@@ -41,6 +42,8 @@ S = TypeVar("S", Sample, LocalFix | CanSample)
 GROUP_PREFIX = "ff11:7079:7468:6f6e:6465:6d6f"
 """Interface-local IPv6 multicast: each run takes its own group below it (runs at the same time stay apart)."""
 OUTAGE_S = 10.0
+INPUTS = "inputs.jsonl"
+"""The daemon's recorded inputs (``sumhe run --record-inputs``) in the run's directory."""
 
 
 def _cpu_s(pid: int) -> float:
@@ -117,7 +120,7 @@ def run_daemon(
     config = service_config(sim, tmp, estimator, group, est_sock.getsockname()[1], status_sock.getsockname()[1])
     (tmp / "player.toml").write_text(f'[can]\ninterface = "udp_multicast"\nchannel = "{group}"\n')
     run = DaemonRun()
-    service = _sumhe(["run", "--config", str(config)], tmp / "service.log")
+    service = _sumhe(["run", "--config", str(config), "--record-inputs", str(tmp / INPUTS)], tmp / "service.log")
     try:
         while "sumhe starting" not in (tmp / "service.log").read_text():
             if service.poll() is not None:
@@ -213,6 +216,26 @@ def replayed_outage_errors(sim: Drive, config: Config, drive_dir: Path, estimato
     return out
 
 
+def replayed_inputs(
+    sim: Drive, config: Config, path: Path, estimator: str, sent: list[dict[str, Any]], offset_s: float
+) -> dict[str, Any]:
+    """The daemon's own inputs (``sumhe run --record-inputs``: its samples in its order, with its times) replayed
+    in-process: as received, with the count of the estimates it sent that the replay gives again (the same time,
+    latitude and longitude as the JSON carries them), and in time order (``held``: what a reorder hold would have
+    given the estimator from the same inputs); outage errors (m: mean, p95, max) of both, and the CAN samples it
+    took."""
+    samples = list(read_inputs(path))
+    out: dict[str, Any] = {"can_samples": sum(isinstance(s, CanSample) for s in samples)}
+    for name, ordered in (("as_received", samples), ("held", sorted(samples, key=lambda s: s.t))):
+        pipeline = Pipeline(config, make_estimator(estimator, config))
+        estimates = [e for s in ordered for e in pipeline.push(s)]
+        out[name] = outage_errors_of([{"t": e.t, "lat": e.lat_deg, "lon": e.lon_deg} for e in estimates], sim, offset_s)
+        if name == "as_received":
+            made = {(round(e.t, 4), round(e.lat_deg, 9), round(e.lon_deg, 9)) for e in estimates}
+            out["identical"] = sum((r["t"], r["lat"], r["lon"]) in made for r in sent)
+    return out
+
+
 def run_live(duration_s: float, estimator: str, say: Any = print) -> dict[str, Any]:
     """Play a drive of ``duration_s`` through ``sumhe run``; returns the measured figures."""
     with tempfile.TemporaryDirectory(prefix="sumhe-live-") as tmp_name:
@@ -221,6 +244,8 @@ def run_live(duration_s: float, estimator: str, say: Any = print) -> dict[str, A
         run = run_daemon(sim, drive_dir, tmp, estimator)
         config = load_config(tmp / "service.toml")
         replayed = replayed_outage_errors(sim, config, drive_dir, estimator)
+        own = replayed_inputs(sim, config, tmp / INPUTS, estimator, run.records, run.offset_s)
+        drive_can = sum(isinstance(s, CanSample) for s in log_samples(config, drive_dir / "drive.log", None))
     last = run.status
     return {
         "estimator": estimator,
@@ -239,6 +264,10 @@ def run_live(duration_s: float, estimator: str, say: Any = print) -> dict[str, A
         "outage_live": outage_errors_of(run.records, sim, run.offset_s),
         "outage_held": replayed["held"],
         "outage_arrival": replayed["arrival"],
+        "outage_received": own["as_received"],
+        "outage_received_held": own["held"],
+        "identical": own["identical"],
+        "can_samples": (own["can_samples"], drive_can),
         "nonmonotonic": int(np.sum(np.diff([r["t"] for r in run.records]) < 0)) if run.records else 0,
     }
 
@@ -249,6 +278,15 @@ def format_live(fig: dict[str, Any]) -> str:
         return f"{mean:.2f} / {p95:.2f} / {worst:.2f}"
 
     held = fig["outage_held"][0]
+    took, played = fig["can_samples"]
+    crosstalk = (
+        [
+            f"  WARNING: the daemon took {took} CAN samples, the drive has {played}: another run's udp_multicast "
+            "traffic on this machine reached it (python-can binds the port on every group); figures not valid"
+        ]
+        if took > 1.02 * played
+        else []
+    )
     return "\n".join(
         [
             f"live daemon, estimator {fig['estimator']}, {fig['drive_s']:.0f} s drive in real time "
@@ -264,6 +302,10 @@ def format_live(fig: dict[str, Any]) -> str:
             f"live {err('outage_live')}; replayed in time order (held) {err('outage_held')}; "
             f"replayed in arrival order {err('outage_arrival')} "
             f"({(fig['outage_arrival'][0] / held - 1.0) * 100.0:+.1f} % mean vs held)",
+            f"  the daemon's own inputs replayed: as received {err('outage_received')} ({fig['identical']} of "
+            f"{fig['estimates']} sent estimates given again); in time order (held) {err('outage_received_held')} "
+            f"(live {(fig['outage_live'][0] / fig['outage_received_held'][0] - 1.0) * 100.0:+.1f} % mean vs held)",
+            *crosstalk,
         ]
     )
 

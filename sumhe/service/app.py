@@ -10,7 +10,8 @@ loop in a worker thread -> the output edge (time order) -> sinks (UDP JSON / NME
   push runs is taken earliest-stamped first (at most ``MAX_CHUNK`` samples at a time, :class:`Inbox`); after a
   stall (input older than ``STALL_S``: counted ``stalls``, a WARNING) the service waits ``STALL_WAIT_S`` once so
   the sources' backlogs meet, then takes them in time order.
-* Readers never stall: sources run in their own threads; the estimator runs in ``asyncio.to_thread``.
+* Readers never stall: sources run in their own threads; the estimator runs in ``asyncio.to_thread``, which
+  sends each sample's estimates as soon as that sample is pushed (through the output edge, under a lock).
 * Degraded, never silent: when the oldest waiting sample arrived more than ``BEHIND_S`` ago, the estimator has
   fallen behind: an ERROR line, ``degraded`` episodes counted, every estimate sent with ``mode = "degraded"``, and
   an estimator with ``defer_solves`` (the MHE) appends its GNSS epochs without a solve, so it keeps pace at CAN rate
@@ -22,7 +23,11 @@ loop in a worker thread -> the output edge (time order) -> sinks (UDP JSON / NME
   :class:`~sumhe.service.pipeline.MonotonicOutput`): the Kalman family reports an epoch at its own time, up to the
   receiver latency before the CAN-rate estimate before it. A clock jump (``time.clock_resets``) starts over.
 * Time: every timestamp is on one service clock (``time.time()`` live; a scaled clock for faster-than-real-time
-  demos), which also judges stale and future-dated samples. The backlog is measured on ``time.monotonic()``.
+  demos), which also judges stale and future-dated samples. The backlog is measured on ``time.monotonic()``. A
+  fix's time is its measurement time (:class:`~sumhe.io.fixtime.FixClock`: its UTC time, moved by the learned
+  clock offset where the service clock is not on UTC).
+* Inputs recorded: ``record`` (``sumhe run --record-inputs``) is called with every sample the estimator takes, in
+  its order (:mod:`sumhe.service.inputs`); replaying them gives the same estimates.
 * Health: a status line every ``output.status_interval_s`` (log, and JSON to ``output.status_udp`` if set); its
   latency is the service clock at the send minus the estimate's time (for a CAN-rate estimate: since the CAN
   frame's timestamp).
@@ -44,6 +49,7 @@ import json
 import logging
 import math
 import signal
+import threading
 import time
 from collections import deque
 from collections.abc import AsyncIterator, Callable
@@ -171,6 +177,7 @@ class Service:
         rules: TimeRules | None = None,
         clock: Callable[[], float] = time.time,
         clock_rate: float = 1.0,
+        record: Callable[[Sample], None] | None = None,
     ) -> None:
         self.config = config
         self.estimator = estimator
@@ -192,6 +199,8 @@ class Service:
             else None
         )
         self._extra_sink = sink
+        self._record = record
+        self._output_lock = threading.Lock()
 
     async def run(self, stop: asyncio.Event) -> None:
         """Run until ``stop`` is set; everything is closed when this returns."""
@@ -220,8 +229,9 @@ class Service:
                 if close is not None:
                     with contextlib.suppress(Exception):
                         await close()
-            for est in self.output.flush():  # held ahead of the input's clock when it stopped
-                self._send(est)
+            with self._output_lock:  # a worker thread still pushing sends under it too
+                for est in self.output.flush():  # held ahead of the input's clock when it stopped
+                    self._send(est)
             log.info("sumhe stopped after %.1f s: %s", time.monotonic() - self.stats.started_wall, self.status_line())
             self._send_status()
             self._udp.close()
@@ -294,16 +304,8 @@ class Service:
             backlog = time.monotonic() - arrived
             self._judge_backlog(backlog)
             self.stats.batches += 1
-            estimates, epoch_ms = await asyncio.to_thread(self._push_all, chunk)
+            epoch_ms = await asyncio.to_thread(self._push_all, chunk)
             self.stats.solve_ms.extend(epoch_ms)
-            ready: list[Estimate] = []
-            if self.pipeline.guard.stats.clock_resets != self._clock_resets:
-                self._clock_resets = self.pipeline.guard.stats.clock_resets
-                ready = self.output.reset()
-            ready += self.output.release(estimates, max(sample.t for sample in chunk))
-            self.stats.out_of_order = self.output.out_of_order
-            for est in ready:
-                self._send(est)
 
     def _judge_backlog(self, backlog: float) -> None:
         """Enter or leave the degraded state for a chunk taken ``backlog`` s after its first sample arrived, and
@@ -325,16 +327,30 @@ class Service:
         if hasattr(self.estimator, "defer_solves"):
             self.estimator.defer_solves = self.degraded_since is not None and backlog >= SOLVE_BACKLOG_S
 
-    def _push_all(self, batch: list[Sample]) -> tuple[list[Estimate], list[float]]:
-        """Push a batch (in the worker thread): the estimates, and the update time (ms) of each GNSS epoch."""
-        out: list[Estimate] = []
+    def _push_all(self, batch: list[Sample]) -> list[float]:
+        """Push a batch (in the worker thread), each sample's estimates sent as soon as it is pushed (not after the
+        batch, nor through the event loop: the CAN sample taken after a GNSS epoch's solve does not wait for the rest
+        of the batch); the update time (ms) of each GNSS epoch."""
         epoch_ms: list[float] = []
+        now = -math.inf
         for sample in batch:
+            if self._record is not None:
+                self._record(sample)
             t0 = time.perf_counter()
-            out.extend(self.pipeline.push(sample))
+            estimates = self.pipeline.push(sample)
             if isinstance(sample, GnssFix) and self.pipeline.stats.first_fix_t is not None:
                 epoch_ms.append((time.perf_counter() - t0) * 1000.0)
-        return out, epoch_ms
+            now = max(now, sample.t)
+            with self._output_lock:
+                ready: list[Estimate] = []
+                if self.pipeline.guard.stats.clock_resets != self._clock_resets:
+                    self._clock_resets = self.pipeline.guard.stats.clock_resets
+                    ready = self.output.reset()
+                ready += self.output.release(estimates, now)
+                self.stats.out_of_order = self.output.out_of_order
+                for est in ready:
+                    self._send(est)
+        return epoch_ms
 
     def _send(self, est: Estimate) -> None:
         if self.degraded_since is not None:

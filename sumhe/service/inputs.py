@@ -1,0 +1,67 @@
+"""What the live service fed its estimator, recorded for replay (``sumhe run --record-inputs FILE``).
+
+One JSON line per sample, in the order the estimator took them and with the times the service gave them (a CAN
+sample's receive timestamp, a fix's measurement time from :class:`~sumhe.io.fixtime.FixClock`): a replay of the
+file through a :class:`~sumhe.service.pipeline.Pipeline` gives the service's estimates again, one for one, so a
+difference between the live output and a replay of the drive's own logs can be split into what the service was fed
+(receive times, jitter, order) and what it did with it (``sumhe bench live`` does both). Floats are written as
+``repr`` writes them, so they read back bit for bit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as dt
+import json
+import os
+from collections.abc import Iterator
+from typing import Any
+
+from sumhe.messages import CanSample, GnssFix, Sample
+
+
+def encode(sample: Sample) -> str:
+    """One JSON line (without the newline) for ``sample``."""
+    if isinstance(sample, CanSample):
+        return json.dumps({"can": sample.quantity, "t": sample.t, "value": sample.value})
+    fields: dict[str, Any] = dataclasses.asdict(sample)
+    if sample.time_utc is not None:
+        fields["time_utc"] = sample.time_utc.isoformat()
+    return json.dumps({"fix": fields})
+
+
+def decode(line: str) -> Sample:
+    """The sample of one line :func:`encode` wrote (ValueError for anything else)."""
+    try:
+        item = json.loads(line)
+        if "can" in item:
+            return CanSample(float(item["t"]), str(item["can"]), float(item["value"]))
+        fields = dict(item["fix"])
+        if fields.get("time_utc") is not None:
+            fields["time_utc"] = dt.datetime.fromisoformat(fields["time_utc"])
+        return GnssFix(**fields)
+    except (KeyError, TypeError, AttributeError, json.JSONDecodeError) as err:
+        raise ValueError(f"not a recorded input: {line[:80]!r}") from err
+
+
+def read_inputs(path: str | os.PathLike[str]) -> Iterator[Sample]:
+    """The samples of a file :class:`InputRecorder` wrote, in its order."""
+    with open(path, encoding="utf-8") as f:
+        for line in f:
+            if line.strip():
+                yield decode(line)
+
+
+class InputRecorder:
+    """Writes the samples the estimator takes to ``path`` (:func:`encode`); ``close()`` is idempotent."""
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = path
+        self._file = open(path, "w", encoding="utf-8")  # noqa: SIM115 (closed by close(), after the service)
+
+    def __call__(self, sample: Sample) -> None:
+        self._file.write(encode(sample) + "\n")
+
+    def close(self) -> None:
+        if not self._file.closed:
+            self._file.close()
