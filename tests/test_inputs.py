@@ -11,7 +11,6 @@ import time
 
 import can
 import pytest
-from canframes import encode, ref_db
 from test_serial_source import Pty, epoch_at, until
 
 from sumhe.config import load_config
@@ -20,8 +19,11 @@ from sumhe.io.can_source import CanBusSource
 from sumhe.io.serial import SerialNmeaSource
 from sumhe.messages import CanSample, Estimate, GnssFix
 from sumhe.service.app import Service
-from sumhe.service.inputs import InputRecorder, decode, encode as encode_sample, read_inputs
+from sumhe.service.inputs import InputRecorder, decode, read_inputs
+from sumhe.service.inputs import encode as encode_sample
 from sumhe.service.pipeline import Pipeline
+
+from canframes import encode, ref_db
 
 _channels = itertools.count()
 
