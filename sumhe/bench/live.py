@@ -6,9 +6,16 @@ into a pseudo-terminal, in real time; ``sumhe run`` reads both and sends JSON to
 benchmark listens. Printed: the output rate, the end-to-end latency from the CAN frame's timestamp to the UDP send
 (the service's own status figures: no reorder hold, each CAN sample's estimate leaves when computed), the epoch
 solve times, the daemon's CPU use (user + system time from ``/proc`` over the drive, in % of one core), and the
-outage errors against the truth three ways: the live run's own, and the same drive files replayed in-process in
-time order (what the former reorder hold gave the estimator) and in arrival order (:func:`arrival_order`: each
-fix after the CAN samples of its latency, as the daemon now takes them).
+outage errors against the truth: the live run's own; the same drive files replayed in-process in time order (with
+the fixes' UTC times) and in arrival order (:func:`arrival_order`: each fix after the CAN samples of its latency);
+and the daemon's own inputs (``sumhe run --record-inputs``: what it received, with the times it gave them)
+replayed as received, with the count of the estimates it sent that the replay gives again, and in time order:
+the held version of the same inputs, what the former reorder hold would have given the estimator, against which
+the live error is judged. The daemon's clock is not on the drive's UTC, so it stamps fixes by their UTC times
+and the clock offset it learns (:class:`~sumhe.io.fixtime.FixClock`), not as the file replay does.
+
+Runs at the same time on one machine hear each other: python-can's ``udp_multicast`` bus binds its port on every
+group, so a daemon takes any run's frames (a WARNING line when it took more CAN samples than the drive has).
 """
 
 from __future__ import annotations
@@ -40,7 +47,7 @@ from sumhe.sim import Drive, SimSettings, simulate, write_drive
 
 S = TypeVar("S", Sample, LocalFix | CanSample)
 GROUP_PREFIX = "ff11:7079:7468:6f6e:6465:6d6f"
-"""Interface-local IPv6 multicast: each run takes its own group below it (runs at the same time stay apart)."""
+"""Interface-local IPv6 multicast: each run takes its own group below it (but see the module docstring)."""
 OUTAGE_S = 10.0
 INPUTS = "inputs.jsonl"
 """The daemon's recorded inputs (``sumhe run --record-inputs``) in the run's directory."""
