@@ -14,6 +14,8 @@ import dataclasses
 import datetime as dt
 import json
 import os
+import queue
+import threading
 from collections.abc import Iterator
 from typing import Any
 
@@ -53,15 +55,27 @@ def read_inputs(path: str | os.PathLike[str]) -> Iterator[Sample]:
 
 
 class InputRecorder:
-    """Writes the samples the estimator takes to ``path`` (:func:`encode`); ``close()`` is idempotent."""
+    """Writes the samples the estimator takes to ``path`` (:func:`encode`) from a thread of its own: the estimator's
+    thread only queues them (a write that waits for the disk would hold up the next estimate). ``close()`` writes
+    what is queued and closes the file; it is idempotent. The queue is not bounded: a recording keeps every sample
+    (150 a second from a car's CAN bus and receiver, each a line of about 60 bytes)."""
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = path
-        self._file = open(path, "w", encoding="utf-8")  # noqa: SIM115 (closed by close(), after the service)
+        self._queue: queue.SimpleQueue[Sample | None] = queue.SimpleQueue()
+        self._file = open(path, "w", encoding="utf-8")  # noqa: SIM115 (closed by the writer thread)
+        self._thread = threading.Thread(target=self._write, name="sumhe-inputs", daemon=True)
+        self._thread.start()
 
     def __call__(self, sample: Sample) -> None:
-        self._file.write(encode(sample) + "\n")
+        self._queue.put(sample)
+
+    def _write(self) -> None:
+        with self._file:
+            while (sample := self._queue.get()) is not None:
+                self._file.write(encode(sample) + "\n")
 
     def close(self) -> None:
-        if not self._file.closed:
-            self._file.close()
+        if self._thread.is_alive():
+            self._queue.put(None)
+            self._thread.join()
