@@ -19,7 +19,7 @@ from sumhe.io.can_source import CanBusSource
 from sumhe.io.serial import SerialNmeaSource
 from sumhe.messages import CanSample, Estimate, GnssFix
 from sumhe.service.app import Service
-from sumhe.service.inputs import InputRecorder, decode, read_inputs
+from sumhe.service.inputs import InputRecorder, decode, read_inputs, read_records
 from sumhe.service.inputs import encode as encode_sample
 from sumhe.service.pipeline import Pipeline
 
@@ -48,11 +48,12 @@ def test_samples_read_back_bit_for_bit(tmp_path):
     ]
     path = tmp_path / "inputs.jsonl"
     recorder = InputRecorder(path)
-    for s in samples:
-        recorder(s)
+    for k, s in enumerate(samples):
+        recorder(s, 100.0 + k, 100.5 + k)
     recorder.close()
     recorder.close()
     back = list(read_inputs(path))
+    assert [(r.arrived, r.pushed) for r in read_records(path)] == [(100.0 + k, 100.5 + k) for k in range(4)]
     assert [encode_sample(s) for s in back] == [encode_sample(s) for s in samples]
     assert back[:2] == samples[:2] and back[3] == samples[3]
     assert back[2].time_utc == samples[2].time_utc and math.isnan(back[2].hdop)
@@ -108,9 +109,30 @@ def test_the_recorded_inputs_of_a_live_service_replay_to_the_estimates_it_sent(t
     finally:
         pty.close()
     inputs = list(read_inputs(path))
+    records = list(read_records(path))
+    assert all(r.arrived <= r.pushed for r in records)
+    assert all(a.pushed <= b.pushed for a, b in itertools.pairwise(records))
     assert sum(isinstance(s, GnssFix) for s in inputs) == service.pipeline.stats.fixes >= 15
     assert sum(isinstance(s, CanSample) for s in inputs) == service.pipeline.stats.can_samples >= 250
     pipeline = Pipeline(config, make_estimator("ekf", config))
     replayed = {(e.t, e.east_m, e.north_m) for s in inputs for e in pipeline.push(s)}
     assert len(sent) >= 50 and sum(e.mode == "ekf" for e in sent) >= 50
     assert all((e.t, e.east_m, e.north_m) in replayed for e in sent)
+
+
+def test_the_inbox_waits_tell_the_can_samples_that_waited_behind_a_fix():
+    """Three CAN speed samples: one pushed at once, one that waited 4 ms while a fix was pushed, one yaw rate (no
+    estimate: not counted)."""
+    from sumhe.bench.live import inbox_waits
+    from sumhe.service.inputs import Recorded
+
+    fix = GnssFix(t=9.9, time_utc=None, lat_deg=48.1, lon_deg=11.5, alt_m=None, quality=1, valid=True)
+    records = [
+        Recorded(CanSample(10.0, "speed", 5.0), 100.000, 100.001),
+        Recorded(fix, 100.010, 100.012),
+        Recorded(CanSample(10.02, "speed", 5.0), 100.011, 100.015),
+        Recorded(CanSample(10.03, "yaw_rate", 0.1), 100.016, 100.050),
+    ]
+    waits = inbox_waits(records)
+    assert waits["wait_ms"] == pytest.approx((2.5, 3.97, 4.0), abs=1e-6)
+    assert waits["behind_fix"] == pytest.approx((1, 4.0, 4.0), abs=1e-6)

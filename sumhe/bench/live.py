@@ -40,8 +40,8 @@ from sumhe.estimator.registry import make_estimator
 from sumhe.frontend.fixes import LocalFix
 from sumhe.io.replay import log_samples
 from sumhe.io.serial import IDLE_S
-from sumhe.messages import CanSample, Sample
-from sumhe.service.inputs import read_inputs
+from sumhe.messages import CanSample, GnssFix, Sample
+from sumhe.service.inputs import Recorded, read_records
 from sumhe.service.pipeline import Pipeline
 from sumhe.sim import Drive, SimSettings, simulate, write_drive
 
@@ -231,8 +231,9 @@ def replayed_inputs(
     latitude and longitude as the JSON carries them), and in time order (``held``: what a reorder hold would have
     given the estimator from the same inputs); outage errors (m: mean, p95, max) of both, and the CAN samples it
     took."""
-    samples = list(read_inputs(path))
-    out: dict[str, Any] = {"can_samples": sum(isinstance(s, CanSample) for s in samples)}
+    records = list(read_records(path))
+    samples = [r.sample for r in records]
+    out: dict[str, Any] = {"can_samples": sum(isinstance(s, CanSample) for s in samples), **inbox_waits(records)}
     for name, ordered in (("as_received", samples), ("held", sorted(samples, key=lambda s: s.t))):
         pipeline = Pipeline(config, make_estimator(estimator, config))
         estimates = [e for s in ordered for e in pipeline.push(s)]
@@ -241,6 +242,23 @@ def replayed_inputs(
             made = {(round(e.t, 4), round(e.lat_deg, 9), round(e.lon_deg, 9)) for e in estimates}
             out["identical"] = sum((r["t"], r["lat"], r["lon"]) in made for r in sent)
     return out
+
+
+def inbox_waits(records: Sequence[Recorded]) -> dict[str, Any]:
+    """How long the daemon's CAN speed samples (each makes an estimate) waited between their arrival in its inbox
+    and their push (ms: p50, p99, max), and those of them during whose wait a GNSS fix was pushed (a late fix's
+    re-run, the MHE's solve): their count, p50 and max."""
+    fixes = np.array([r.pushed for r in records if isinstance(r.sample, GnssFix)])
+    speed = [r for r in records if isinstance(r.sample, CanSample) and r.sample.quantity == "speed"]
+    wait = np.array([(r.pushed - r.arrived) * 1000.0 for r in speed])
+    before = np.searchsorted(fixes, [r.arrived for r in speed], side="right")
+    upto = np.searchsorted(fixes, [r.pushed for r in speed], side="left")
+    behind = wait[upto > before] if len(speed) else wait
+
+    def figures(w: np.ndarray, qs: tuple[float, ...]) -> tuple[float, ...]:
+        return tuple(float(np.percentile(w, q)) for q in qs) if w.size else (math.nan,) * len(qs)
+
+    return {"wait_ms": figures(wait, (50, 99, 100)), "behind_fix": (int(behind.size), *figures(behind, (50, 100)))}
 
 
 def run_live(duration_s: float, estimator: str, say: Any = print) -> dict[str, Any]:
@@ -274,6 +292,8 @@ def run_live(duration_s: float, estimator: str, say: Any = print) -> dict[str, A
         "outage_received": own["as_received"],
         "outage_received_held": own["held"],
         "identical": own["identical"],
+        "wait_ms": own["wait_ms"],
+        "behind_fix": own["behind_fix"],
         "can_samples": (own["can_samples"], drive_can),
         "nonmonotonic": int(np.sum(np.diff([r["t"] for r in run.records]) < 0)) if run.records else 0,
     }
@@ -301,6 +321,9 @@ def format_live(fig: dict[str, Any]) -> str:
             f"  output: {fig['estimates']} estimates, {fig['rate_hz']:.1f} Hz; source rates {fig['source_rates_hz']}",
             f"  end-to-end latency (CAN frame timestamp -> UDP send, no reorder hold) p50 {fig['latency_ms_p50']} ms, "
             f"p99 {fig['latency_ms_p99']} ms",
+            "  inbox wait of the CAN speed samples (arrival -> push, ms) p50 / p99 / max "
+            f"{' / '.join(f'{w:.2f}' for w in fig['wait_ms'])}; {fig['behind_fix'][0]} waited while a GNSS fix was "
+            f"pushed (p50 / max {fig['behind_fix'][1]:.2f} / {fig['behind_fix'][2]:.2f})",
             f"  solve p50 {fig['solve_ms_p50']} ms, p99 {fig['solve_ms_p99']} ms; sent degraded "
             f"{fig['degraded_sent']}; left out as out of order {fig['out_of_order']}; t decreasing between "
             f"datagrams {fig['nonmonotonic']}",

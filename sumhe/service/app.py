@@ -27,7 +27,8 @@ loop in a worker thread -> the output edge (time order) -> sinks (UDP JSON / NME
   fix's time is its measurement time (:class:`~sumhe.io.fixtime.FixClock`: its UTC time, moved by the learned
   clock offset where the service clock is not on UTC).
 * Inputs recorded: ``record`` (``sumhe run --record-inputs``) is called with every sample the estimator takes, in
-  its order (:mod:`sumhe.service.inputs`); replaying them gives the same estimates.
+  its order, with when it arrived and when its push began (``time.monotonic()``; :mod:`sumhe.service.inputs`);
+  replaying them gives the same estimates.
 * Health: a status line every ``output.status_interval_s`` (log, and JSON to ``output.status_udp`` if set); its
   latency is the service clock at the send minus the estimate's time (for a CAN-rate estimate: since the CAN
   frame's timestamp).
@@ -128,12 +129,14 @@ class Inbox:
     earliest-stamped beyond (counted)."""
 
     def __init__(self, max_len: int = MAX_BACKLOG) -> None:
-        self._heap: list[tuple[float, int, Sample]] = []
+        self._heap: list[tuple[float, int, Sample, float]] = []
         self._arrivals: deque[float] = deque()
         self._seq = itertools.count()
         self.max_len = max_len
         self.dropped = 0
         self.event = asyncio.Event()
+        self.last_arrivals: list[float] = []
+        """When each sample the last :meth:`take` handed out arrived (``time.monotonic()``), in its order."""
 
     def put(self, sample: Sample, arrived: float) -> None:
         if len(self._heap) >= self.max_len:
@@ -141,7 +144,7 @@ class Inbox:
             self._arrivals.popleft()
             self.dropped += 1
         t = sample.t if math.isfinite(sample.t) else -math.inf
-        heapq.heappush(self._heap, (t, next(self._seq), sample))
+        heapq.heappush(self._heap, (t, next(self._seq), sample, arrived))
         self._arrivals.append(arrived)
         self.event.set()
 
@@ -155,7 +158,9 @@ class Inbox:
         k = min(n, len(self._heap))
         for _ in range(k):
             self._arrivals.popleft()
-        return [heapq.heappop(self._heap)[2] for _ in range(k)], arrived
+        taken = [heapq.heappop(self._heap) for _ in range(k)]
+        self.last_arrivals = [item[3] for item in taken]
+        return [item[2] for item in taken], arrived
 
     def __len__(self) -> int:
         return len(self._heap)
@@ -177,7 +182,7 @@ class Service:
         rules: TimeRules | None = None,
         clock: Callable[[], float] = time.time,
         clock_rate: float = 1.0,
-        record: Callable[[Sample], None] | None = None,
+        record: Callable[[Sample, float, float], None] | None = None,
     ) -> None:
         self.config = config
         self.estimator = estimator
@@ -304,7 +309,7 @@ class Service:
             backlog = time.monotonic() - arrived
             self._judge_backlog(backlog)
             self.stats.batches += 1
-            epoch_ms = await asyncio.to_thread(self._push_all, chunk)
+            epoch_ms = await asyncio.to_thread(self._push_all, chunk, self.inbox.last_arrivals)
             self.stats.solve_ms.extend(epoch_ms)
 
     def _judge_backlog(self, backlog: float) -> None:
@@ -327,15 +332,16 @@ class Service:
         if hasattr(self.estimator, "defer_solves"):
             self.estimator.defer_solves = self.degraded_since is not None and backlog >= SOLVE_BACKLOG_S
 
-    def _push_all(self, batch: list[Sample]) -> list[float]:
+    def _push_all(self, batch: list[Sample], arrivals: list[float]) -> list[float]:
         """Push a batch (in the worker thread), each sample's estimates sent as soon as it is pushed (not after the
         batch, nor through the event loop: the CAN sample taken after a GNSS epoch's solve does not wait for the rest
-        of the batch); the update time (ms) of each GNSS epoch."""
+        of the batch); the update time (ms) of each GNSS epoch. ``arrivals``: when each sample arrived (monotonic s,
+        for the recording)."""
         epoch_ms: list[float] = []
         now = -math.inf
-        for sample in batch:
+        for sample, arrived in zip(batch, arrivals, strict=True):
             if self._record is not None:
-                self._record(sample)
+                self._record(sample, arrived, time.monotonic())
             t0 = time.perf_counter()
             estimates = self.pipeline.push(sample)
             if isinstance(sample, GnssFix) and self.pipeline.stats.first_fix_t is not None:
