@@ -136,3 +136,4 @@ def test_the_inbox_waits_tell_the_can_samples_that_waited_behind_a_fix():
     waits = inbox_waits(records)
     assert waits["wait_ms"] == pytest.approx((2.5, 3.97, 4.0), abs=1e-6)
     assert waits["behind_fix"] == pytest.approx((1, 4.0, 4.0), abs=1e-6)
+    assert waits["longest_fix_push"] == pytest.approx((3.0, 9.9), abs=1e-6)  # the fix's push to the next's

@@ -20,6 +20,7 @@ group, so a daemon takes any run's frames (a WARNING line when it took more CAN 
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import os
@@ -247,7 +248,8 @@ def replayed_inputs(
 def inbox_waits(records: Sequence[Recorded]) -> dict[str, Any]:
     """How long the daemon's CAN speed samples (each makes an estimate) waited between their arrival in its inbox
     and their push (ms: p50, p99, max), and those of them during whose wait a GNSS fix was pushed (a late fix's
-    re-run, the MHE's solve): their count, p50 and max."""
+    re-run, the MHE's solve): their count, p50 and max; the longest a fix's push held the worker (ms: from its
+    push to the next sample's, which includes sending its estimates) and the time of that fix."""
     fixes = np.array([r.pushed for r in records if isinstance(r.sample, GnssFix)])
     speed = [r for r in records if isinstance(r.sample, CanSample) and r.sample.quantity == "speed"]
     wait = np.array([(r.pushed - r.arrived) * 1000.0 for r in speed])
@@ -258,7 +260,13 @@ def inbox_waits(records: Sequence[Recorded]) -> dict[str, Any]:
     def figures(w: np.ndarray, qs: tuple[float, ...]) -> tuple[float, ...]:
         return tuple(float(np.percentile(w, q)) for q in qs) if w.size else (math.nan,) * len(qs)
 
-    return {"wait_ms": figures(wait, (50, 99, 100)), "behind_fix": (int(behind.size), *figures(behind, (50, 100)))}
+    held = [(b.pushed - a.pushed, a.sample.t) for a, b in itertools.pairwise(records) if isinstance(a.sample, GnssFix)]
+    longest = max(held, default=(math.nan, math.nan))
+    return {
+        "wait_ms": figures(wait, (50, 99, 100)),
+        "behind_fix": (int(behind.size), *figures(behind, (50, 100))),
+        "longest_fix_push": (longest[0] * 1000.0, longest[1]),
+    }
 
 
 def run_live(duration_s: float, estimator: str, say: Any = print) -> dict[str, Any]:
@@ -294,7 +302,9 @@ def run_live(duration_s: float, estimator: str, say: Any = print) -> dict[str, A
         "identical": own["identical"],
         "wait_ms": own["wait_ms"],
         "behind_fix": own["behind_fix"],
+        "longest_fix_push": own["longest_fix_push"],
         "can_samples": (own["can_samples"], drive_can),
+        "offset_s": run.offset_s,
         "nonmonotonic": int(np.sum(np.diff([r["t"] for r in run.records]) < 0)) if run.records else 0,
     }
 
@@ -323,7 +333,9 @@ def format_live(fig: dict[str, Any]) -> str:
             f"p99 {fig['latency_ms_p99']} ms",
             "  inbox wait of the CAN speed samples (arrival -> push, ms) p50 / p99 / max "
             f"{' / '.join(f'{w:.2f}' for w in fig['wait_ms'])}; {fig['behind_fix'][0]} waited while a GNSS fix was "
-            f"pushed (p50 / max {fig['behind_fix'][1]:.2f} / {fig['behind_fix'][2]:.2f})",
+            f"pushed (p50 / max {fig['behind_fix'][1]:.2f} / {fig['behind_fix'][2]:.2f}); the longest push of a fix "
+            f"{fig['longest_fix_push'][0]:.1f} ms (the fix of drive time "
+            f"{fig['longest_fix_push'][1] - fig['offset_s']:.1f} s)",
             f"  solve p50 {fig['solve_ms_p50']} ms, p99 {fig['solve_ms_p99']} ms; sent degraded "
             f"{fig['degraded_sent']}; left out as out of order {fig['out_of_order']}; t decreasing between "
             f"datagrams {fig['nonmonotonic']}",
