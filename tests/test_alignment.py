@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from sumhe.frontend.alignment import ClockLearner, course_lag, speed_lag
+from sumhe.sim import SimSettings, simulate
 
 RNG = np.random.default_rng(7)
 
@@ -40,6 +41,21 @@ def test_speed_lag_recovers_the_lag_and_scale(rate_hz, lag):
     assert fit.lag_s == pytest.approx(lag, abs=0.02)
     assert fit.std_s < 0.02
     assert fit.scale == pytest.approx(1 / 1.01, abs=0.002)
+
+
+def test_the_speed_lag_moves_with_the_fixes_stamps():
+    """Fixes stamped a few ms later (a host clock off UTC, a receive time): the lag learned grows by as much. On a
+    simulated urban drive (stop and go, the receiver's velocity errors) the residual between the 20 ms grid's points
+    is no parabola: the parabola's vertex moved by 2.8 to 11.4 ms for shifts of 3.1 to 12.4 ms."""
+    sim = simulate(SimSettings(scenario="urban", seed=5, duration_s=60.0))
+    fixes = np.array([(f.t, f.speed_mps) for f in sim.fixes() if f.valid and f.speed_mps is not None])
+    can = np.array([(s.t, s.value) for s in sim.can_samples() if s.quantity == "speed"])
+    base = speed_lag(fixes[:, 0], fixes[:, 1], can[:, 0], can[:, 1])
+    assert base is not None and base.std_s < 0.01
+    for shift in (0.0031, 0.0062, 0.0093, 0.0124):
+        fit = speed_lag(fixes[:, 0] + shift, fixes[:, 1], can[:, 0], can[:, 1])
+        assert fit is not None
+        assert fit.lag_s - base.lag_s == pytest.approx(shift, abs=3e-4)
 
 
 def test_course_lag_recovers_lag_scale_and_bias():

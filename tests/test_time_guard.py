@@ -92,6 +92,7 @@ def test_the_inbox_hands_out_the_earliest_stamped_first_and_drops_them_when_full
     chunk, arrived = inbox.take(3)
     assert [s.t for s in chunk] == [T0 + 0.2, T0 + 0.3, T0 + 0.4]
     assert arrived == 101.0  # the oldest arrival still waiting when taken
+    assert inbox.last_arrivals == [102.0, 100.0, 103.0]  # each one's own, in the order taken
     assert [s.t for s in inbox.take(10)[0]] == [T0 + 0.5]
     assert not inbox and inbox.earliest_t() == math.inf
 

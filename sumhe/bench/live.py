@@ -6,13 +6,21 @@ into a pseudo-terminal, in real time; ``sumhe run`` reads both and sends JSON to
 benchmark listens. Printed: the output rate, the end-to-end latency from the CAN frame's timestamp to the UDP send
 (the service's own status figures: no reorder hold, each CAN sample's estimate leaves when computed), the epoch
 solve times, the daemon's CPU use (user + system time from ``/proc`` over the drive, in % of one core), and the
-outage errors against the truth three ways: the live run's own, and the same drive files replayed in-process in
-time order (what the former reorder hold gave the estimator) and in arrival order (:func:`arrival_order`: each
-fix after the CAN samples of its latency, as the daemon now takes them).
+outage errors against the truth: the live run's own; the same drive files replayed in-process in time order (with
+the fixes' UTC times) and in arrival order (:func:`arrival_order`: each fix after the CAN samples of its latency);
+and the daemon's own inputs (``sumhe run --record-inputs``: what it received, with the times it gave them)
+replayed as received, with the count of the estimates it sent that the replay gives again, and in time order:
+the held version of the same inputs, what the former reorder hold would have given the estimator, against which
+the live error is judged. The daemon's clock is not on the drive's UTC, so it stamps fixes by their UTC times
+and the clock offset it learns (:class:`~sumhe.io.fixtime.FixClock`), not as the file replay does.
+
+Runs at the same time on one machine hear each other: python-can's ``udp_multicast`` bus binds its port on every
+group, so a daemon takes any run's frames (a WARNING line when it took more CAN samples than the drive has).
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import os
@@ -33,14 +41,17 @@ from sumhe.estimator.registry import make_estimator
 from sumhe.frontend.fixes import LocalFix
 from sumhe.io.replay import log_samples
 from sumhe.io.serial import IDLE_S
-from sumhe.messages import CanSample, Sample
+from sumhe.messages import CanSample, GnssFix, Sample
+from sumhe.service.inputs import Recorded, read_records
 from sumhe.service.pipeline import Pipeline
 from sumhe.sim import Drive, SimSettings, simulate, write_drive
 
 S = TypeVar("S", Sample, LocalFix | CanSample)
 GROUP_PREFIX = "ff11:7079:7468:6f6e:6465:6d6f"
-"""Interface-local IPv6 multicast: each run takes its own group below it (runs at the same time stay apart)."""
+"""Interface-local IPv6 multicast: each run takes its own group below it (but see the module docstring)."""
 OUTAGE_S = 10.0
+INPUTS = "inputs.jsonl"
+"""The daemon's recorded inputs (``sumhe run --record-inputs``) in the run's directory."""
 
 
 def _cpu_s(pid: int) -> float:
@@ -117,7 +128,7 @@ def run_daemon(
     config = service_config(sim, tmp, estimator, group, est_sock.getsockname()[1], status_sock.getsockname()[1])
     (tmp / "player.toml").write_text(f'[can]\ninterface = "udp_multicast"\nchannel = "{group}"\n')
     run = DaemonRun()
-    service = _sumhe(["run", "--config", str(config)], tmp / "service.log")
+    service = _sumhe(["run", "--config", str(config), "--record-inputs", str(tmp / INPUTS)], tmp / "service.log")
     try:
         while "sumhe starting" not in (tmp / "service.log").read_text():
             if service.poll() is not None:
@@ -213,6 +224,51 @@ def replayed_outage_errors(sim: Drive, config: Config, drive_dir: Path, estimato
     return out
 
 
+def replayed_inputs(
+    sim: Drive, config: Config, path: Path, estimator: str, sent: list[dict[str, Any]], offset_s: float
+) -> dict[str, Any]:
+    """The daemon's own inputs (``sumhe run --record-inputs``: its samples in its order, with its times) replayed
+    in-process: as received, with the count of the estimates it sent that the replay gives again (the same time,
+    latitude and longitude as the JSON carries them), and in time order (``held``: what a reorder hold would have
+    given the estimator from the same inputs); outage errors (m: mean, p95, max) of both, and the CAN samples it
+    took."""
+    records = list(read_records(path))
+    samples = [r.sample for r in records]
+    out: dict[str, Any] = {"can_samples": sum(isinstance(s, CanSample) for s in samples), **inbox_waits(records)}
+    for name, ordered in (("as_received", samples), ("held", sorted(samples, key=lambda s: s.t))):
+        pipeline = Pipeline(config, make_estimator(estimator, config))
+        estimates = [e for s in ordered for e in pipeline.push(s)]
+        out[name] = outage_errors_of([{"t": e.t, "lat": e.lat_deg, "lon": e.lon_deg} for e in estimates], sim, offset_s)
+        if name == "as_received":
+            made = {(round(e.t, 4), round(e.lat_deg, 9), round(e.lon_deg, 9)) for e in estimates}
+            out["identical"] = sum((r["t"], r["lat"], r["lon"]) in made for r in sent)
+    return out
+
+
+def inbox_waits(records: Sequence[Recorded]) -> dict[str, Any]:
+    """How long the daemon's CAN speed samples (each makes an estimate) waited between their arrival in its inbox
+    and their push (ms: p50, p99, max), and those of them during whose wait a GNSS fix was pushed (a late fix's
+    re-run, the MHE's solve): their count, p50 and max; the longest a fix's push held the worker (ms: from its
+    push to the next sample's, which includes sending its estimates) and the time of that fix."""
+    fixes = np.array([r.pushed for r in records if isinstance(r.sample, GnssFix)])
+    speed = [r for r in records if isinstance(r.sample, CanSample) and r.sample.quantity == "speed"]
+    wait = np.array([(r.pushed - r.arrived) * 1000.0 for r in speed])
+    before = np.searchsorted(fixes, [r.arrived for r in speed], side="right")
+    upto = np.searchsorted(fixes, [r.pushed for r in speed], side="left")
+    behind = wait[upto > before] if len(speed) else wait
+
+    def figures(w: np.ndarray, qs: tuple[float, ...]) -> tuple[float, ...]:
+        return tuple(float(np.percentile(w, q)) for q in qs) if w.size else (math.nan,) * len(qs)
+
+    held = [(b.pushed - a.pushed, a.sample.t) for a, b in itertools.pairwise(records) if isinstance(a.sample, GnssFix)]
+    longest = max(held, default=(math.nan, math.nan))
+    return {
+        "wait_ms": figures(wait, (50, 99, 100)),
+        "behind_fix": (int(behind.size), *figures(behind, (50, 100))),
+        "longest_fix_push": (longest[0] * 1000.0, longest[1]),
+    }
+
+
 def run_live(duration_s: float, estimator: str, say: Any = print) -> dict[str, Any]:
     """Play a drive of ``duration_s`` through ``sumhe run``; returns the measured figures."""
     with tempfile.TemporaryDirectory(prefix="sumhe-live-") as tmp_name:
@@ -221,6 +277,8 @@ def run_live(duration_s: float, estimator: str, say: Any = print) -> dict[str, A
         run = run_daemon(sim, drive_dir, tmp, estimator)
         config = load_config(tmp / "service.toml")
         replayed = replayed_outage_errors(sim, config, drive_dir, estimator)
+        own = replayed_inputs(sim, config, tmp / INPUTS, estimator, run.records, run.offset_s)
+        drive_can = sum(isinstance(s, CanSample) for s in log_samples(config, drive_dir / "drive.log", None))
     last = run.status
     return {
         "estimator": estimator,
@@ -239,6 +297,14 @@ def run_live(duration_s: float, estimator: str, say: Any = print) -> dict[str, A
         "outage_live": outage_errors_of(run.records, sim, run.offset_s),
         "outage_held": replayed["held"],
         "outage_arrival": replayed["arrival"],
+        "outage_received": own["as_received"],
+        "outage_received_held": own["held"],
+        "identical": own["identical"],
+        "wait_ms": own["wait_ms"],
+        "behind_fix": own["behind_fix"],
+        "longest_fix_push": own["longest_fix_push"],
+        "can_samples": (own["can_samples"], drive_can),
+        "offset_s": run.offset_s,
         "nonmonotonic": int(np.sum(np.diff([r["t"] for r in run.records]) < 0)) if run.records else 0,
     }
 
@@ -249,6 +315,15 @@ def format_live(fig: dict[str, Any]) -> str:
         return f"{mean:.2f} / {p95:.2f} / {worst:.2f}"
 
     held = fig["outage_held"][0]
+    took, played = fig["can_samples"]
+    crosstalk = (
+        [
+            f"  WARNING: the daemon took {took} CAN samples, the drive has {played}: another run's udp_multicast "
+            "traffic on this machine reached it (python-can binds the port on every group); figures not valid"
+        ]
+        if took > 1.02 * played
+        else []
+    )
     return "\n".join(
         [
             f"live daemon, estimator {fig['estimator']}, {fig['drive_s']:.0f} s drive in real time "
@@ -256,6 +331,11 @@ def format_live(fig: dict[str, Any]) -> str:
             f"  output: {fig['estimates']} estimates, {fig['rate_hz']:.1f} Hz; source rates {fig['source_rates_hz']}",
             f"  end-to-end latency (CAN frame timestamp -> UDP send, no reorder hold) p50 {fig['latency_ms_p50']} ms, "
             f"p99 {fig['latency_ms_p99']} ms",
+            "  inbox wait of the CAN speed samples (arrival -> push, ms) p50 / p99 / max "
+            f"{' / '.join(f'{w:.2f}' for w in fig['wait_ms'])}; {fig['behind_fix'][0]} waited while a GNSS fix was "
+            f"pushed (p50 / max {fig['behind_fix'][1]:.2f} / {fig['behind_fix'][2]:.2f}); the longest push of a fix "
+            f"{fig['longest_fix_push'][0]:.1f} ms (the fix of drive time "
+            f"{fig['longest_fix_push'][1] - fig['offset_s']:.1f} s)",
             f"  solve p50 {fig['solve_ms_p50']} ms, p99 {fig['solve_ms_p99']} ms; sent degraded "
             f"{fig['degraded_sent']}; left out as out of order {fig['out_of_order']}; t decreasing between "
             f"datagrams {fig['nonmonotonic']}",
@@ -264,6 +344,10 @@ def format_live(fig: dict[str, Any]) -> str:
             f"live {err('outage_live')}; replayed in time order (held) {err('outage_held')}; "
             f"replayed in arrival order {err('outage_arrival')} "
             f"({(fig['outage_arrival'][0] / held - 1.0) * 100.0:+.1f} % mean vs held)",
+            f"  the daemon's own inputs replayed: as received {err('outage_received')} ({fig['identical']} of "
+            f"{fig['estimates']} sent estimates given again); in time order (held) {err('outage_received_held')} "
+            f"(live {(fig['outage_live'][0] / fig['outage_received_held'][0] - 1.0) * 100.0:+.1f} % mean vs held)",
+            *crosstalk,
         ]
     )
 

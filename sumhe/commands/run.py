@@ -16,6 +16,7 @@ from sumhe.estimator.registry import check_live, make_estimator
 from sumhe.io.can_source import CanBusSource
 from sumhe.io.serial import SerialNmeaSource
 from sumhe.service.app import Service, install_signal_handlers
+from sumhe.service.inputs import InputRecorder
 
 LOG_INFO_FROM = ("sumhe.service", "sumhe.io")
 
@@ -24,6 +25,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", metavar="FILE", required=True, help="TOML config (see configs/default.toml)")
     parser.add_argument("--estimator", metavar="NAME", help="estimator to run (default: estimator.name)")
     parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: on a signal)")
+    parser.add_argument(
+        "--record-inputs",
+        metavar="FILE",
+        help="write every sample the estimator takes, in its order and with its times, as JSON lines (a replay of "
+        "FILE gives the same estimates: sumhe.service.inputs)",
+    )
 
 
 async def serve(args: argparse.Namespace) -> None:
@@ -39,7 +46,12 @@ async def serve(args: argparse.Namespace) -> None:
     install_signal_handlers(stop)
     if args.duration is not None:
         asyncio.get_running_loop().call_later(args.duration, stop.set)
-    await Service(config, estimator, sources).run(stop)
+    recorder = InputRecorder(args.record_inputs) if args.record_inputs else None
+    try:
+        await Service(config, estimator, sources, record=recorder).run(stop)
+    finally:
+        if recorder is not None:
+            recorder.close()
 
 
 def run(args: argparse.Namespace) -> int:

@@ -9,22 +9,25 @@ The offset is measured the way a test engineer would, by the lag that best lines
 quantity: the receiver's speed over ground against the CAN speed (every speed change carries it), and the rate of
 the receiver's course against the CAN yaw rate (every turn carries it). Both are linear least squares for a given
 lag (a scale, and for the yaw rate a bias); the lag is the minimum of the residual over a grid of lags, refined by
-the parabola through its neighbours. Its standard error is the larger of the parabola's (from its curvature) and
-the linearised least-squares one, ``rms / sqrt(sum (d model / d lag)^2)`` with the derivative taken over a second
-(:data:`SLOPE_S`): without speed changes (or turns) the residual's minimum is noise and the lag undetermined, which
-the second says even when noise makes a parabola look sharp. Pure functions on
-arrays (:func:`speed_lag`, :func:`course_lag`), used offline by ``sumhe calibrate`` and on line by
-:class:`ClockLearner`.
+the parabola through its neighbours (the course's) or by a search between them (the speed's, which the service
+learns on line: its lag must move with the fixes' stamps, :func:`_minimum_between`). Its standard error is the
+larger of the parabola's (from its curvature) and the linearised least-squares one,
+``rms / sqrt(sum (d model / d lag)^2)`` with the derivative taken over a second (:data:`SLOPE_S`): without speed
+changes (or turns) the residual's minimum is noise and the lag undetermined, which the second says even when noise
+makes a parabola look sharp. Pure functions on arrays (:func:`speed_lag`, :func:`course_lag`), used offline by
+``sumhe calibrate`` and on line by :class:`ClockLearner`.
 """
 
 from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import minimize_scalar
 
 LAGS_S = np.round(np.arange(-1.0, 1.0001, 0.02), 6)
 """The lags tried (s): a receiver's latency plus a clock's offset stays within a second."""
@@ -32,6 +35,8 @@ MIN_SPEED_MPS = 2.0
 """Course and Doppler speed are used above this speed only (below it the course is noise)."""
 MIN_PAIRS = 30
 SLOPE_S = 0.5
+LAG_TOLERANCE_S = 1e-4
+"""The speed lag is searched to this (s) between the grid's neighbours of its minimum (:func:`speed_lag`)."""
 """Half the interval (s) over which the model's derivative with respect to the lag is taken (smooths sensor noise)."""
 
 
@@ -95,10 +100,30 @@ def speed_lag(
     rss = np.sum(np.square(g[None, :] - scale[:, None] * can), axis=1)
     lag, std = _refine(lags, rss, len(g), 2)
     i = int(np.argmin(rss))
-    rms = math.sqrt(float(rss[i]) / len(g))
+    if math.isfinite(std):
+        lag = _minimum_between(lambda x: _speed_fit(tf, g, tc, c, x)[0], float(lags[i - 1]), float(lags[i + 1]))
+    rss_lag, scale_lag = _speed_fit(tf, g, tc, c, lag)
+    rms = math.sqrt(rss_lag / len(g))
     ahead, behind = (np.abs(np.interp(tf - lag + d, tc, c)) for d in (-SLOPE_S, SLOPE_S))
-    std = max(std, _linear_std(rms, scale[i] * (ahead - behind) / (2.0 * SLOPE_S)))
-    return LagFit(lag, std, float(scale[i]), 0.0, rms, len(g))
+    std = max(std, _linear_std(rms, scale_lag * (ahead - behind) / (2.0 * SLOPE_S)))
+    return LagFit(lag, std, scale_lag, 0.0, rms, len(g))
+
+
+def _speed_fit(
+    tf: NDArray[np.float64], g: NDArray[np.float64], tc: NDArray[np.float64], c: NDArray[np.float64], lag: float
+) -> tuple[float, float]:
+    """The residual sum of squares and the scale of ``g = scale * |can(tf - lag)|`` (:func:`speed_lag`)."""
+    can = np.abs(np.interp(tf - lag, tc, c))
+    scale = float(can @ g) / max(float(can @ can), 1e-12)
+    return float(np.sum(np.square(g - scale * can))), scale
+
+
+def _minimum_between(f: Callable[[float], float], lo: float, hi: float) -> float:
+    """The minimum of ``f`` on ``[lo, hi]`` (s) to :data:`LAG_TOLERANCE_S`: between the grid's points the residual
+    is no parabola (the CAN data are interpolated between samples as far apart as the grid's step), whose vertex
+    was pulled towards the grid's points by up to 2 ms, so the lag learned moved by 4.4 ms when the fixes' stamps
+    moved by 6.2 ms; searched, it moves with them."""
+    return float(minimize_scalar(f, bounds=(lo, hi), method="bounded", options={"xatol": LAG_TOLERANCE_S}).x)
 
 
 def _cumulative(t: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float64]:

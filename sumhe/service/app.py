@@ -10,7 +10,8 @@ loop in a worker thread -> the output edge (time order) -> sinks (UDP JSON / NME
   push runs is taken earliest-stamped first (at most ``MAX_CHUNK`` samples at a time, :class:`Inbox`); after a
   stall (input older than ``STALL_S``: counted ``stalls``, a WARNING) the service waits ``STALL_WAIT_S`` once so
   the sources' backlogs meet, then takes them in time order.
-* Readers never stall: sources run in their own threads; the estimator runs in ``asyncio.to_thread``.
+* Readers never stall: sources run in their own threads; the estimator runs in ``asyncio.to_thread``, which
+  sends each sample's estimates as soon as that sample is pushed (through the output edge, under a lock).
 * Degraded, never silent: when the oldest waiting sample arrived more than ``BEHIND_S`` ago, the estimator has
   fallen behind: an ERROR line, ``degraded`` episodes counted, every estimate sent with ``mode = "degraded"``, and
   an estimator with ``defer_solves`` (the MHE) appends its GNSS epochs without a solve, so it keeps pace at CAN rate
@@ -22,7 +23,12 @@ loop in a worker thread -> the output edge (time order) -> sinks (UDP JSON / NME
   :class:`~sumhe.service.pipeline.MonotonicOutput`): the Kalman family reports an epoch at its own time, up to the
   receiver latency before the CAN-rate estimate before it. A clock jump (``time.clock_resets``) starts over.
 * Time: every timestamp is on one service clock (``time.time()`` live; a scaled clock for faster-than-real-time
-  demos), which also judges stale and future-dated samples. The backlog is measured on ``time.monotonic()``.
+  demos), which also judges stale and future-dated samples. The backlog is measured on ``time.monotonic()``. A
+  fix's time is its measurement time (:class:`~sumhe.io.fixtime.FixClock`: its UTC time, moved by the learned
+  clock offset where the service clock is not on UTC).
+* Inputs recorded: ``record`` (``sumhe run --record-inputs``) is called with every sample the estimator takes, in
+  its order, with when it arrived and when its push began (``time.monotonic()``; :mod:`sumhe.service.inputs`);
+  replaying them gives the same estimates.
 * Health: a status line every ``output.status_interval_s`` (log, and JSON to ``output.status_udp`` if set); its
   latency is the service clock at the send minus the estimate's time (for a CAN-rate estimate: since the CAN
   frame's timestamp).
@@ -44,6 +50,7 @@ import json
 import logging
 import math
 import signal
+import threading
 import time
 from collections import deque
 from collections.abc import AsyncIterator, Callable
@@ -55,7 +62,7 @@ import numpy as np
 from sumhe import __version__
 from sumhe.config import Config, describe
 from sumhe.estimator.base import Estimator
-from sumhe.io.fixtime import stamp_fix
+from sumhe.io.fixtime import FixClock
 from sumhe.io.source import SourceTimeout
 from sumhe.io.udp import UdpSender, UdpSink
 from sumhe.messages import Estimate, GnssFix, Sample
@@ -122,12 +129,14 @@ class Inbox:
     earliest-stamped beyond (counted)."""
 
     def __init__(self, max_len: int = MAX_BACKLOG) -> None:
-        self._heap: list[tuple[float, int, Sample]] = []
+        self._heap: list[tuple[float, int, Sample, float]] = []
         self._arrivals: deque[float] = deque()
         self._seq = itertools.count()
         self.max_len = max_len
         self.dropped = 0
         self.event = asyncio.Event()
+        self.last_arrivals: list[float] = []
+        """When each sample the last :meth:`take` handed out arrived (``time.monotonic()``), in its order."""
 
     def put(self, sample: Sample, arrived: float) -> None:
         if len(self._heap) >= self.max_len:
@@ -135,7 +144,7 @@ class Inbox:
             self._arrivals.popleft()
             self.dropped += 1
         t = sample.t if math.isfinite(sample.t) else -math.inf
-        heapq.heappush(self._heap, (t, next(self._seq), sample))
+        heapq.heappush(self._heap, (t, next(self._seq), sample, arrived))
         self._arrivals.append(arrived)
         self.event.set()
 
@@ -149,7 +158,9 @@ class Inbox:
         k = min(n, len(self._heap))
         for _ in range(k):
             self._arrivals.popleft()
-        return [heapq.heappop(self._heap)[2] for _ in range(k)], arrived
+        taken = [heapq.heappop(self._heap) for _ in range(k)]
+        self.last_arrivals = [item[3] for item in taken]
+        return [item[2] for item in taken], arrived
 
     def __len__(self) -> int:
         return len(self._heap)
@@ -171,6 +182,7 @@ class Service:
         rules: TimeRules | None = None,
         clock: Callable[[], float] = time.time,
         clock_rate: float = 1.0,
+        record: Callable[[Sample, float, float], None] | None = None,
     ) -> None:
         self.config = config
         self.estimator = estimator
@@ -181,6 +193,7 @@ class Service:
         self.stats = ServiceStats()
         self.inbox = Inbox()
         self.output = MonotonicOutput()
+        self.fix_clock = FixClock(config.gps)
         self.degraded_since: float | None = None
         self._clock_resets = 0
         self._udp = UdpSink(config.output, config.blame)
@@ -191,6 +204,8 @@ class Service:
             else None
         )
         self._extra_sink = sink
+        self._record = record
+        self._output_lock = threading.Lock()
 
     async def run(self, stop: asyncio.Event) -> None:
         """Run until ``stop`` is set; everything is closed when this returns."""
@@ -219,8 +234,9 @@ class Service:
                 if close is not None:
                     with contextlib.suppress(Exception):
                         await close()
-            for est in self.output.flush():  # held ahead of the input's clock when it stopped
-                self._send(est)
+            with self._output_lock:  # a worker thread still pushing sends under it too
+                for est in self.output.flush():  # held ahead of the input's clock when it stopped
+                    self._send(est)
             log.info("sumhe stopped after %.1f s: %s", time.monotonic() - self.stats.started_wall, self.status_line())
             self._send_status()
             self._udp.close()
@@ -269,7 +285,7 @@ class Service:
                 return
             self.stats.received[name] += 1
             if isinstance(sample, GnssFix):
-                sample = stamp_fix(sample, self.config.gps)
+                sample = self.fix_clock.stamp(sample)
             self.inbox.put(sample, time.monotonic())
 
     async def _estimate(self) -> None:
@@ -293,16 +309,8 @@ class Service:
             backlog = time.monotonic() - arrived
             self._judge_backlog(backlog)
             self.stats.batches += 1
-            estimates, epoch_ms = await asyncio.to_thread(self._push_all, chunk)
+            epoch_ms = await asyncio.to_thread(self._push_all, chunk, self.inbox.last_arrivals)
             self.stats.solve_ms.extend(epoch_ms)
-            ready: list[Estimate] = []
-            if self.pipeline.guard.stats.clock_resets != self._clock_resets:
-                self._clock_resets = self.pipeline.guard.stats.clock_resets
-                ready = self.output.reset()
-            ready += self.output.release(estimates, max(sample.t for sample in chunk))
-            self.stats.out_of_order = self.output.out_of_order
-            for est in ready:
-                self._send(est)
 
     def _judge_backlog(self, backlog: float) -> None:
         """Enter or leave the degraded state for a chunk taken ``backlog`` s after its first sample arrived, and
@@ -324,16 +332,31 @@ class Service:
         if hasattr(self.estimator, "defer_solves"):
             self.estimator.defer_solves = self.degraded_since is not None and backlog >= SOLVE_BACKLOG_S
 
-    def _push_all(self, batch: list[Sample]) -> tuple[list[Estimate], list[float]]:
-        """Push a batch (in the worker thread): the estimates, and the update time (ms) of each GNSS epoch."""
-        out: list[Estimate] = []
+    def _push_all(self, batch: list[Sample], arrivals: list[float]) -> list[float]:
+        """Push a batch (in the worker thread), each sample's estimates sent as soon as it is pushed (not after the
+        batch, nor through the event loop: the CAN sample taken after a GNSS epoch's solve does not wait for the rest
+        of the batch); the update time (ms) of each GNSS epoch. ``arrivals``: when each sample arrived (monotonic s,
+        for the recording)."""
         epoch_ms: list[float] = []
-        for sample in batch:
+        now = -math.inf
+        for sample, arrived in zip(batch, arrivals, strict=True):
+            if self._record is not None:
+                self._record(sample, arrived, time.monotonic())
             t0 = time.perf_counter()
-            out.extend(self.pipeline.push(sample))
+            estimates = self.pipeline.push(sample)
             if isinstance(sample, GnssFix) and self.pipeline.stats.first_fix_t is not None:
                 epoch_ms.append((time.perf_counter() - t0) * 1000.0)
-        return out, epoch_ms
+            now = max(now, sample.t)
+            with self._output_lock:
+                ready: list[Estimate] = []
+                if self.pipeline.guard.stats.clock_resets != self._clock_resets:
+                    self._clock_resets = self.pipeline.guard.stats.clock_resets
+                    ready = self.output.reset()
+                ready += self.output.release(estimates, now)
+                self.stats.out_of_order = self.output.out_of_order
+                for est in ready:
+                    self._send(est)
+        return epoch_ms
 
     def _send(self, est: Estimate) -> None:
         if self.degraded_since is not None:
