@@ -54,6 +54,9 @@ def test_registry_builds_it_and_it_is_an_estimator() -> None:
     assert isinstance(est, MovingHorizonEstimator)
     assert isinstance(est, Estimator)
     assert EstimationSettings().estimator.name == "mhe"
+    # every window size's solver with its OSQP workspace, built now: nothing is allocated mid-drive
+    assert sorted(est.solve._solvers) == list(est.solve.buckets)
+    assert all(solver._osqp is not None for solver in est.solve._solvers.values())
 
 
 def test_su7_is_refused() -> None:
@@ -359,6 +362,16 @@ def test_osqp_warm_started_with_its_duals_needs_fewer_iterations(drive: Drive) -
     cold = solver.solve(again, None, iterations=1)
     assert warm.success and cold.success
     assert warm.iterations < cold.iterations
+
+
+def test_osqp_set_up_by_the_warm_up_solves_as_one_set_up_at_its_first_qp(drive: Drive) -> None:
+    first, _ = _window_problems(drive)
+    model = model_for(SETTINGS, streaming=False)
+    early, late = (SqpSolver(model, first.capacity, iterations=2, banded=False) for _ in range(2))
+    early.warm_up()
+    a, b = early.solve(first, None), late.solve(first, None)
+    assert a.success and a.iterations == b.iterations
+    assert np.array_equal(a.x, b.x)
 
 
 def test_banded_solve_equals_osqp(drive: Drive) -> None:

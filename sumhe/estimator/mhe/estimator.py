@@ -91,7 +91,8 @@ class MovingHorizonEstimator(StreamEstimator):
     @classmethod
     def from_config(cls, config: Config) -> MovingHorizonEstimator:
         """The estimator of ``config.estimation`` (the registry's constructor), with the ``sqp`` solvers of every
-        window size built now (half a second) rather than during the first long outage."""
+        window size and their OSQP workspaces built now (under a second; 30 MB) rather than during the first long
+        outage or run of rejected fixes: memory stays flat over a day of data."""
         estimator = cls(config.estimation)
         if config.estimator.mhe.solver == "sqp":
             estimator.warm_up()
@@ -149,8 +150,8 @@ class MovingHorizonEstimator(StreamEstimator):
         return self.window.t.copy(), self.window.x.copy()
 
     def warm_up(self) -> None:
-        """Build the solver of every window size now rather than at first use (10-60 ms each for ``sqp``, OSQP set
-        up at its first QP; up to seconds for the NLP solvers)."""
+        """Build the solver of every window size now rather than at first use (10-60 ms each for ``sqp``, with its
+        OSQP workspace; up to seconds for the NLP solvers)."""
         self.solve.warm_up()
 
     # ---- epochs -----------------------------------------------------------------------------------------------

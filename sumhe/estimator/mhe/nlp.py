@@ -95,6 +95,9 @@ class NlpSolver:
             out[:keep] = vec[shift * width :]
         return out
 
+    def warm_up(self) -> None:
+        """Nothing to do: the NLP solver is built whole by the constructor."""
+
     def solve(self, problem: WindowProblem, shift: int | None, iterations: int | None = None) -> SolveResult:
         """Solve the NLP from ``problem.x`` to convergence (``iterations`` is ignored); multipliers of the previous
         solve shifted by ``shift`` steps (None: cold)."""

@@ -103,6 +103,9 @@ class WindowSolver(Protocol):
 
     def solve(self, problem: WindowProblem, shift: int | None, iterations: int | None = None) -> SolveResult: ...
 
+    def warm_up(self) -> None:
+        """Build now whatever the solver would otherwise build at its first use."""
+
 
 def residual_functions(model: SuModel) -> tuple[ca.Function, ca.Function]:
     """CasADi functions of one step: state noise ``w(x_prev, x_next, h)`` (m_dynamic) and output noise
