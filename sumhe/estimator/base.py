@@ -104,7 +104,9 @@ class StreamEstimator(ABC):
     Error estimates: each estimate's own spread (the estimator's 1-sigma figures) has its position covariance scaled
     by ``self.consistency`` (:class:`~sumhe.estimator.uncertainty.InnovationScale`), fed at every fix used with the
     innovation of the estimator's own prediction of it (:func:`predicted_at`: its estimates since the previous
-    epoch), then the fix's offset added (:class:`Receiver`). The estimates themselves are not changed.
+    epoch), except where it started over at the fix (``epoch.start``, or ``self.started_over`` set by
+    :meth:`on_epoch`: the MHE's gate restarts), then the fix's offset added (:class:`Receiver`). The estimates
+    themselves are not changed.
     """
 
     name: ClassVar[str] = ""
@@ -122,6 +124,7 @@ class StreamEstimator(ABC):
         self.consistency = InnovationScale()
         self._since_epoch: list[StateEstimate] = []
         self._at_fix: tuple[float, Spread | None] = (math.nan, None)
+        self.started_over = False
 
     def reset(self) -> None:
         """Forget the estimate, the stream (CAN data, GNSS timing) and the consistency scales; counters are kept."""
@@ -141,11 +144,14 @@ class StreamEstimator(ABC):
                 fix = event.fix
                 ahead = self.settings.can.max_gap_s  # farther on, the CAN data are missing: no prediction
                 prior = predicted_at(self._since_epoch, fix.t, ahead) if fix is not None else None
+                self.started_over = event.start
                 estimate: StateEstimate | None = self.on_epoch(event)
                 self._since_epoch = []
                 if estimate is not None and estimate.gps == "ok" and event.fix is not None:
-                    if prior is not None and not event.start:
+                    if prior is not None and not self.started_over:
                         self._match(event.fix, *prior)
+                    else:
+                        self.consistency.skip()
                     self._at_fix = (event.fix.t, estimate.spread)
                     self._receiver = Receiver(event.fix, self._calibrated(estimate).spread, self.averages_fixes)
             else:
