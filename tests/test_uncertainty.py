@@ -242,16 +242,18 @@ def test_the_consistency_scale_is_one_for_consistent_innovations_and_rises_for_t
 
 def test_the_fixes_correlated_error_is_not_taken_for_the_estimators() -> None:
     # fixes with a slow offset (1.9 m per axis, which the estimate shares) and a small white error (0.3 m): the
-    # estimator lags them by 2 m per axis where its covariance says 1 m; subtracting the fixes' whole variance
-    # from the innovations' saw nothing wrong
+    # estimator lags them by 2 m per axis (correlated over 10 s) where its covariance says 1 m; subtracting the
+    # fixes' whole variance from the innovations' saw nothing wrong (a scale of 1)
     rng = np.random.default_rng(7)
     scale = InnovationScale()
-    lag = np.zeros(2)
-    for k in range(1500):
-        lag = 0.99 * lag + 0.141 * 2.0 * rng.standard_normal(2)  # a slow lag, 2 m per axis
+    lag, seen = np.zeros(2), []
+    for k in range(3000):
+        lag = 0.9 * lag + 2.0 * math.sqrt(1.0 - 0.81) * rng.standard_normal(2)
         nu = lag + 0.3 * rng.standard_normal(2)
         scale.add(float(k), nu, 2.0 * (1.9**2 + 0.3**2), 2.0, 0.0, 1.0)
-    assert scale.scale == pytest.approx(4.0, rel=0.35)
+        seen.append(scale.scale)
+    # E|nu|^2 = 8.2 m^2; the white part read from the changes of nu, 1 m^2 (the lag's own changes included)
+    assert np.mean(seen[100:]) == pytest.approx(3.6, rel=0.2)
 
 
 def test_an_outlier_after_a_gap_moves_the_growth_scale_a_bounded_step() -> None:

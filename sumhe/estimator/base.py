@@ -149,7 +149,7 @@ class StreamEstimator(ABC):
                 self._since_epoch = []
                 if estimate is not None and estimate.gps == "ok" and event.fix is not None:
                     if prior is not None and not self.started_over:
-                        self._match(event.fix, *prior)
+                        self._match(event.fix, estimate, *prior)
                     else:
                         self.consistency.skip()
                     self._at_fix = (event.fix.t, estimate.spread)
@@ -162,13 +162,18 @@ class StreamEstimator(ABC):
                 out.append(self._receiver.tag(estimate) if self._receiver is not None else estimate)
         return out
 
-    def _match(self, fix: FixMeasurement, east_m: float, north_m: float, trace_p: float) -> None:
-        """Feed the consistency scales one used fix and the own prediction at its time (:class:`InnovationScale`)."""
+    def _match(self, fix: FixMeasurement, used: StateEstimate, east_m: float, north_m: float, trace_p: float) -> None:
+        """Feed the consistency scales one used fix (:class:`InnovationScale`): after a gap, the own prediction at
+        its time (``east_m``, ``north_m``, own trace ``trace_p``); else the estimate that used it (``used``)."""
         t0, spread0 = self._at_fix
-        trace0 = min(spread0.var_east_m2 + spread0.var_north_m2, trace_p) if spread0 is not None else trace_p
-        nu = np.array([fix.east_m - east_m, fix.north_m - north_m])
         periods = (fix.t - t0) / self.frontend.period_s if math.isfinite(t0) else 0.0
         trace_r = fix.sigma_east_m**2 + fix.sigma_north_m**2
+        if periods <= self.consistency.gap_periods and used.spread is not None:
+            east_m, north_m = used.east_m, used.north_m
+            trace_p = used.spread.var_east_m2 + used.spread.var_north_m2
+            spread0 = used.spread
+        trace0 = min(spread0.var_east_m2 + spread0.var_north_m2, trace_p) if spread0 is not None else trace_p
+        nu = np.array([fix.east_m - east_m, fix.north_m - north_m])
         self.consistency.add(fix.t, nu, trace_r, trace0, trace_p - trace0, periods)
 
     def _calibrated(self, estimate: StateEstimate) -> StateEstimate:
