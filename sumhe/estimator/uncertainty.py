@@ -211,7 +211,7 @@ class InnovationScale:
 
     What the innovations cannot tell apart: the part of a fix's slow error an estimator smooths over (it is then
     nearer the truth than the fixes, and ``Receiver``'s offset counts that part twice) from its own lag. The MHE,
-    which follows the fixes, had 96.8 % with GPS under the old rule and 98.2 % under this one; the EKF 81.6 and
+    which follows the fixes, had 96.8 % with GPS under the old rule and 98.3 % under this one; the EKF 81.6 and
     89.9 %.
 
     Robust to outliers and restarts: after a gap an innovation counts at most ``OUTLIER_CAP`` times the square the
