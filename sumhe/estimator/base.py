@@ -104,7 +104,9 @@ class StreamEstimator(ABC):
     Error estimates: each estimate's own spread (the estimator's 1-sigma figures) has its position covariance scaled
     by ``self.consistency`` (:class:`~sumhe.estimator.uncertainty.InnovationScale`), fed at every fix used with the
     innovation of the estimator's own prediction of it (:func:`predicted_at`: its estimates since the previous
-    epoch), then the fix's offset added (:class:`Receiver`). The estimates themselves are not changed.
+    epoch), except where it started over at the fix (``epoch.start``, or ``self.started_over`` set by
+    :meth:`on_epoch`: the MHE's gate restarts), then the fix's offset added (:class:`Receiver`). The estimates
+    themselves are not changed.
     """
 
     name: ClassVar[str] = ""
@@ -122,6 +124,7 @@ class StreamEstimator(ABC):
         self.consistency = InnovationScale()
         self._since_epoch: list[StateEstimate] = []
         self._at_fix: tuple[float, Spread | None] = (math.nan, None)
+        self.started_over = False
 
     def reset(self) -> None:
         """Forget the estimate, the stream (CAN data, GNSS timing) and the consistency scales; counters are kept."""
@@ -141,11 +144,14 @@ class StreamEstimator(ABC):
                 fix = event.fix
                 ahead = self.settings.can.max_gap_s  # farther on, the CAN data are missing: no prediction
                 prior = predicted_at(self._since_epoch, fix.t, ahead) if fix is not None else None
+                self.started_over = event.start
                 estimate: StateEstimate | None = self.on_epoch(event)
                 self._since_epoch = []
                 if estimate is not None and estimate.gps == "ok" and event.fix is not None:
-                    if prior is not None and not event.start:
-                        self._match(event.fix, *prior)
+                    if prior is not None and not self.started_over:
+                        self._match(event.fix, estimate, *prior)
+                    else:
+                        self.consistency.skip()
                     self._at_fix = (event.fix.t, estimate.spread)
                     self._receiver = Receiver(event.fix, self._calibrated(estimate).spread, self.averages_fixes)
             else:
@@ -156,13 +162,18 @@ class StreamEstimator(ABC):
                 out.append(self._receiver.tag(estimate) if self._receiver is not None else estimate)
         return out
 
-    def _match(self, fix: FixMeasurement, east_m: float, north_m: float, trace_p: float) -> None:
-        """Feed the consistency scales one used fix and the own prediction at its time (:class:`InnovationScale`)."""
+    def _match(self, fix: FixMeasurement, used: StateEstimate, east_m: float, north_m: float, trace_p: float) -> None:
+        """Feed the consistency scales one used fix (:class:`InnovationScale`): after a gap, the own prediction at
+        its time (``east_m``, ``north_m``, own trace ``trace_p``); else the estimate that used it (``used``)."""
         t0, spread0 = self._at_fix
-        trace0 = min(spread0.var_east_m2 + spread0.var_north_m2, trace_p) if spread0 is not None else trace_p
-        nu = np.array([fix.east_m - east_m, fix.north_m - north_m])
         periods = (fix.t - t0) / self.frontend.period_s if math.isfinite(t0) else 0.0
         trace_r = fix.sigma_east_m**2 + fix.sigma_north_m**2
+        if periods <= self.consistency.gap_periods and used.spread is not None:
+            east_m, north_m = used.east_m, used.north_m
+            trace_p = used.spread.var_east_m2 + used.spread.var_north_m2
+            spread0 = used.spread
+        trace0 = min(spread0.var_east_m2 + spread0.var_north_m2, trace_p) if spread0 is not None else trace_p
+        nu = np.array([fix.east_m - east_m, fix.north_m - north_m])
         self.consistency.add(fix.t, nu, trace_r, trace0, trace_p - trace0, periods)
 
     def _calibrated(self, estimate: StateEstimate) -> StateEstimate:

@@ -157,7 +157,9 @@ class MovingHorizonEstimator(StreamEstimator):
     # ---- epochs -----------------------------------------------------------------------------------------------
 
     def _restart(self) -> None:
-        """Forget the window to start over at a fix, keeping the CAN states of the last one."""
+        """Forget the window to start over at a fix, keeping the CAN states of the last one (the fix is not matched
+        against the prediction given up: ``started_over``)."""
+        self.started_over = True
         md = self.model.n_dynamic
         theta = self.window.x[-1, md:].copy() if len(self.window) else None
         self.reset_state()
