@@ -35,9 +35,9 @@ MIN_SPEED_MPS = 2.0
 """Course and Doppler speed are used above this speed only (below it the course is noise)."""
 MIN_PAIRS = 30
 SLOPE_S = 0.5
+"""Half the interval (s) over which the model's derivative with respect to the lag is taken (smooths sensor noise)."""
 LAG_TOLERANCE_S = 1e-4
 """The speed lag is searched to this (s) between the grid's neighbours of its minimum (:func:`speed_lag`)."""
-"""Half the interval (s) over which the model's derivative with respect to the lag is taken (smooths sensor noise)."""
 
 
 @dataclass(frozen=True, slots=True)
