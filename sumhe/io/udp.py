@@ -71,8 +71,12 @@ def _number(value: float | int | None) -> str:
 
 
 def _fixed(value: float | None, digits: int) -> str:
-    """``value`` rounded to ``digits`` decimals as JSON text; null for None and non-finite values."""
-    return _number(_round(value, digits))
+    """``value`` rounded to ``digits`` decimals as JSON text (:func:`_round`, then :func:`_number`); null for None
+    and non-finite values."""
+    if value is None or not math.isfinite(value):
+        return "null"
+    rounded = round(value, digits)
+    return float.__repr__(rounded) if type(rounded) is float else _number(rounded)
 
 
 def json_line(est: Estimate) -> str:
