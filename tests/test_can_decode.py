@@ -1,7 +1,9 @@
 import gzip
 import logging
 import math
+import random
 import struct
+from pathlib import Path
 
 import can
 import cantools
@@ -16,6 +18,7 @@ from sumhe.io.can import (
     REFERENCE_SIGNALS,
     CanDecoder,
     LogStats,
+    _in_use,
     load_dbc,
     read_log,
     si_factor,
@@ -233,6 +236,9 @@ BO_ 512 MUXED: 8 ECU
  SG_ MUX_ID M : 0|8@1+ (1,0) [0|255] "" ECU
  SG_ YAW_A m0 : 8|16@1- (0.01,0) [-327.68|327.67] "deg/s" ECU
  SG_ STEER_B m1 : 8|16@1- (0.1,0) [-3276.8|3276.7] "deg" ECU
+BO_ 2566844672 EXT_MUXED: 8 ECU
+ SG_ PAGE M : 0|8@1+ (1,0) [0|255] "" ECU
+ SG_ YAW_P m3 : 8|16@1- (0.01,0) [-327.68|327.67] "deg/s" ECU
 BO_ 513 FLOATS: 4 ECU
  SG_ ACCEL : 0|32@1- (1,0) [0|0] "g" ECU
 SIG_VALTYPE_ 513 ACCEL : 1;
@@ -275,6 +281,17 @@ def test_multiplexed_signal_absent_or_unknown_mux_is_no_error(extra_db):
     assert (dec.stats.decode_errors, dec.stats.other_mux, dec.stats.decoded) == (0, 2, 1)
 
 
+def test_a_multiplexed_message_on_an_extended_id_decodes(extra_db):
+    """The multiplexer decoded alone keeps the message's 29-bit id (the decoder is built, and decodes)."""
+    dec = CanDecoder(extra_db, {"yaw_rate": SignalSpec("EXT_MUXED", "YAW_P")})
+    frame = can.Message(
+        arbitration_id=0x18FEF100, is_extended_id=True, data=bytes([3]) + struct.pack("<h", 500) + bytes(5)
+    )
+    assert dec.decode(frame)[0].value == pytest.approx(5 * DEG)
+    other = can.Message(arbitration_id=0x18FEF100, is_extended_id=True, data=bytes([4]) + bytes(7))
+    assert dec.decode(other) == [] and dec.stats.other_mux == 1
+
+
 def test_non_finite_float_signal_never_becomes_a_sample(extra_db):
     dec = CanDecoder(extra_db, {"lat_accel": SignalSpec("FLOATS", "ACCEL")})
     assert dec.decode(std(0x201, struct.pack("<f", 0.5)))[0].value == pytest.approx(0.5 * 9.80665)
@@ -289,6 +306,45 @@ def test_every_message_mode_decodes_all_signals_in_dbc_units():
     assert name == "GW_VEHICLE_STATUS"
     assert values == pytest.approx({"IGNITION": 2.0, "ODOMETER": 12345.6})
     assert dec.decode_signals(std(0x7FF, bytes(8))) is None
+
+
+SHARED_DBC = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real_drives" / "canedge_obd_2021-07-26_a"
+
+
+def _dbcs(extra_db) -> list:
+    dbs = [ref_db(), toyota_db(), extra_db, load_dbc(Path(__file__).resolve().parents[1] / "dbc" / "sumhe_prod.dbc")]
+    return dbs + [load_dbc(p) for p in sorted(SHARED_DBC.glob("*.dbc"))]  # the real drive's, where it is
+
+
+def test_a_message_with_only_the_signals_in_use_decodes_them_as_the_whole_message_to_the_bit(extra_db):
+    """The decoder decodes only the signals its fields read (``_in_use``): for every message that is not
+    multiplexed (little and big endian, signed, float, scaled and offset signals), random payloads give the same
+    values, of the same types, as the whole message's decode; a multiplexed message, or one that cannot be decoded
+    at all (its frames stay decode errors), is kept whole."""
+    rng = random.Random(16)
+    checked = kept = 0
+    for db in _dbcs(extra_db):
+        for message in db.messages:
+            names = [s.name for s in message.signals]
+            for k in (1, 2, len(names)):
+                used = rng.sample(names, min(k, len(names)))
+                part = _in_use(message, used)
+                if message.is_multiplexed() or part is message:
+                    assert part is message
+                    kept += 1
+                    continue
+                for _ in range(20):
+                    data = bytes(rng.getrandbits(8) for _ in range(message.length))
+                    whole = message.decode(data, decode_choices=False)
+                    got = part.decode(data, decode_choices=False)
+                    assert set(got) == set(used)
+                    for name in used:
+                        assert type(got[name]) is type(whole[name])
+                        assert repr(got[name]) == repr(whole[name]), (message.name, name, data.hex())
+                    checked += 1
+    assert checked > 1000 and kept > 0
+    with pytest.raises(cantools.database.errors.DecodeError):  # a message kept whole: no decode at all
+        toyota_db().get_message_by_name("PCS_HUD").decode(bytes(8))
 
 
 # --- the acceptance case: a public production-car DBC by config alone -----------------------------------------

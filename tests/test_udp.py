@@ -4,9 +4,11 @@ import math
 import socket
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
-from sumhe.io.udp import UdpSender, encode_json, estimate_to_json, iso_utc
-from sumhe.messages import Estimate
+from sumhe.io.udp import UdpSender, encode_json, estimate_to_json, iso_utc, json_line
+from sumhe.messages import ErrorEstimate, Estimate
 
 
 def _estimate(**kw) -> Estimate:
@@ -61,6 +63,67 @@ def test_json_keys_units_and_track_in_degrees():
     for key in ("time", "t", "lat", "lon", "alt", "north", "speed", "yaw_rate", "mode", "window", "solve_ms"):
         assert key in obj
     assert "bound_east" not in obj
+
+
+def _round(value, digits):
+    return None if value is None or not math.isfinite(value) else round(value, digits)
+
+
+def _reference_object(est: Estimate) -> dict:
+    """The TPV object built key by key (the format the README documents), for the template to match."""
+    out = {
+        "class": "TPV",
+        "time": iso_utc(est.t),
+        "t": round(est.t, 4),
+        "lat": _round(est.lat_deg, 9),
+        "lon": _round(est.lon_deg, 9),
+        "alt": _round(est.alt_m, 3),
+        "east": _round(est.east_m, 3),
+        "north": _round(est.north_m, 3),
+        "track": _round(math.degrees(est.track_rad) % 360.0, 3),
+        "speed": _round(est.speed_mps, 3),
+        "yaw_rate": _round(est.yaw_rate_rps, 5),
+        "gps": est.gps,
+        "mode": est.mode,
+        "window": est.window,
+        "solve_ms": _round(est.solve_ms, 3),
+    }
+    if est.error is not None:
+        e = est.error
+        out |= {"eph": _round(e.eph_m, 3), "epx": _round(e.epx_m, 3), "epy": _round(e.epy_m, 3)}
+        out |= {"eps": _round(e.eps_mps, 3), "epd": _round(math.degrees(e.epd_rad), 3)}
+    if est.bound_east_m is not None and est.bound_north_m is not None:
+        out |= {"bound_east": _round(est.bound_east_m, 3), "bound_north": _round(est.bound_north_m, 3)}
+    if est.sats is not None:
+        out["sats"] = est.sats
+    if est.hdop is not None:
+        out["hdop"] = _round(est.hdop, 2)
+    return out
+
+
+_ANY = st.floats(allow_nan=True, allow_infinity=True) | st.sampled_from([0.0, -0.0, 1e-7, 0.0005, 2.5e-5, 1e16])
+_OPTIONAL = st.none() | _ANY
+_ERROR = st.none() | st.builds(ErrorEstimate, *[_ANY] * 10)
+
+
+@given(
+    t=st.floats(0.0, 4e9) | st.sampled_from([1780300800.1, 1780300800.99995, 1e9 + 0.00005]),
+    values=st.lists(_ANY, min_size=8, max_size=8),
+    gps=st.sampled_from(["ok", "rejected", "outage"]),
+    mode=st.sampled_from(["mhe", "mhe-widened", "can", "init", 'odd "mode"\\ é']),
+    window=st.integers(0, 10**6),
+    bounds=st.tuples(_OPTIONAL, _OPTIONAL),
+    error=_ERROR,
+    sats=st.none() | st.integers(0, 99),
+    hdop=_OPTIONAL,
+)
+def test_json_line_is_the_text_json_writes_for_the_object(t, values, gps, mode, window, bounds, error, sats, hdop):
+    """The template writes, to the character, what ``json`` writes for the object built key by key (floats as their
+    ``repr``, non-finite as null, strings escaped, optional keys only where set)."""
+    est = Estimate(t, *values, gps, mode, window, values[-1], *bounds, error, sats, hdop)
+    line = json_line(est)
+    assert line == json.dumps(_reference_object(est), separators=(",", ":"))
+    assert estimate_to_json(est) == json.loads(line)
 
 
 def test_non_finite_values_become_null_not_invalid_json():

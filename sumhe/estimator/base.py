@@ -153,13 +153,12 @@ class StreamEstimator(ABC):
                     else:
                         self.consistency.skip()
                     self._at_fix = (event.fix.t, estimate.spread)
-                    self._receiver = Receiver(event.fix, self._calibrated(estimate).spread, self.averages_fixes)
+                    self._receiver = Receiver(event.fix, self._calibrated(estimate.spread), self.averages_fixes)
             else:
                 estimate = self.on_can(event)
             if estimate is not None:
                 self._since_epoch.append(estimate)
-                estimate = self._calibrated(estimate)
-                out.append(self._receiver.tag(estimate) if self._receiver is not None else estimate)
+                out.append(self._finished(estimate))
         return out
 
     def _match(self, fix: FixMeasurement, used: StateEstimate, east_m: float, north_m: float, trace_p: float) -> None:
@@ -176,12 +175,17 @@ class StreamEstimator(ABC):
         nu = np.array([fix.east_m - east_m, fix.north_m - north_m])
         self.consistency.add(fix.t, nu, trace_r, trace0, trace_p - trace0, periods)
 
-    def _calibrated(self, estimate: StateEstimate) -> StateEstimate:
-        """The estimate with its own position covariance scaled by the consistency scales."""
-        if estimate.spread is None:
-            return estimate
-        spread = self.consistency.calibrated(estimate.spread, self._at_fix[1])
-        return _tagged(estimate, spread, estimate.sats, estimate.hdop)
+    def _calibrated(self, spread: Spread | None) -> Spread | None:
+        """An estimate's own spread with its position covariance scaled by the consistency scales."""
+        return None if spread is None else self.consistency.calibrated(spread, self._at_fix[1])
+
+    def _finished(self, estimate: StateEstimate) -> StateEstimate:
+        """The estimate as pushed out (one new estimate): its spread calibrated (:meth:`_calibrated`) and, after
+        the first fix used, tagged by its :class:`Receiver`."""
+        spread = self._calibrated(estimate.spread)
+        if self._receiver is not None:
+            return _tagged(estimate, *self._receiver.tag(estimate.gps, spread))
+        return estimate if spread is None else _tagged(estimate, spread, estimate.sats, estimate.hdop)
 
     def stats(self) -> Mapping[str, float | int | str]:
         """The estimator's name, the nominal GNSS period, the GNSS time offset applied (s: a fix's stamped time plus
@@ -241,22 +245,23 @@ class Receiver:
     def _grow(self, spread: Spread | None) -> Spread | None:
         return None if spread is None else spread.grown(self.var_east_m2, self.var_north_m2)
 
-    def tag(self, estimate: StateEstimate) -> StateEstimate:
-        """The estimate with the fix's position covariance added to its own, satellites and HDOP: the fix's while
-        GPS is used; in outages (and for rejected fixes) no satellites and the fix's HDOP grown as the estimate's
-        horizontal sigma grew since (so that a consumer who reads only HDOP sees the error grow)."""
-        spread = self._grow(estimate.spread)
-        if estimate.gps == "ok":
-            return _tagged(estimate, spread, self.sats, self.hdop)
+    def tag(self, gps: GpsStatus, spread: Spread | None) -> tuple[Spread | None, int | None, float | None]:
+        """An estimate's spread, satellites and HDOP from its GNSS status and (calibrated) spread: the fix's
+        position covariance added to its own; the fix's satellites and HDOP while GPS is used; in outages (and for
+        rejected fixes) no satellites and the fix's HDOP grown as the estimate's horizontal sigma grew since (so
+        that a consumer who reads only HDOP sees the error grow)."""
+        spread = self._grow(spread)
+        if gps == "ok":
+            return spread, self.sats, self.hdop
         sigma = horizontal_sigma(spread)
         hdop = self.hdop
         if hdop is not None and sigma is not None and self.sigma_m:
             hdop = hdop * max(sigma / self.sigma_m, 1.0)
-        return _tagged(estimate, spread, 0, hdop)
+        return spread, 0, hdop
 
 
 def _tagged(e: StateEstimate, spread: Spread | None, sats: int | None, hdop: float | None) -> StateEstimate:
-    """``dataclasses.replace(e, spread=spread, sats=sats, hdop=hdop)``, a few times faster (two per estimate)."""
+    """``dataclasses.replace(e, spread=spread, sats=sats, hdop=hdop)``, a few times faster (one per estimate)."""
     return StateEstimate(
         e.t, e.east_m, e.north_m, e.azimuth_rad, e.speed_mps, e.yaw_rate_rps, e.gps, e.mode, e.bound_east_m,
         e.bound_north_m, e.window, e.solve_ms, spread, sats, hdop

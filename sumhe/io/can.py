@@ -40,7 +40,7 @@ from typing import Any, TextIO
 
 import can
 import cantools
-from cantools.database.can import Database, Message
+from cantools.database.can import Database, Message, Signal
 
 from sumhe.config import Config, SignalSpec, load_config
 from sumhe.errors import ConfigError, SourceError, printable
@@ -269,6 +269,9 @@ class _Route:
     """The values of the top multiplexer the DBC knows."""
     gnss: bool
     """Whether the message carries GNSS quantities."""
+    used: Message
+    """What :meth:`CanDecoder.decode` decodes: of a message that is not multiplexed, the signals its fields read
+    alone (the same values, without decoding the others: an IMU message carries a dozen); else the message."""
     last_counter: int | None = None
 
 
@@ -376,14 +379,21 @@ class CanDecoder:
             bare = [copy.copy(s) for s in muxes]
             for s in bare:
                 s.is_multiplexer, s.multiplexer_ids, s.multiplexer_signal = False, None, None
-            mux = Message(
-                frame_id=message.frame_id, name=message.name, length=message.length, signals=bare, strict=False
-            )
+            mux = _with_signals(message, bare)
         top = next((s.name for s in muxes if s.multiplexer_signal is None), None)
         known = {i for s in message.signals if s.multiplexer_signal == top for i in s.multiplexer_ids or ()}
         gnss = any(f.gnss for f in fields)
         self._routes[key] = _Route(
-            message.name, message, message.length, tuple(fields), e2e, mux, top, frozenset(known), gnss
+            message.name,
+            message,
+            message.length,
+            tuple(fields),
+            e2e,
+            mux,
+            top,
+            frozenset(known),
+            gnss,
+            _in_use(message, {f.signal for f in fields} | {f.valid for f in fields if f.valid is not None}),
         )
 
     def can_filters(self) -> list[dict[str, int | bool]]:
@@ -420,7 +430,7 @@ class CanDecoder:
             if not fields:
                 self.stats.other_mux += 1
                 return out
-        values = self._decode(route, data)
+        values = self._decode(route.used, route.name, data)
         if values is None:
             return out
         gnss: dict[str, float | None] = {}
@@ -467,7 +477,7 @@ class CanDecoder:
         if route.mux is not None and self._mux_values(route, data).get(route.top) not in route.mux_ids:
             self.stats.other_mux += 1
             return None
-        values = self._decode(route, data)
+        values = self._decode(route.message, route.name, data)
         if values is None:
             return None
         self.stats.decoded += 1
@@ -539,12 +549,12 @@ class CanDecoder:
         assert route.mux is not None
         return route.mux.decode(data, decode_choices=False, scaling=False)
 
-    def _decode(self, route: _Route, data: bytes) -> Mapping[str, Any] | None:
+    def _decode(self, message: Message, name: str, data: bytes) -> Mapping[str, Any] | None:
         try:
-            return route.message.decode(data, decode_choices=False)
+            return message.decode(data, decode_choices=False)
         except Exception as e:  # one bad frame must never stop the stream
             self.stats.decode_errors += 1
-            self._warn("%s: cannot decode %s: %s", route.name, data.hex(), e)
+            self._warn("%s: cannot decode %s: %s", name, data.hex(), e)
             return None
 
     def _check_e2e(self, route: _Route, data: bytes) -> bool:
@@ -578,6 +588,31 @@ class CanDecoder:
                 s.stale,
                 s.frames,
             )
+
+
+def _with_signals(message: Message, signals: Sequence[Signal]) -> Message:
+    """``message`` (its id, name and length) with these signals alone."""
+    return Message(
+        frame_id=message.frame_id,
+        name=message.name,
+        length=message.length,
+        signals=list(signals),
+        is_extended_frame=message.is_extended_frame,
+        strict=False,
+    )
+
+
+def _in_use(message: Message, names: Collection[str]) -> Message:
+    """``message`` with only the signals ``names``: it decodes them as ``message`` does. The message itself where
+    it is multiplexed or cannot be decoded at all (signals beyond its length, a DBC loaded with
+    ``can.dbc_strict = false``: each frame stays a counted decode error)."""
+    try:
+        message.decode(bytes(message.length), decode_choices=False)
+    except Exception:  # what fails here fails for every payload: the unpacking formats do not fit the length
+        return message
+    if message.is_multiplexed():
+        return message
+    return _with_signals(message, [copy.copy(s) for s in message.signals if s.name in names])
 
 
 def _message(dbs: Sequence[Database], name: str, key: str) -> Message:
