@@ -239,3 +239,44 @@ def test_rts_smooths_the_same_drive_in_arrival_order() -> None:
 def test_a_bad_history_span_stops_start_up_naming_the_key(value: object) -> None:
     with pytest.raises(ConfigError, match=r"command line: estimator\.late_fix_history_s: "):
         load_config(overrides={"estimator.late_fix_history_s": value})
+
+
+# ---- fixes that come after their epoch was declared missed ---------------------------------------------------------
+
+
+def latency_step(timed: Sequence[LocalFix | CanSample], t_step: float, before_s: float, after_s: float) -> list:
+    """Time-ordered ``timed`` with each fix delivered ``before_s`` after its time, and ``after_s`` from ``t_step`` on
+    (a receiver, or its reader, that became slower): the CAN samples of its delay come first."""
+    key = [s.t + (0.0 if isinstance(s, CanSample) else before_s if s.t < t_step else after_s) for s in timed]
+    return [timed[i] for i in sorted(range(len(timed)), key=lambda i: (key[i], i))]
+
+
+@pytest.mark.parametrize("name", ["mhe", "ekf"])
+def test_fixes_that_come_after_their_epoch_was_declared_missed_fill_it(name: str) -> None:
+    """A receiver whose fixes come 0.05 s late, then 0.35 s: the epochs of the first fixes after the step are
+    declared missed before they come (the front-end waited their learned delay), and each fix then fills its epoch
+    as a late fix: the estimates of the epochs after them are those of the same data in time order (the EKF: to
+    micrometres, its history re-run; the MHE: its window solved again with them), unlike with the fixes dropped
+    (``fills_missed`` False, the rule before: counted ``fixes_after_missed``)."""
+    timed = sorted(synthetic_drive(10.0).samples, key=lambda s: s.t)
+    t_step = timed[0].t + 6.0
+    arrival = latency_step(timed, t_step, 0.05, 0.35)
+    ordered, filling, dropping = (make_estimator(name, load_config()) for _ in range(3))
+    dropping.frontend.fills_missed = False
+    reference, _ = fed(ordered, timed)
+    filled, _ = fed(filling, arrival)
+    dropped, _ = fed(dropping, arrival)
+    n = filling.stats()["missed_epochs_filled"]
+    assert 1 <= n <= 5 and filling.stats()["missed_epochs"] == n and "fixes_after_missed" not in filling.stats()
+    assert dropping.stats()["fixes_after_missed"] == n and "missed_epochs_filled" not in dropping.stats()
+    fills = [t for t in reference if t_step < t < t_step + 0.1 * n]
+    assert len(fills) == n and all(any(abs(t - u) < 1e-6 and e.gps == "ok" for u, e in filled.items()) for t in fills)
+    after = [t for t in reference if t_step + 0.1 * n < t < t_step + 2.0]
+
+    def off(got: dict[float, StateEstimate]) -> float:
+        return max(
+            math.hypot(got[t].east_m - reference[t].east_m, got[t].north_m - reference[t].north_m) for t in after
+        )
+
+    assert off(dropped) > 0.004  # three fixes (0.3 m noise) less
+    assert off(filled) < (1e-5 if name == "ekf" else 0.2 * off(dropped))
