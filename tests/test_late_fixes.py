@@ -101,7 +101,7 @@ def test_arrival_order_puts_each_fix_after_the_can_samples_of_its_delay() -> Non
 def test_mhe_outage_errors_in_arrival_order_match_time_order(tmp_path) -> None:
     """The issue's target: without the hold, outage errors within 5 % of the held version on the same drive."""
     sim, drive_dir = live_drive(60.0, tmp_path / "drive")
-    config = load_config(service_config(sim, tmp_path, "mhe", "ff11::1", 9, 9))
+    config = load_config(service_config(sim, tmp_path, "mhe", "ff11::1", 9, 9, 9))
     got = replayed_outage_errors(sim, config, drive_dir, "mhe")
     held, arrival = got["held"][0], got["arrival"][0]
     assert math.isfinite(held) and held > 0.0
