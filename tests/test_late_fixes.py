@@ -280,3 +280,46 @@ def test_fixes_that_come_after_their_epoch_was_declared_missed_fill_it(name: str
 
     assert off(dropped) > 0.004  # three fixes (0.3 m noise) less
     assert off(filled) < (1e-5 if name == "ekf" else 0.2 * off(dropped))
+
+
+# ---- the MHE's epoch solved aside (the live service): the CAN samples do not wait behind it -------------------------
+
+
+def aside_and_inline(settle: bool) -> tuple[list[StateEstimate], list[StateEstimate]]:
+    """The CAN-rate estimates of a 10 s drive (fixes 0.05 s late) from an MHE solving its epochs aside
+    (``settle``: waiting for each solve before the next sample) and one solving them inline."""
+    samples = latency_step(sorted(synthetic_drive(10.0).samples, key=lambda s: s.t), math.inf, 0.05, 0.05)
+    aside, inline = (make_estimator("mhe", load_config()) for _ in range(2))
+    aside.solve_aside = True
+    got: tuple[list[StateEstimate], list[StateEstimate]] = ([], [])
+    for s in samples:
+        for est, out in zip((aside, inline), got, strict=True):
+            estimates = est.push(s)
+            if isinstance(s, CanSample):
+                out.extend(estimates)
+            elif settle and est is aside:
+                assert all(e.mode in ("aside", "init") for e in estimates)
+                aside.settle()
+    aside.settle()  # then one CAN sample more, after the last solve's solution was applied
+    end = CanSample(max(s.t for s in samples) + 0.02, "speed", 10.0)
+    for est, out in zip((aside, inline), got, strict=True):
+        out.extend(est.push(end))
+    return got
+
+
+def test_an_epoch_solved_aside_and_settled_gives_the_estimates_of_the_inline_solve() -> None:
+    aside, inline = aside_and_inline(settle=True)
+    assert len(aside) == len(inline) > 400
+    for a, b in zip(aside, inline, strict=True):
+        assert (a.t, a.mode) == (b.t, b.mode)
+        assert figures(a) == pytest.approx(figures(b), abs=1e-12)
+
+
+def test_can_samples_during_an_epoch_solved_aside_are_answered_and_then_follow_the_solution() -> None:
+    """Not waiting: a CAN sample that comes while the epoch's solve runs is answered from the propagated
+    prediction; once the solve is done its solution is applied and propagated over the samples since, so the
+    estimates after it are the inline ones again."""
+    aside, inline = aside_and_inline(settle=False)
+    assert len(aside) == len(inline) > 400
+    off = [math.hypot(a.east_m - b.east_m, a.north_m - b.north_m) for a, b in zip(aside, inline, strict=True)]
+    assert max(off) < 1.0 and off[-1] < 1e-9

@@ -22,7 +22,9 @@ keeping its CAN bias and scale.
 Modes: ``"init"`` (first fix), ``"mhe"`` (solved), ``"mhe-widened"`` (solved after widening), ``"predict"``
 (solver failed: model prediction), ``"can"`` (between epochs: the newest solution moved on with CAN data),
 ``"degraded"`` (``defer_solves`` set by a service that fell behind: the epoch appended to the window unsolved, its
-estimate the model prediction; the next epoch solved solves them all).
+estimate the model prediction; the next epoch solved solves them all), ``"aside"`` (``solve_aside`` set by the
+live service: the epoch's window is solved in a thread of its own, its estimate the model prediction; the CAN
+samples that come meanwhile are answered from it, and the solution, once done, is propagated over them).
 Only the single-antenna model ``su5`` is supported in the sample stream.
 """
 
@@ -31,6 +33,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Mapping
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 from numpy.typing import NDArray
@@ -88,6 +91,11 @@ class MovingHorizonEstimator(StreamEstimator):
         self.defer_solves = False
         """Set by a service that fell behind: epochs are appended to the window without a solve (mode
         ``"degraded"``) until it is cleared; the next epoch solved then solves the whole window."""
+        self.solve_aside = False
+        """Set by the live service: an epoch's solve runs in a thread of its own while the CAN samples after it are
+        answered (:meth:`_collect`)."""
+        self._aside: ThreadPoolExecutor | None = None
+        self._pending: tuple[float, GpsStatus, Future[tuple[NDArray[np.float64], str]]] | None = None
         self._unsolved = False
         self._step_jac = step_jacobians(model)
         self._q_power = np.array(model.q_power)
@@ -122,6 +130,9 @@ class MovingHorizonEstimator(StreamEstimator):
 
     def reset_state(self) -> None:
         """Forget the window, the arrival, the gate's streaks and the CAN states (counters are kept)."""
+        if self._pending is not None:
+            self._pending[2].result()  # the solve reads the window: let it end
+            self._pending = None
         self.window.clear()
         self.solve.reset()
         self.newest.reset()
@@ -132,6 +143,7 @@ class MovingHorizonEstimator(StreamEstimator):
         self._status: GpsStatus = "outage"
 
     def on_epoch(self, epoch: Epoch) -> StateEstimate | None:
+        self._collect(wait=True)
         if epoch.start:
             assert epoch.fix is not None  # the front-end starts at a usable fix
             self._restart()
@@ -142,6 +154,7 @@ class MovingHorizonEstimator(StreamEstimator):
         return self._epoch(epoch.t, epoch.fix)
 
     def on_can(self, tick: CanTick) -> StateEstimate | None:
+        self._collect(wait=False)
         if not tick.output or not len(self.window):
             return None
         return self._estimate(self.propagation.to(tick.t, self.frontend.can), tick.t, self._status, "can")
@@ -271,8 +284,36 @@ class MovingHorizonEstimator(StreamEstimator):
             self._unsolved = True
             self.gate.done(t, status, status == "ok" and bool(win.avail[-1, model.j_azimuth]))
             return self._estimate(list(win.x[-1]), t, status, "degraded")
-        x_new, mode = self._solve(None if plan.merge or self._unsolved else plan.drop)
+        shift = None if plan.merge or self._unsolved else plan.drop
         self._unsolved = False
+        if self.solve_aside:
+            if self._aside is None:
+                self._aside = ThreadPoolExecutor(1, thread_name_prefix="mhe-solve")
+            self._pending = (t, status, self._aside.submit(self._solve, shift))
+            self.propagation.restart(list(win.x[-1]), t, can)
+            return self._estimate(list(win.x[-1]), t, status, "aside")
+        x_new, mode = self._solve(shift)
+        return self._solved(t, status, x_new, mode)
+
+    def settle(self) -> None:
+        """Wait for the epoch solved aside (``solve_aside``), if any, and apply its solution."""
+        self._collect(wait=True)
+
+    def _collect(self, wait: bool) -> None:
+        """Apply the solution of the epoch solved aside (``solve_aside``) once it is done, or wait for it
+        (``wait``: the window is about to change); the newest state is then propagated anew over the CAN samples
+        since (:meth:`Propagation.restart`)."""
+        if self._pending is None or not (wait or self._pending[2].done()):
+            return
+        t, status, future = self._pending
+        self._pending = None
+        x_new, mode = future.result()
+        self._solved(t, status, x_new, mode)
+
+    def _solved(self, t: float, status: GpsStatus, x_new: NDArray[np.float64], mode: str) -> StateEstimate:
+        """The epoch at ``t`` whose window was solved to ``x_new`` (``mode``): a fix the solver cannot take
+        rejected, bounds learned, the gate told, the newest state and its propagation restarted; its estimate."""
+        win, model, can = self.window, self.model, self.frontend.can
         if mode == "predict" and status == "ok":
             # the window cannot take the fix even with widened bounds: an outlier the gate let in; drop it
             self.tally.count("rejected_by_solver", "fix at %.2f rejected: no trajectory of the window reaches it", t)
