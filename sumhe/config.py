@@ -66,6 +66,16 @@ class SignalSpec:
         return f"{self.message}.{self.signal}"
 
 
+BUS_OWN_KEYS = {
+    "interface": "set can.interface",
+    "channel": "set can.channel",
+    "bitrate": "set can.bitrate",
+    "can_filters": "from the DBC's messages",
+    "fd": "on for socketcan",
+}
+"""``Bus`` arguments that ``can.bus`` may not set, and where they come from."""
+
+
 @dataclass(frozen=True, slots=True)
 class CanSettings:
     """The CAN bus and its decoding. ``dbc`` is one database file or a list of them (e.g. the car's OBD-II
@@ -84,9 +94,15 @@ class CanSettings:
     signals: Mapping[str, SignalSpec] = field(default_factory=dict)
     e2e: tuple[str, ...] = ()
     """Messages protected by CRC-8 in byte 0 and a 4-bit rolling counter (see :mod:`sumhe.io.can`)."""
+    bus: Mapping[str, str | int | float | bool] = field(default_factory=dict)
+    """More keyword arguments of python-can's ``Bus`` for the interface (e.g. ``port`` of ``udp_multicast``), passed
+    as they are by everything that opens the bus (the service, ``sumhe play``)."""
 
     def __post_init__(self) -> None:
         _positive(self, "receive_timeout_s", "queue_size", "reconnect_max_s", "dbc_max_mb")
+        for key in self.bus:
+            if key in BUS_OWN_KEYS:
+                raise ValueError(f"bus.{key}: set by sumhe ({BUS_OWN_KEYS[key]})")
         if self.bitrate is not None and self.bitrate <= 0:
             raise ValueError("bitrate: must be positive")
         if not self.dbc_files or not all(self.dbc_files):
@@ -382,6 +398,11 @@ def _coerce(value: Any, hint: Any, key: str) -> Any:
             except ValueError as e:
                 errors.append(str(e))
         raise ValueError(errors[0] if errors else f"{key}: bad value {value!r}")
+    if origin is Mapping:
+        (_key, item) = typing.get_args(hint)
+        if not isinstance(value, Mapping):
+            raise ValueError(f"{key}: expected a table, got {value!r}")
+        return {str(k): _coerce(v, item, f"{key}.{k}") for k, v in value.items()}
     if origin is tuple:
         (item, _ellipsis) = typing.get_args(hint)
         if isinstance(value, str) or not isinstance(value, list | tuple):

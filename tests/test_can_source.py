@@ -5,12 +5,15 @@ import errno
 import itertools
 import logging
 import math
+import re
+import socket
 import time
 
 import can
 import can.interfaces.virtual
 import pytest
 
+from sumhe.bench.live import free_multicast_port
 from sumhe.config import CanSettings, load_config
 from sumhe.errors import ConfigError, SourceError
 from sumhe.io.can import REFERENCE_E2E, REFERENCE_SIGNALS
@@ -351,3 +354,42 @@ def test_frames_lost_before_they_were_read_are_inferred_from_the_gaps_of_each_id
     before = gaps.lost
     gaps.see(0x100, resume + 60.0)  # a sender that stopped for a minute: not an overrun
     assert gaps.lost == before
+
+
+@pytest.mark.skipif(not socket.has_ipv6, reason="needs IPv6 for the interface-local multicast group")
+def test_buses_on_two_ports_of_one_multicast_group_do_not_hear_each_other():
+    """``can.bus`` passes python-can's Bus arguments: two runs on one machine (two test suites, a bench beside
+    them) on the same interface-local group keep apart by their ``udp_multicast`` ports (python-can binds its port
+    on every group, so one port heard every run)."""
+    group = "ff11:7375:6d68:6500::1"  # interface-local: never leaves this machine
+    own, other = free_multicast_port(), free_multicast_port()
+    config = config_for(group, interface="udp_multicast", bus={"port": own})
+    assert config.can.bus == {"port": own} and own != other
+
+    async def main():
+        async with CanBusSource.from_config(config) as source:
+            await until(lambda: source.stats.connected)
+            with (
+                can.Bus(interface="udp_multicast", channel=group, port=other) as theirs,
+                can.Bus(interface="udp_multicast", channel=group, port=own) as ours,
+            ):
+                for k in range(3):
+                    theirs.send(speed_frame(0, 72.0, k))
+                ours.send(speed_frame(0, 36.0, 0))
+                first = await anext(source)
+                for k in range(3, 6):
+                    theirs.send(speed_frame(0, 72.0, k))
+                ours.send(speed_frame(0, 36.0, 1))
+                second = await anext(source)
+            assert [s.value for s in (first, second)] == [pytest.approx(10.0)] * 2
+            assert source.decoder.stats.frames == 2  # none of the other port's six
+
+    run(main())
+
+
+@pytest.mark.parametrize(
+    "bus, key", [({"channel": "vcan1"}, "can.bus.channel"), ({"port": [1]}, "can.bus.port"), (5, "can.bus")]
+)
+def test_a_bad_bus_argument_stops_start_up_naming_the_key(bus, key):
+    with pytest.raises(ConfigError, match=re.escape(key) + ":"):
+        config_for("x", bus=bus)

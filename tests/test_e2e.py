@@ -19,6 +19,8 @@ from pathlib import Path
 
 import pytest
 
+from sumhe.bench.live import free_multicast_port, multicast_can_table
+
 from live import DURATION_S, SIGNALS, Listener, check_drive, free_port, make_drive, sumhe_process, wait_for
 
 pytestmark = pytest.mark.slow
@@ -34,16 +36,16 @@ def drive(tmp_path_factory):
 
 
 def _configs(tmp: Path, udp_port: int, latency: float) -> tuple[Path, Path]:
-    can_table = f'interface = "udp_multicast"\nchannel = "{GROUP}"\n'
+    can_table = multicast_can_table(GROUP, free_multicast_port())  # a port of its own: other runs do not hear it
     service = tmp / "service.toml"
     dest = f'["127.0.0.1:{udp_port}"]'
     service.write_text(
-        f'[can]\n{can_table}e2e = ["ESP_YAW_RATE", "ESP_VEHICLE_SPEED"]\n{SIGNALS}'
+        f'{can_table}e2e = ["ESP_YAW_RATE", "ESP_VEHICLE_SPEED"]\n{SIGNALS}'
         f'[gps]\nport = "{tmp / "gps"}"\nlatency_s = {latency}\nreconnect_max_s = 0.5\nreceive_timeout_s = 1.0\n'
         f"[output]\njson = {dest}\nnmea = {dest}\nstatus_interval_s = 2.0\n"
     )
     player = tmp / "player.toml"
-    player.write_text(f"[can]\n{can_table}")
+    player.write_text(can_table)
     return service, player
 
 

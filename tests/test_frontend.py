@@ -261,23 +261,34 @@ def test_the_can_buffer_interpolates_between_samples() -> None:
     assert buf["speed"].interpolate(1.2, 0.1) is None  # the samples too far
 
 
+@pytest.mark.parametrize("fills", [True, False])
 @pytest.mark.parametrize("learn_offset", [False, True])
-def test_fixes_that_start_coming_later_are_taken_again_after_at_most_a_few(learn_offset: bool) -> None:
+def test_fixes_that_start_coming_later_are_taken_again_after_at_most_a_few(learn_offset: bool, fills: bool) -> None:
     """A 10 Hz receiver whose fixes come 0.05 s behind the CAN data, then 0.35 s behind (a stalled reader, a busier
-    receiver): the first late fixes find their epochs already declared missed and are dropped, but what they show
-    of the new delay is learned, so the fixes after them are taken (they were all dropped: GNSS lost for good)."""
+    receiver): the first late fixes find their epochs already declared missed; each fills its missed epoch
+    (``Epoch(fills=True)``, once), or, for an estimator that cannot put a fix in the past (``fills_missed`` False),
+    is dropped and counted. Either way what they show of the new delay is learned, so the fixes after them are
+    taken as they come (they were all dropped: GNSS lost for good)."""
     fe = _frontend(**{"gnss.learn_time_offset": learn_offset})
-    lag, taken, pending = 0.05, [], []
+    fe.fills_missed = fills
+    lag, taken, filled, pending = 0.05, [], [], []
     for k in range(1, 1000):
         t = 0.02 * k
         if k == 250:
             lag = 0.35
         for fix_t in [f for f in pending if f + lag <= t]:
             pending.remove(fix_t)
-            taken += [e.t for e in fe.push(_fix(fix_t)) if isinstance(e, Epoch) and e.fix is not None]
+            for e in fe.push(_fix(fix_t)):
+                if isinstance(e, Epoch) and e.fix is not None:
+                    (filled if e.fills else taken).append(fix_t)
         fe.push(CanSample(t, "speed", 10.0))
         if k % 5 == 0:
             pending.append(t)
     after = [x for x in taken if x > 5.0]
-    assert fe.tally.counts["dropped_backwards"] == 0 and 1 <= fe.tally.counts["fixes_after_missed"] <= 5
+    assert fe.tally.counts["dropped_backwards"] == 0
+    assert 1 <= len(filled) + fe.tally.counts["fixes_after_missed"] <= 5
+    assert fe.tally.counts["fixes_after_missed"] == 0 if fills else not filled
+    assert all(5.0 <= x < 5.6 for x in filled) and not set(filled) & set(taken)
     assert len(after) >= 140 and max(taken) > 19.0
+    if filled:  # the same fix again: its epoch is filled once
+        assert fe.push(_fix(filled[-1])) == [] and fe.tally.counts["dropped_backwards"] == 1

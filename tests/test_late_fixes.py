@@ -101,7 +101,7 @@ def test_arrival_order_puts_each_fix_after_the_can_samples_of_its_delay() -> Non
 def test_mhe_outage_errors_in_arrival_order_match_time_order(tmp_path) -> None:
     """The issue's target: without the hold, outage errors within 5 % of the held version on the same drive."""
     sim, drive_dir = live_drive(60.0, tmp_path / "drive")
-    config = load_config(service_config(sim, tmp_path, "mhe", "ff11::1", 9, 9))
+    config = load_config(service_config(sim, tmp_path, "mhe", "ff11::1", 9, 9, 9))
     got = replayed_outage_errors(sim, config, drive_dir, "mhe")
     held, arrival = got["held"][0], got["arrival"][0]
     assert math.isfinite(held) and held > 0.0
@@ -239,3 +239,87 @@ def test_rts_smooths_the_same_drive_in_arrival_order() -> None:
 def test_a_bad_history_span_stops_start_up_naming_the_key(value: object) -> None:
     with pytest.raises(ConfigError, match=r"command line: estimator\.late_fix_history_s: "):
         load_config(overrides={"estimator.late_fix_history_s": value})
+
+
+# ---- fixes that come after their epoch was declared missed ---------------------------------------------------------
+
+
+def latency_step(timed: Sequence[LocalFix | CanSample], t_step: float, before_s: float, after_s: float) -> list:
+    """Time-ordered ``timed`` with each fix delivered ``before_s`` after its time, and ``after_s`` from ``t_step`` on
+    (a receiver, or its reader, that became slower): the CAN samples of its delay come first."""
+    key = [s.t + (0.0 if isinstance(s, CanSample) else before_s if s.t < t_step else after_s) for s in timed]
+    return [timed[i] for i in sorted(range(len(timed)), key=lambda i: (key[i], i))]
+
+
+@pytest.mark.parametrize("name", ["mhe", "ekf"])
+def test_fixes_that_come_after_their_epoch_was_declared_missed_fill_it(name: str) -> None:
+    """A receiver whose fixes come 0.05 s late, then 0.35 s: the epochs of the first fixes after the step are
+    declared missed before they come (the front-end waited their learned delay), and each fix then fills its epoch
+    as a late fix: the estimates of the epochs after them are those of the same data in time order (the EKF: to
+    micrometres, its history re-run; the MHE: its window solved again with them), unlike with the fixes dropped
+    (``fills_missed`` False, the rule before: counted ``fixes_after_missed``)."""
+    timed = sorted(synthetic_drive(10.0).samples, key=lambda s: s.t)
+    t_step = timed[0].t + 6.0
+    arrival = latency_step(timed, t_step, 0.05, 0.35)
+    ordered, filling, dropping = (make_estimator(name, load_config()) for _ in range(3))
+    dropping.frontend.fills_missed = False
+    reference, _ = fed(ordered, timed)
+    filled, _ = fed(filling, arrival)
+    dropped, _ = fed(dropping, arrival)
+    n = filling.stats()["missed_epochs_filled"]
+    assert 1 <= n <= 5 and filling.stats()["missed_epochs"] == n and "fixes_after_missed" not in filling.stats()
+    assert dropping.stats()["fixes_after_missed"] == n and "missed_epochs_filled" not in dropping.stats()
+    fills = [t for t in reference if t_step < t < t_step + 0.1 * n]
+    assert len(fills) == n and all(any(abs(t - u) < 1e-6 and e.gps == "ok" for u, e in filled.items()) for t in fills)
+    after = [t for t in reference if t_step + 0.1 * n < t < t_step + 2.0]
+
+    def off(got: dict[float, StateEstimate]) -> float:
+        return max(
+            math.hypot(got[t].east_m - reference[t].east_m, got[t].north_m - reference[t].north_m) for t in after
+        )
+
+    assert off(dropped) > 0.004  # three fixes (0.3 m noise) less
+    assert off(filled) < (1e-5 if name == "ekf" else 0.2 * off(dropped))
+
+
+# ---- the MHE's epoch solved aside (the live service): the CAN samples do not wait behind it -------------------------
+
+
+def aside_and_inline(settle: bool) -> tuple[list[StateEstimate], list[StateEstimate]]:
+    """The CAN-rate estimates of a 10 s drive (fixes 0.05 s late) from an MHE solving its epochs aside
+    (``settle``: waiting for each solve before the next sample) and one solving them inline."""
+    samples = latency_step(sorted(synthetic_drive(10.0).samples, key=lambda s: s.t), math.inf, 0.05, 0.05)
+    aside, inline = (make_estimator("mhe", load_config()) for _ in range(2))
+    aside.solve_aside = True
+    got: tuple[list[StateEstimate], list[StateEstimate]] = ([], [])
+    for s in samples:
+        for est, out in zip((aside, inline), got, strict=True):
+            estimates = est.push(s)
+            if isinstance(s, CanSample):
+                out.extend(estimates)
+            elif settle and est is aside:
+                assert all(e.mode in ("aside", "init") for e in estimates)
+                aside.settle()
+    aside.settle()  # then one CAN sample more, after the last solve's solution was applied
+    end = CanSample(max(s.t for s in samples) + 0.02, "speed", 10.0)
+    for est, out in zip((aside, inline), got, strict=True):
+        out.extend(est.push(end))
+    return got
+
+
+def test_an_epoch_solved_aside_and_settled_gives_the_estimates_of_the_inline_solve() -> None:
+    aside, inline = aside_and_inline(settle=True)
+    assert len(aside) == len(inline) > 400
+    for a, b in zip(aside, inline, strict=True):
+        assert (a.t, a.mode) == (b.t, b.mode)
+        assert figures(a) == pytest.approx(figures(b), abs=1e-12)
+
+
+def test_can_samples_during_an_epoch_solved_aside_are_answered_and_then_follow_the_solution() -> None:
+    """Not waiting: a CAN sample that comes while the epoch's solve runs is answered from the propagated
+    prediction; once the solve is done its solution is applied and propagated over the samples since, so the
+    estimates after it are the inline ones again."""
+    aside, inline = aside_and_inline(settle=False)
+    assert len(aside) == len(inline) > 400
+    off = [math.hypot(a.east_m - b.east_m, a.north_m - b.north_m) for a, b in zip(aside, inline, strict=True)]
+    assert max(off) < 1.0 and off[-1] < 1e-9

@@ -30,7 +30,10 @@ each CAN tick and each fix over the last ``estimator.late_fix_history_s`` second
 more than ``MAX_FIX_LAG_S`` = 1 s behind the CAN data), goes back to the newest state at or before the fix, moves
 to the fix's time, applies it (through the same gate) and re-applies the CAN ticks since, storing their states
 anew; several late fixes in a burst each do so in turn (the front-end hands out epochs in time order, so only CAN
-ticks are ever re-applied). Estimates already sent are not sent again: the epoch's estimate is the state at the
+ticks are ever re-applied). A fix that came after its epoch was declared missed (``Epoch.fills``: the receiver's
+latency grew) is put in the same way, or dropped (counted ``fixes_after_missed``) when it is older than the
+history; the epoch is counted ``missed_epochs_filled`` (it was counted an outage when it was missed). Estimates
+already sent are not sent again: the epoch's estimate is the state at the
 fix, and the CAN-rate estimates after it carry the correction. The result is the filter fed in time order (a
 seeded particle filter draws the same numbers: its generator's state is part of the history). A fix older than
 the history is compared with the state through the model run back by the lag, as before the history (counted
@@ -259,6 +262,7 @@ class RecursiveEstimator(StreamEstimator):
         keeps = self.snapshot_attrs is not None and settings.estimator.late_fix_history_s > 0
         self._history = History(settings.estimator.late_fix_history_s) if keeps else None
         super().__init__(settings)
+        self.frontend.fills_missed = keeps
         self.reset_state()
 
     @property
@@ -291,9 +295,16 @@ class RecursiveEstimator(StreamEstimator):
             self.reset()
             return []
 
-    def on_epoch(self, epoch: Epoch) -> StateEstimate:
+    def on_epoch(self, epoch: Epoch) -> StateEstimate | None:
         t = epoch.t
         later: list[CanTick] = []
+        if epoch.fills and (self._history is None or self._history.oldest_t > t):
+            self.tally.count(
+                "fixes_after_missed",
+                "GNSS fix of a missed epoch %.3f s older than the history (estimator.late_fix_history_s): dropped",
+                self._t_state - t,
+            )
+            return None
         if epoch.start:
             assert epoch.fix is not None  # the front-end starts at a usable fix
             self._begin(epoch.fix)
@@ -305,7 +316,8 @@ class RecursiveEstimator(StreamEstimator):
             status = self._fix_updates(epoch.fix, self._t_state - t)
         else:
             status = "outage"
-        self.tally.counts[STATUS_COUNTERS[status]] += 1
+        # an epoch is counted once: a missed one as an outage, and its fix that came after it as filling it
+        self.tally.counts["missed_epochs_filled" if epoch.fills else STATUS_COUNTERS[status]] += 1
         self._status = status
         if epoch.fix is not None:
             self._keep(None)

@@ -14,8 +14,10 @@ the held version of the same inputs, what the former reorder hold would have giv
 the live error is judged. The daemon's clock is not on the drive's UTC, so it stamps fixes by their UTC times
 and the clock offset it learns (:class:`~sumhe.io.fixtime.FixClock`), not as the file replay does.
 
-Runs at the same time on one machine hear each other: python-can's ``udp_multicast`` bus binds its port on every
-group, so a daemon takes any run's frames (a WARNING line when it took more CAN samples than the drive has).
+Runs at the same time on one machine (two benches, a bench beside a test suite) would hear each other: python-can's
+``udp_multicast`` bus binds its port on every group, so each run takes a port of its own as well as a group
+(:func:`free_multicast_port`, the config's ``can.bus``); a daemon that took more CAN samples than the drive has still
+says so (a WARNING line).
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ from sumhe.sim import Drive, SimSettings, simulate, write_drive
 
 S = TypeVar("S", Sample, LocalFix | CanSample)
 GROUP_PREFIX = "ff11:7079:7468:6f6e:6465:6d6f"
-"""Interface-local IPv6 multicast: each run takes its own group below it (but see the module docstring)."""
+"""Interface-local IPv6 multicast: each run takes its own group below it, and its own port (module docstring)."""
 OUTAGE_S = 10.0
 INPUTS = "inputs.jsonl"
 """The daemon's recorded inputs (``sumhe run --record-inputs``) in the run's directory."""
@@ -93,12 +95,28 @@ def live_drive(duration_s: float, directory: Path) -> tuple[Drive, Path]:
     return sim, directory
 
 
-def service_config(sim: Drive, tmp: Path, estimator: str, group: str, json_port: int, status_port: int) -> Path:
-    """The daemon's config file: the udp_multicast bus on ``group``, the pty, JSON and status to 127.0.0.1."""
+def free_multicast_port() -> int:
+    """A UDP port free on every IPv6 address now, for one run's ``udp_multicast`` bus (module docstring)."""
+    with socket.socket(socket.AF_INET6, socket.SOCK_DGRAM) as s:
+        s.bind(("::", 0))
+        return int(s.getsockname()[1])
+
+
+def multicast_can_table(group: str, port: int) -> str:
+    """The ``[can]`` table of a ``udp_multicast`` bus on the interface-local ``group`` and ``port``."""
+    return f'[can]\ninterface = "udp_multicast"\nchannel = "{group}"\nbus = {{ port = {port} }}\n'
+
+
+def service_config(
+    sim: Drive, tmp: Path, estimator: str, group: str, bus_port: int, json_port: int, status_port: int
+) -> Path:
+    """The daemon's config file: the udp_multicast bus on ``group`` and ``bus_port``, the pty, JSON and status to
+    127.0.0.1."""
     latency = sim.settings.gps_latency_s + sim.settings.gps_latency_jitter_s / 2
     path = tmp / "service.toml"
+    can_table = multicast_can_table(group, bus_port)
     path.write_text(
-        f'[can]\ninterface = "udp_multicast"\nchannel = "{group}"\n'
+        f"{can_table}"
         '[can.signals]\nspeed = "ESP_VEHICLE_SPEED.VEHICLE_SPEED"\nyaw_rate = "ESP_YAW_RATE.YAW_RATE"\n'
         f'[gps]\nport = "{tmp / "gps"}"\nlatency_s = {latency}\nreconnect_max_s = 0.5\n'
         f'[output]\njson = ["127.0.0.1:{json_port}"]\n'
@@ -125,8 +143,11 @@ def run_daemon(
     for s in (est_sock, status_sock):
         s.setblocking(False)
     group = f"{GROUP_PREFIX}:{os.getpid() & 0xFFFF:x}:{est_sock.getsockname()[1]:x}"
-    config = service_config(sim, tmp, estimator, group, est_sock.getsockname()[1], status_sock.getsockname()[1])
-    (tmp / "player.toml").write_text(f'[can]\ninterface = "udp_multicast"\nchannel = "{group}"\n')
+    bus_port = free_multicast_port()
+    config = service_config(
+        sim, tmp, estimator, group, bus_port, est_sock.getsockname()[1], status_sock.getsockname()[1]
+    )
+    (tmp / "player.toml").write_text(multicast_can_table(group, bus_port))
     run = DaemonRun()
     service = _sumhe(["run", "--config", str(config), "--record-inputs", str(tmp / INPUTS)], tmp / "service.log")
     try:
@@ -319,7 +340,7 @@ def format_live(fig: dict[str, Any]) -> str:
     crosstalk = (
         [
             f"  WARNING: the daemon took {took} CAN samples, the drive has {played}: another run's udp_multicast "
-            "traffic on this machine reached it (python-can binds the port on every group); figures not valid"
+            "traffic on this machine reached it (on the same port); figures not valid"
         ]
         if took > 1.02 * played
         else []

@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     lines = read_nmea_log(nmea_log) if nmea_log is not None else []
     bus = None
     if not args.no_can:
-        kwargs = {"interface": config.can.interface, "channel": config.can.channel}
+        kwargs = {**config.can.bus, "interface": config.can.interface, "channel": config.can.channel}
         if config.can.interface == "virtual":
             kwargs["preserve_timestamps"] = True
         bus = can.Bus(**kwargs)

@@ -63,22 +63,27 @@ class EpochClock:
 
     def observe(self, t: float, newest_can: float) -> None:
         """A fix's epoch at ``t`` (s) while the newest CAN data is at ``newest_can``: period and delay."""
-        if self._last_real is not None and 0.0 < t - self._last_real <= MAX_PERIOD_S:
-            self._intervals.append(t - self._last_real)
-            self.period_s = nominal_period(self._intervals, self.default_period_s)
-        self._last_real = t
+        self._real(t)
         self._delay(t, newest_can)
 
     def observe_late(self, t: float, newest_can: float, max_delay_s: float) -> bool:
         """Whether a fix at ``t`` (s), whose epoch was already handed out, came after the last fix (its epoch was
-        declared missed before it came; else it is a duplicate). Its delay behind the CAN data (up to
-        ``max_delay_s``) is then learned, so the epochs after it wait for their fixes (else a receiver whose fixes
-        begin to come later than before would find every epoch declared missed, for good)."""
+        declared missed before it came; else it is a duplicate, also of such a fix). Its delay behind the CAN data
+        (up to ``max_delay_s``) is then learned, so the epochs after it wait for their fixes (else a receiver whose
+        fixes begin to come later than before would find every epoch declared missed, for good), and its interval
+        from the fix before (the receiver's period)."""
         if self._last_real is None or t <= self._last_real:
             return False
         if newest_can - t <= max_delay_s:
             self._delay(t, newest_can)
+        self._real(t)
         return True
+
+    def _real(self, t: float) -> None:
+        if self._last_real is not None and 0.0 < t - self._last_real <= MAX_PERIOD_S:
+            self._intervals.append(t - self._last_real)
+            self.period_s = nominal_period(self._intervals, self.default_period_s)
+        self._last_real = t
 
     def _delay(self, t: float, newest_can: float) -> None:
         if newest_can > t:

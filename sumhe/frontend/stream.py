@@ -32,7 +32,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -54,6 +54,8 @@ CAN_KEEP_S = 2.0
 """CAN samples are kept for this long, or three periods if longer, behind the newest epoch."""
 SAME_EPOCH = 0.25
 """A fix within this fraction of a period after the last epoch handed out (on the CAN clock) is that epoch again."""
+MISSED_KEPT = 32
+"""At most this many epochs declared missed wait for a fix that comes after (:meth:`FrontEnd._after_missed`)."""
 OFFSET_SLEW = 0.2
 """The applied GNSS time offset moves towards the learned one by at most this fraction of a period per fix."""
 
@@ -103,6 +105,9 @@ class Epoch:
     fix: FixMeasurement | None
     missed: bool = False
     start: bool = False
+    fills: bool = False
+    """The fix of an epoch handed out before as ``missed`` (it came after the epoch was declared missed): the
+    estimator puts it in that epoch, as a late fix (:meth:`FrontEnd._after_missed`)."""
 
 
 class CanTick(NamedTuple):
@@ -127,6 +132,8 @@ class FrontEnd:
         self.settings = settings
         self.tally = tally
         self.uses_gps_speed = uses_gps_speed and settings.gnss.use_speed
+        self.fills_missed = True
+        """Whether fixes that come after their epoch was declared missed fill it (:meth:`_after_missed`)."""
         self.reset()
 
     def reset(self) -> None:
@@ -141,6 +148,8 @@ class FrontEnd:
         self._t_last = -math.inf
         self._t_epoch = -math.inf
         """The time of the last epoch handed out, on the CAN clock."""
+        self._missed_epochs: deque[float] = deque(maxlen=MISSED_KEPT)
+        """The times of the recent epochs declared missed (CAN clock) whose fixes may still come."""
 
     @property
     def period_s(self) -> float:
@@ -195,16 +204,18 @@ class FrontEnd:
         stamp = fix.t
         bad = bad_epoch_time(stamp, self.clock.last_epoch)
         if bad is not None:
-            if bad[0] != "dropped_backwards" or not self._after_missed(stamp):
+            filled = self._after_missed(stamp, self._moved(fix)) if bad[0] == "dropped_backwards" else None
+            if filled is None:
                 self.tally.count(*bad[:2], *bad[2])
-            return []
+            return filled or []
         fix = self._on_can_clock(fix)
         t = fix.t
         if t < self._t_epoch + SAME_EPOCH * self.period_s:  # the epoch already handed out (declared missed before
             # its fix came after CAN data newer than any fix's so far), or behind it by the time offset's slew since
-            if not self._after_missed(stamp):
+            filled = self._after_missed(stamp, fix)
+            if filled is None:
                 self.tally.count("dropped_backwards", "GNSS epoch %.3f s back in time dropped", self._t_epoch - t)
-            return []
+            return filled or []
         newest_can = self.can.newest
         if self.started and t < newest_can - MAX_FIX_LAG_S:
             self.tally.count("late_fixes", "GNSS epoch %.2f s behind the CAN data dropped", newest_can - t)
@@ -232,18 +243,42 @@ class FrontEnd:
         self._t_epoch = t
         return events
 
-    def _after_missed(self, stamp: float) -> bool:
-        """Whether a fix whose epoch was already handed out came after that epoch was declared missed (counted
-        ``fixes_after_missed``, its delay learned: :meth:`EpochClock.observe_late`) rather than again."""
-        newest_can = self.can.newest
+    def _after_missed(self, stamp: float, fix: LocalFix) -> list[Epoch | CanTick] | None:
+        """The events of a fix stamped ``stamp`` (``fix`` at its time on the CAN clock) whose epoch was already
+        handed out, or None when it is that epoch's fix again (a duplicate, or back in time). A fix that came after
+        its epoch was declared missed (its delay is learned: :meth:`EpochClock.observe_late`) fills that epoch:
+        ``Epoch(fills=True)`` at its time, which the estimator puts in as a late fix, or drops (and counts
+        ``fixes_after_missed``) where it cannot. It is dropped here, counted ``fixes_after_missed``, when no missed
+        epoch is within ``SAME_EPOCH`` of it (each is filled once), when it is more than ``MAX_FIX_LAG_S`` behind
+        the CAN data, without a usable position, or for an estimator that cannot put a fix in the past
+        (``fills_missed`` False)."""
+        newest_can, t = self.can.newest, fix.t
         if not (self.started and self.clock.observe_late(stamp, newest_can, MAX_FIX_LAG_S)):
-            return False
+            return None
+        sigmas = fix.sigmas(self.settings.gnss)
+        if self.fills_missed and newest_can - t <= MAX_FIX_LAG_S and fix.usable(sigmas) and self._take_missed(t):
+            return [Epoch(t, self.measure(fix, sigmas), fills=True)]
         self.tally.count(
             "fixes_after_missed",
             "GNSS fix %.3f s behind the CAN data came after its epoch was declared missed: dropped, its delay learned",
-            newest_can - stamp,
+            newest_can - t,
         )
-        return True
+        return []
+
+    def _take_missed(self, t: float) -> bool:
+        """Whether an epoch declared missed lies within ``SAME_EPOCH`` periods of ``t`` (s, CAN clock); it is then
+        forgotten (filled), with the ones before it (their fixes would come before this one)."""
+        tolerance = SAME_EPOCH * self.period_s
+        while self._missed_epochs and self._missed_epochs[0] < t - tolerance:
+            self._missed_epochs.popleft()
+        if self._missed_epochs and abs(self._missed_epochs[0] - t) <= tolerance:
+            self._missed_epochs.popleft()
+            return True
+        return False
+
+    def _moved(self, fix: LocalFix) -> LocalFix:
+        """The fix at its stamped time plus the GNSS time offset applied now."""
+        return dataclasses.replace(fix, t=fix.t + self.time_offset_s) if self.time_offset_s else fix
 
     def _on_can_clock(self, fix: LocalFix) -> LocalFix:
         """The fix at its time on the CAN clock: its stamped time plus the GNSS time offset (module docstring)."""
@@ -251,7 +286,7 @@ class FrontEnd:
             self.aligner.add_fix(fix.t, fix.speed_mps if fix.valid else None)
             step = OFFSET_SLEW * self.period_s
             self.time_offset_s += min(max(self.aligner.offset_s - self.time_offset_s, -step), step)
-        return dataclasses.replace(fix, t=fix.t + self.time_offset_s) if self.time_offset_s else fix
+        return self._moved(fix)
 
     def measure(self, fix: LocalFix, sigmas: tuple[float, float]) -> FixMeasurement:
         """The measurements of a usable fix whose position ``sigmas`` are :meth:`LocalFix.sigmas`
@@ -289,6 +324,7 @@ class FrontEnd:
             self.tally.counts["epochs"] += len(times)
             self.tally.counts["missed_epochs"] += len(times)
             self._t_epoch = times[-1]
+            self._missed_epochs.extend(times)
         return [Epoch(t, None, missed=True) for t in times]
 
     def _check_gap(self, t: float) -> None:

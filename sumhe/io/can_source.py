@@ -226,7 +226,7 @@ def is_permanent(settings: CanSettings, err: BaseException, connected_before: bo
 
 
 class _CanSource(ThreadedSource[T]):
-    """Opens ``can.Bus(interface, channel, bitrate, can_filters)`` and reads it; subclasses convert frames."""
+    """Opens ``can.Bus(interface, channel, bitrate, can_filters, **bus)`` and reads it; subclasses convert frames."""
 
     name = "can"
 
@@ -249,7 +249,8 @@ class _CanSource(ThreadedSource[T]):
 
     def _open(self) -> None:
         s = self.settings
-        kwargs: dict[str, Any] = {"interface": s.interface, "channel": s.channel, "can_filters": self.can_filters}
+        kwargs: dict[str, Any] = {**s.bus, "interface": s.interface, "channel": s.channel}
+        kwargs["can_filters"] = self.can_filters
         if s.bitrate is not None:
             kwargs["bitrate"] = s.bitrate
         if s.interface == "socketcan":

@@ -11,7 +11,11 @@ loop in a worker thread -> the output edge (time order) -> sinks (UDP JSON / NME
   stall (input older than ``STALL_S``: counted ``stalls``, a WARNING) the service waits ``STALL_WAIT_S`` once so
   the sources' backlogs meet, then takes them in time order.
 * Readers never stall: sources run in their own threads; the estimator runs in ``asyncio.to_thread``, which
-  sends each sample's estimates as soon as that sample is pushed (through the output edge, under a lock).
+  sends each sample's estimates as soon as that sample is pushed (through the output edge, under a lock). An
+  estimator with ``solve_aside`` (the MHE) solves each GNSS epoch in a thread of its own: the CAN samples that come
+  meanwhile are answered from the propagated prediction, and the solution, once done, is propagated over them
+  (mode ``"aside"`` for the epoch's own estimate, the prediction). Which CAN samples came while a solve ran is
+  a matter of timing: a replay of the recorded inputs (solved inline) gives the estimates of the others again.
 * Degraded, never silent: when the oldest waiting sample arrived more than ``BEHIND_S`` ago, the estimator has
   fallen behind: an ERROR line, ``degraded`` episodes counted, every estimate sent with ``mode = "degraded"``, and
   an estimator with ``defer_solves`` (the MHE) appends its GNSS epochs without a solve, so it keeps pace at CAN rate
@@ -206,6 +210,8 @@ class Service:
         self._extra_sink = sink
         self._record = record
         self._output_lock = threading.Lock()
+        if hasattr(estimator, "solve_aside"):
+            estimator.solve_aside = True  # the CAN samples after an epoch do not wait for its solve (docstring)
 
     async def run(self, stop: asyncio.Event) -> None:
         """Run until ``stop`` is set; everything is closed when this returns."""

@@ -9,8 +9,9 @@ moved on by the model with the CAN data (:mod:`.propagate`). Steps leaving the w
 arrival box and cost (:mod:`.arrival`). The window is re-solved (:mod:`.solve`: buckets, retries; the solvers of
 :mod:`.sqp` and :mod:`.nlp` on the problem of :mod:`.problem`) warm-started from the previous solution shifted by
 the steps the window slid; the newest state is the epoch's estimate. Between epochs, each CAN speed sample gives an
-estimate at its own time: the newest solution moved on with the CAN samples since. ``docs/mhe.md`` describes the
-choices.
+estimate at its own time: the newest solution moved on with the CAN samples since. A fix that came after its epoch
+was declared missed (``Epoch.fills``: the receiver's latency grew) goes into that epoch's step, and the window is
+solved again (:meth:`MovingHorizonEstimator._fill`). ``docs/mhe.md`` describes the choices.
 
 Failures: if the solve still fails after its retries and the epoch brought a fix, the fix is an outlier the gate
 let in: it is rejected and the window solved again. Otherwise the epoch's estimate is the model prediction with
@@ -21,14 +22,18 @@ keeping its CAN bias and scale.
 Modes: ``"init"`` (first fix), ``"mhe"`` (solved), ``"mhe-widened"`` (solved after widening), ``"predict"``
 (solver failed: model prediction), ``"can"`` (between epochs: the newest solution moved on with CAN data),
 ``"degraded"`` (``defer_solves`` set by a service that fell behind: the epoch appended to the window unsolved, its
-estimate the model prediction; the next epoch solved solves them all).
+estimate the model prediction; the next epoch solved solves them all), ``"aside"`` (``solve_aside`` set by the
+live service: the epoch's window is solved in a thread of its own, its estimate the model prediction; the CAN
+samples that come meanwhile are answered from it, and the solution, once done, is propagated over them).
 Only the single-antenna model ``su5`` is supported in the sample stream.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 from numpy.typing import NDArray
@@ -41,20 +46,28 @@ from sumhe.estimator.mhe.arrival import Arrival, arrival_update, prior_arrival
 from sumhe.estimator.mhe.envelope import OutputEnvelope
 from sumhe.estimator.mhe.gate import GATE_RESET_S, REACQUIRE_FIXES, FixGate
 from sumhe.estimator.mhe.newest import NewestError, half_widths
-from sumhe.estimator.mhe.outputs import can_outputs, step_outputs
+from sumhe.estimator.mhe.outputs import can_outputs, fix_outputs, step_outputs
 from sumhe.estimator.mhe.preintegration import step_motion
 from sumhe.estimator.mhe.problem import SolveResult, step_jacobians
 from sumhe.estimator.mhe.propagate import Propagation, advance
 from sumhe.estimator.mhe.solve import WindowSolve
 from sumhe.estimator.mhe.window import Window, plan_window
-from sumhe.frontend.stream import CanTick, Epoch, FixMeasurement
+from sumhe.frontend.stream import SAME_EPOCH, CanTick, Epoch, FixMeasurement
 from sumhe.messages import GpsStatus
-from sumhe.model.su import output_residuals
+from sumhe.model.su import SuModel, output_residuals
 from sumhe.settings import EstimationSettings
 
 PRIOR_POSITION_M = 1000.0
 """Half-width of the weak prior on the first position (m) at a start."""
 STATUS_COUNTERS: dict[str, str] = {"ok": "gps_ok", "rejected": "gps_rejected", "outage": "outage_epochs"}
+
+
+def fix_moved(model: SuModel, fix: FixMeasurement, x: NDArray[np.float64], t: float) -> FixMeasurement:
+    """``fix`` moved to ``t`` (s) along the state ``x`` (its speed and azimuth: a few tens of ms at most)."""
+    dt = t - fix.t
+    v, phi = float(x[model.i_v]), float(x[model.i_phi])
+    east, north = fix.east_m + v * dt * math.sin(phi), fix.north_m + v * dt * math.cos(phi)
+    return dataclasses.replace(fix, t=t, east_m=east, north_m=north)
 
 
 class MovingHorizonEstimator(StreamEstimator):
@@ -78,6 +91,11 @@ class MovingHorizonEstimator(StreamEstimator):
         self.defer_solves = False
         """Set by a service that fell behind: epochs are appended to the window without a solve (mode
         ``"degraded"``) until it is cleared; the next epoch solved then solves the whole window."""
+        self.solve_aside = False
+        """Set by the live service: an epoch's solve runs in a thread of its own while the CAN samples after it are
+        answered (:meth:`_collect`)."""
+        self._aside: ThreadPoolExecutor | None = None
+        self._pending: tuple[float, GpsStatus, Future[tuple[NDArray[np.float64], str]]] | None = None
         self._unsolved = False
         self._step_jac = step_jacobians(model)
         self._q_power = np.array(model.q_power)
@@ -112,6 +130,9 @@ class MovingHorizonEstimator(StreamEstimator):
 
     def reset_state(self) -> None:
         """Forget the window, the arrival, the gate's streaks and the CAN states (counters are kept)."""
+        if self._pending is not None:
+            self._pending[2].result()  # the solve reads the window: let it end
+            self._pending = None
         self.window.clear()
         self.solve.reset()
         self.newest.reset()
@@ -121,14 +142,19 @@ class MovingHorizonEstimator(StreamEstimator):
         self._theta0: NDArray[np.float64] | None = None
         self._status: GpsStatus = "outage"
 
-    def on_epoch(self, epoch: Epoch) -> StateEstimate:
+    def on_epoch(self, epoch: Epoch) -> StateEstimate | None:
+        self._collect(wait=True)
         if epoch.start:
             assert epoch.fix is not None  # the front-end starts at a usable fix
             self._restart()
             return self._begin(epoch.fix)
+        if epoch.fills:
+            assert epoch.fix is not None  # the front-end fills a missed epoch with a usable fix
+            return self._fill(epoch.fix)
         return self._epoch(epoch.t, epoch.fix)
 
     def on_can(self, tick: CanTick) -> StateEstimate | None:
+        self._collect(wait=False)
         if not tick.output or not len(self.window):
             return None
         return self._estimate(self.propagation.to(tick.t, self.frontend.can), tick.t, self._status, "can")
@@ -258,8 +284,36 @@ class MovingHorizonEstimator(StreamEstimator):
             self._unsolved = True
             self.gate.done(t, status, status == "ok" and bool(win.avail[-1, model.j_azimuth]))
             return self._estimate(list(win.x[-1]), t, status, "degraded")
-        x_new, mode = self._solve(None if plan.merge or self._unsolved else plan.drop)
+        shift = None if plan.merge or self._unsolved else plan.drop
         self._unsolved = False
+        if self.solve_aside:
+            if self._aside is None:
+                self._aside = ThreadPoolExecutor(1, thread_name_prefix="mhe-solve")
+            self._pending = (t, status, self._aside.submit(self._solve, shift))
+            self.propagation.restart(list(win.x[-1]), t, can)
+            return self._estimate(list(win.x[-1]), t, status, "aside")
+        x_new, mode = self._solve(shift)
+        return self._solved(t, status, x_new, mode)
+
+    def settle(self) -> None:
+        """Wait for the epoch solved aside (``solve_aside``), if any, and apply its solution."""
+        self._collect(wait=True)
+
+    def _collect(self, wait: bool) -> None:
+        """Apply the solution of the epoch solved aside (``solve_aside``) once it is done, or wait for it
+        (``wait``: the window is about to change); the newest state is then propagated anew over the CAN samples
+        since (:meth:`Propagation.restart`)."""
+        if self._pending is None or not (wait or self._pending[2].done()):
+            return
+        t, status, future = self._pending
+        self._pending = None
+        x_new, mode = future.result()
+        self._solved(t, status, x_new, mode)
+
+    def _solved(self, t: float, status: GpsStatus, x_new: NDArray[np.float64], mode: str) -> StateEstimate:
+        """The epoch at ``t`` whose window was solved to ``x_new`` (``mode``): a fix the solver cannot take
+        rejected, bounds learned, the gate told, the newest state and its propagation restarted; its estimate."""
+        win, model, can = self.window, self.model, self.frontend.can
         if mode == "predict" and status == "ok":
             # the window cannot take the fix even with widened bounds: an outlier the gate let in; drop it
             self.tally.count("rejected_by_solver", "fix at %.2f rejected: no trajectory of the window reaches it", t)
@@ -280,6 +334,45 @@ class MovingHorizonEstimator(StreamEstimator):
         self.newest.epoch(win, self.solve.Q, self.envelope.factor, self._theta_range)
         self.propagation.restart(list(x_new[-1]), t, can)
         return self._estimate(list(x_new[-1]), t, status, mode)
+
+    def _fill(self, fix: FixMeasurement) -> StateEstimate | None:
+        """A fix that came after its epoch was declared missed (``Epoch.fills``), put in that epoch's step as a
+        late fix: moved to the step's time along the step's state, through the gate, the window solved again (or
+        left unsolved under ``defer_solves``) and the newest state propagated anew over the CAN samples since; the
+        estimate of the step. None, counted ``fixes_after_missed``, where the step has left the window (or was
+        merged away), has a fix, or the gate or the solver turns the fix away."""
+        win, model = self.window, self.model
+        near = np.flatnonzero(np.abs(win.t - fix.t) <= SAME_EPOCH * self.period_s)
+        j = int(near[-1]) if near.size and not win.gps[near[-1]] else -1
+        why = "its step is no longer in the window"
+        if j >= 0:
+            x = win.x[j]
+            fix = fix_moved(model, fix, x, float(win.t[j]))
+            if not self.gate.passes(fix, *x[list(model.position)]):
+                why, j = "rejected by the gate", -1
+        if j < 0:
+            self.tally.count("fixes_after_missed", "GNSS fix of a missed epoch dropped: %s", why)
+            return None
+        saved = (win.y[j].copy(), win.avail[j].copy(), win.allow[j].copy())
+        out = (saved[0].copy(), saved[1].copy(), saved[2].copy())
+        fix_outputs(model, fix, self.period_s, self.settings, out, x)
+        win.y[j], win.avail[j], win.allow[j] = out
+        mode = "degraded"
+        if not self.defer_solves:
+            x_new, mode = self._solve(None)
+            if mode == "predict":
+                win.y[j], win.avail[j], win.allow[j] = saved
+                self.tally.count("fixes_after_missed", "GNSS fix of a missed epoch dropped: %s", "the solve failed")
+                return None
+            win.x[:] = x_new
+            self.newest.epoch(win, self.solve.Q, self.envelope.factor, self._theta_range)
+            self.propagation.restart(list(x_new[-1]), float(win.t[-1]), self.frontend.can)
+        self._unsolved = self.defer_solves
+        if j == len(win) - 1:
+            self._status = "ok"
+            self.gate.done(fix.t, "ok", bool(win.avail[j, model.j_azimuth]))
+        self.tally.counts["missed_epochs_filled"] += 1
+        return self._estimate(list(win.x[j]), fix.t, "ok", mode)
 
     def _learn_bounds(self, x: NDArray[np.float64], steps: slice) -> None:
         """Show the envelope (:mod:`.envelope`) the residual-to-allowance ratios of the window's ``steps`` at the
