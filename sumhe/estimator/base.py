@@ -93,7 +93,8 @@ class StreamEstimator(ABC):
 
     * :meth:`reset_state`: forget the estimate (the front-end is reset by :meth:`reset`);
     * :meth:`on_epoch`: one GNSS epoch (a usable fix or none; ``epoch.start``: begin here) -> its estimate, at
-      ``epoch.t``, with ``gps`` ``"ok"``, ``"rejected"`` or ``"outage"``;
+      ``epoch.t``, with ``gps`` ``"ok"``, ``"rejected"`` or ``"outage"``, or None (a fix of a missed epoch,
+      ``epoch.fills``, the estimator could not take: counted ``fixes_after_missed``);
     * :meth:`on_can`: one CAN sample taken in -> an estimate at its time, or None (the MHE and the Kalman peers
       answer each ``speed`` sample).
 
@@ -216,8 +217,8 @@ class StreamEstimator(ABC):
         """Forget the estimate; the next epoch with ``start`` begins again."""
 
     @abstractmethod
-    def on_epoch(self, epoch: Epoch) -> StateEstimate:
-        """The estimate of one GNSS epoch."""
+    def on_epoch(self, epoch: Epoch) -> StateEstimate | None:
+        """The estimate of one GNSS epoch (None: a missed epoch's fix not taken)."""
 
     @abstractmethod
     def on_can(self, tick: CanTick) -> StateEstimate | None:
