@@ -4,6 +4,7 @@ replays to the estimates the service sent, one for one; its lines read back bit 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import datetime as dt
 import itertools
 import math
@@ -122,7 +123,8 @@ def test_the_recorded_inputs_of_a_live_service_replay_to_the_estimates_it_sent(t
 
 def test_the_inbox_waits_tell_the_can_samples_that_waited_behind_a_fix():
     """Three CAN speed samples: one pushed at once, one that waited 4 ms while a fix was pushed, one yaw rate (no
-    estimate: not counted)."""
+    estimate: not counted); a second fix whose next sample came 140 ms after its push (the worker waited for input:
+    not a push that held it), and a third whose next sample came during its push (and waited 5 ms)."""
     from sumhe.bench.live import inbox_waits
     from sumhe.service.inputs import Recorded
 
@@ -132,8 +134,12 @@ def test_the_inbox_waits_tell_the_can_samples_that_waited_behind_a_fix():
         Recorded(fix, 100.010, 100.012),
         Recorded(CanSample(10.02, "speed", 5.0), 100.011, 100.015),
         Recorded(CanSample(10.03, "yaw_rate", 0.1), 100.016, 100.050),
+        Recorded(dataclasses.replace(fix, t=10.0), 100.055, 100.060),
+        Recorded(CanSample(10.2, "yaw_rate", 0.1), 100.200, 100.2005),
+        Recorded(dataclasses.replace(fix, t=10.1), 100.201, 100.202),
+        Recorded(CanSample(10.21, "yaw_rate", 0.1), 100.203, 100.208),
     ]
     waits = inbox_waits(records)
     assert waits["wait_ms"] == pytest.approx((2.5, 3.97, 4.0), abs=1e-6)
     assert waits["behind_fix"] == pytest.approx((1, 4.0, 4.0), abs=1e-6)
-    assert waits["longest_fix_push"] == pytest.approx((3.0, 9.9), abs=1e-6)  # the fix's push to the next's
+    assert waits["longest_fix_push"] == pytest.approx((6.0, 10.1), abs=1e-6)  # the third fix's; not the second's 140 ms

@@ -266,11 +266,18 @@ def replayed_inputs(
     return out
 
 
+BUSY_WAIT_S = 1e-3
+"""A sample that waited longer than this (s) between its arrival and its push waited for the worker
+(:func:`inbox_waits`; a sample taken from an idle worker's inbox waits ~0.1 ms)."""
+
+
 def inbox_waits(records: Sequence[Recorded]) -> dict[str, Any]:
     """How long the daemon's CAN speed samples (each makes an estimate) waited between their arrival in its inbox
     and their push (ms: p50, p99, max), and those of them during whose wait a GNSS fix was pushed (a late fix's
     re-run, the MHE's solve): their count, p50 and max; the longest a fix's push held the worker (ms: from its
-    push to the next sample's, which includes sending its estimates) and the time of that fix."""
+    push to the next sample's, which includes sending its estimates; only where that sample waited, having come
+    before the fix's push began or waited over ``BUSY_WAIT_S`` for its own: else the worker was waiting for input,
+    not busy) and the time of that fix."""
     fixes = np.array([r.pushed for r in records if isinstance(r.sample, GnssFix)])
     speed = [r for r in records if isinstance(r.sample, CanSample) and r.sample.quantity == "speed"]
     wait = np.array([(r.pushed - r.arrived) * 1000.0 for r in speed])
@@ -281,7 +288,11 @@ def inbox_waits(records: Sequence[Recorded]) -> dict[str, Any]:
     def figures(w: np.ndarray, qs: tuple[float, ...]) -> tuple[float, ...]:
         return tuple(float(np.percentile(w, q)) for q in qs) if w.size else (math.nan,) * len(qs)
 
-    held = [(b.pushed - a.pushed, a.sample.t) for a, b in itertools.pairwise(records) if isinstance(a.sample, GnssFix)]
+    held = [
+        (b.pushed - a.pushed, a.sample.t)
+        for a, b in itertools.pairwise(records)
+        if isinstance(a.sample, GnssFix) and (b.arrived <= a.pushed or b.pushed - b.arrived > BUSY_WAIT_S)
+    ]
     longest = max(held, default=(math.nan, math.nan))
     return {
         "wait_ms": figures(wait, (50, 99, 100)),
