@@ -267,7 +267,16 @@ class InnovationScale:
         self._last: tuple[float, np.ndarray] | None = None
         self._growth_spread = 1.0
 
-    def add(self, t: float, nu: np.ndarray, trace_r: float, trace_p0: float, trace_g: float, periods: float) -> None:
+    def add(
+        self,
+        t: float,
+        nu: np.ndarray,
+        trace_r: float,
+        trace_p0: float,
+        trace_g: float,
+        periods: float,
+        drift_m2: float = 0.0,
+    ) -> None:
         """One used fix at ``t`` (s): its innovation ``nu`` (m, east and north) and the trace of its covariance
         ``trace_r``; the prediction's own position covariance as the trace at the previous fix used,
         ``trace_p0``, and the trace of the growth since, ``trace_g`` (m^2); ``periods``: GNSS periods since that
@@ -280,11 +289,11 @@ class InnovationScale:
         white = min(self._white.mean(trace_r), trace_r)
         if consecutive:
             self._fix.add(t, float(nu @ nu) - white, trace_p0 + trace_g)
-        elif trace_g > 0.0:
+        elif (growth := max(trace_g, drift_m2)) > 0.0:
             prior = self.scale * trace_p0
-            expected = prior + self.growth_scale * self.growth_spread * trace_g + white
+            expected = prior + self.growth_scale * self.growth_spread * growth + white
             square = min(float(nu @ nu), OUTLIER_CAP * expected)
-            self._growth.add(t, square - white - prior, trace_g)
+            self._growth.add(t, square - white - prior, growth)
             self._growth_spread = _predictive(self._growth.count)
 
     def skip(self) -> None:
@@ -312,7 +321,7 @@ class InnovationScale:
         6.3, 3: 1.7, 20: 1.1)."""
         return self._growth_spread
 
-    def calibrated(self, spread: Spread, at_fix: Spread | None) -> Spread:
+    def calibrated(self, spread: Spread, at_fix: Spread | None, drift_m2: float = 0.0) -> Spread:
         """An estimate's own spread with its position covariance scaled: ``scale P0 + growth_scale growth_spread
         (P - P0)`` (traces; the covariance keeps its shape), ``at_fix`` the own spread at the newest fix used
         (None: none yet, all of it is ``P0``)."""
@@ -320,8 +329,18 @@ class InnovationScale:
         if trace <= 0.0:
             return spread
         trace0 = min(at_fix.var_east_m2 + at_fix.var_north_m2, trace) if at_fix is not None else trace
-        growth = self.growth_scale * self.growth_spread
-        return spread.scaled((self.scale * trace0 + growth * (trace - trace0)) / trace)
+        growth = self.growth_scale * self.growth_spread * max(trace - trace0, drift_m2)
+        return spread.scaled((self.scale * trace0 + growth) / trace)
+
+
+def drift_variance(elapsed_s: float, speed_mps: float, bias_drift: float, scale_drift: float) -> float:
+    """The variance (m^2, across plus along the track) of the dead-reckoning error ``elapsed_s`` s after a fix at
+    ``speed_mps`` from the drift alone of a yaw-rate bias and a speed scale that were right at the fix: random
+    walks of densities ``bias_drift`` (rad/s per square-root s) and ``scale_drift`` (1 per square-root s). The
+    azimuth's error is the bias's integral (variance ``q^2 t^3 / 3``), the position's across the track its integral
+    times the speed (``v^2 q^2 t^5 / 20``); along it, the scale's integral times the speed (``v^2 q^2 t^3 / 3``)."""
+    t, v = max(elapsed_s, 0.0), speed_mps
+    return v * v * (bias_drift**2 * t**5 / 20.0 + scale_drift**2 * t**3 / 3.0)
 
 
 def _predictive(n: float) -> float:
