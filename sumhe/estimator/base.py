@@ -37,7 +37,7 @@ from typing import ClassVar, Protocol, runtime_checkable
 
 import numpy as np
 
-from sumhe.estimator.uncertainty import InnovationScale, Spread, gpsd_errors
+from sumhe.estimator.uncertainty import InnovationScale, Spread, drift_variance, gpsd_errors
 from sumhe.frontend.fixes import LocalFix
 from sumhe.frontend.stream import CanTick, Epoch, FixMeasurement, FrontEnd, Tally
 from sumhe.geo import LocalFrame
@@ -123,6 +123,7 @@ class StreamEstimator(ABC):
         self._push_t0 = time.perf_counter()
         self._receiver: Receiver | None = None
         self.consistency = InnovationScale()
+        self._drift = sensor_drift(settings)
         self._since_epoch: list[StateEstimate] = []
         self._at_fix: tuple[float, Spread | None] = (math.nan, None)
         self.started_over = False
@@ -154,7 +155,7 @@ class StreamEstimator(ABC):
                     else:
                         self.consistency.skip()
                     self._at_fix = (event.fix.t, estimate.spread)
-                    self._receiver = Receiver(event.fix, self._calibrated(estimate.spread), self.averages_fixes)
+                    self._receiver = Receiver(event.fix, self._calibrated(estimate), self.averages_fixes)
             else:
                 estimate = self.on_can(event)
             if estimate is not None:
@@ -174,16 +175,25 @@ class StreamEstimator(ABC):
             spread0 = used.spread
         trace0 = min(spread0.var_east_m2 + spread0.var_north_m2, trace_p) if spread0 is not None else trace_p
         nu = np.array([fix.east_m - east_m, fix.north_m - north_m])
-        self.consistency.add(fix.t, nu, trace_r, trace0, trace_p - trace0, periods)
+        drift = self._drift_m2(fix.t, used) if periods > self.consistency.gap_periods else 0.0
+        self.consistency.add(fix.t, nu, trace_r, trace0, trace_p - trace0, periods, drift)
 
-    def _calibrated(self, spread: Spread | None) -> Spread | None:
+    def _drift_m2(self, t: float, estimate: StateEstimate) -> float:
+        """What the CAN calibration's drift makes of the position's error (trace, m^2) at ``t`` since the newest fix
+        used, at the speed of ``estimate`` (:func:`~sumhe.estimator.uncertainty.drift_variance`)."""
+        t0 = self._at_fix[0]
+        return drift_variance(t - t0, estimate.speed_mps, *self._drift) if math.isfinite(t0) else 0.0
+
+    def _calibrated(self, estimate: StateEstimate) -> Spread | None:
         """An estimate's own spread with its position covariance scaled by the consistency scales."""
-        return None if spread is None else self.consistency.calibrated(spread, self._at_fix[1])
+        if estimate.spread is None:
+            return None
+        return self.consistency.calibrated(estimate.spread, self._at_fix[1], self._drift_m2(estimate.t, estimate))
 
     def _finished(self, estimate: StateEstimate) -> StateEstimate:
         """The estimate as pushed out (one new estimate): its spread calibrated (:meth:`_calibrated`) and, after
         the first fix used, tagged by its :class:`Receiver`."""
-        spread = self._calibrated(estimate.spread)
+        spread = self._calibrated(estimate)
         if self._receiver is not None:
             return _tagged(estimate, *self._receiver.tag(estimate.gps, spread))
         return estimate if spread is None else _tagged(estimate, spread, estimate.sats, estimate.hdop)
@@ -259,6 +269,16 @@ class Receiver:
         if hdop is not None and sigma is not None and self.sigma_m:
             hdop = hdop * max(sigma / self.sigma_m, 1.0)
         return spread, 0, hdop
+
+
+def sensor_drift(settings: EstimationSettings) -> tuple[float, float]:
+    """The random-walk densities of the yaw-rate bias (rad/s per square-root s) and of the speed scale (1 per
+    square-root s) the config allows: ``estimator.mhe.theta_drift`` of their half-ranges
+    (``sensors.can.yaw_rate_bias_max_rps``, ``speed_scale_max``) per square-root minute, the MHE's own figure of
+    how far the CAN calibration may drift (by default 0.057 deg/s per square-root minute for the bias, the top of
+    the drifts of real yaw-rate sensors the realistic profile draws from: docs/simulator.md)."""
+    per_s = settings.estimator.mhe.theta_drift / math.sqrt(60.0)
+    return per_s * settings.can.yaw_rate_bias_max_rps, per_s * settings.can.speed_scale_max
 
 
 def _tagged(e: StateEstimate, spread: Spread | None, sats: int | None, hdop: float | None) -> StateEstimate:
