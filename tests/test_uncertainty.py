@@ -310,6 +310,16 @@ def test_a_growth_scale_learned_from_few_gaps_widens_the_growth_by_the_predictiv
     assert scale.growth_scale == pytest.approx(1.0) and 1.0 < scale.growth_spread < 1.1
 
 
+@pytest.mark.parametrize("n", [1.0, 1.5, 3.0, 20.0, 1e4])
+def test_the_predictive_factor_in_closed_form_is_scipys_quantiles(n: float) -> None:
+    from scipy.stats import chi2, f
+
+    from sumhe.estimator.uncertainty import _predictive
+
+    expected = 2.0 * f.ppf(0.95, 2.0, 2.0 * n) / chi2.ppf(0.95, 2.0)
+    assert _predictive(n) == pytest.approx(expected, rel=1e-12)
+
+
 def test_the_calibrated_spread_scales_the_covariance_at_the_fix_and_its_growth_apart() -> None:
     scale = InnovationScale()
     _innovations(scale, 3000, var_p=9.0, var_r=4.0, var_g=0.0, periods=1.0)
