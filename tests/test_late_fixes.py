@@ -307,12 +307,19 @@ def aside_and_inline(settle: bool) -> tuple[list[StateEstimate], list[StateEstim
     return got
 
 
+def spread_of(e: StateEstimate) -> list[float]:
+    assert e.spread is not None
+    return [e.spread.var_east_m2, e.spread.var_north_m2, e.spread.cov_en_m2]
+
+
 def test_an_epoch_solved_aside_and_settled_gives_the_estimates_of_the_inline_solve() -> None:
     aside, inline = aside_and_inline(settle=True)
     assert len(aside) == len(inline) > 400
     for a, b in zip(aside, inline, strict=True):
         assert (a.t, a.mode) == (b.t, b.mode)
         assert figures(a) == pytest.approx(figures(b), abs=1e-12)
+        # the error estimates too: the consistency scales learned from the solved epoch, not from its prediction
+        assert spread_of(a) == pytest.approx(spread_of(b), rel=1e-9)
 
 
 def test_can_samples_during_an_epoch_solved_aside_are_answered_and_then_follow_the_solution() -> None:

@@ -127,6 +127,8 @@ class StreamEstimator(ABC):
         self._since_epoch: list[StateEstimate] = []
         self._at_fix: tuple[float, Spread | None] = (math.nan, None)
         self.started_over = False
+        self.unsettled = False
+        self._unsettled: tuple[FixMeasurement, tuple[float, float, float] | None, bool] | None = None
 
     def reset(self) -> None:
         """Forget the estimate, the stream (CAN data, GNSS timing) and the consistency scales; counters are kept."""
@@ -135,6 +137,7 @@ class StreamEstimator(ABC):
         self.consistency.reset()
         self._since_epoch = []
         self._at_fix = (math.nan, None)
+        self._unsettled = None
         self.reset_state()
 
     def push(self, sample: LocalFix | CanSample) -> list[StateEstimate]:
@@ -146,22 +149,42 @@ class StreamEstimator(ABC):
                 fix = event.fix
                 ahead = self.settings.can.max_gap_s  # farther on, the CAN data are missing: no prediction
                 prior = predicted_at(self._since_epoch, fix.t, ahead) if fix is not None else None
-                self.started_over = event.start
+                self.started_over, self.unsettled = event.start, False
                 estimate: StateEstimate | None = self.on_epoch(event)
                 self._since_epoch = []
                 if estimate is not None and estimate.gps == "ok" and event.fix is not None:
-                    if prior is not None and not self.started_over:
-                        self._match(event.fix, estimate, *prior)
+                    used = (event.fix, prior, self.started_over)
+                    if self.unsettled:
+                        self._unsettled = used
                     else:
-                        self.consistency.skip()
-                    self._at_fix = (event.fix.t, estimate.spread)
-                    self._receiver = Receiver(event.fix, self._calibrated(estimate), self.averages_fixes)
+                        self._use(estimate, *used)
             else:
                 estimate = self.on_can(event)
             if estimate is not None:
                 self._since_epoch.append(estimate)
                 out.append(self._finished(estimate))
         return out
+
+    def _use(
+        self, estimate: StateEstimate, fix: FixMeasurement, prior: tuple[float, float, float] | None, restart: bool
+    ) -> None:
+        """A fix used by the epoch's ``estimate``: the consistency scales fed (:meth:`_match`; not where the
+        estimator started over at it, ``restart``), the spread at the fix and the :class:`Receiver` set."""
+        if prior is not None and not restart:
+            self._match(fix, estimate, *prior)
+        else:
+            self.consistency.skip()
+        self._at_fix = (fix.t, estimate.spread)
+        self._receiver = Receiver(fix, self._calibrated(estimate), self.averages_fixes)
+
+    def settled(self, estimate: StateEstimate | None) -> None:
+        """The estimate of the epoch :meth:`on_epoch` left unsettled (it set ``self.unsettled``: its estimate was a
+        prediction, its solve still running, as the MHE's solved aside), once solved (None: given up). Its fix, if
+        still used, then counts as :meth:`push` counts the others at once: the scales learn from the solved
+        estimate, not from the prediction."""
+        pending, self._unsettled = self._unsettled, None
+        if pending is not None and estimate is not None and estimate.gps == "ok":
+            self._use(estimate, *pending)
 
     def _match(self, fix: FixMeasurement, used: StateEstimate, east_m: float, north_m: float, trace_p: float) -> None:
         """Feed the consistency scales one used fix (:class:`InnovationScale`): after a gap, the own prediction at

@@ -133,6 +133,7 @@ class MovingHorizonEstimator(StreamEstimator):
         if self._pending is not None:
             self._pending[2].result()  # the solve reads the window: let it end
             self._pending = None
+            self.settled(None)
         self.window.clear()
         self.solve.reset()
         self.newest.reset()
@@ -290,6 +291,7 @@ class MovingHorizonEstimator(StreamEstimator):
             if self._aside is None:
                 self._aside = ThreadPoolExecutor(1, thread_name_prefix="mhe-solve")
             self._pending = (t, status, self._aside.submit(self._solve, shift))
+            self.unsettled = True
             self.propagation.restart(list(win.x[-1]), t, can)
             return self._estimate(list(win.x[-1]), t, status, "aside")
         x_new, mode = self._solve(shift)
@@ -308,7 +310,7 @@ class MovingHorizonEstimator(StreamEstimator):
         t, status, future = self._pending
         self._pending = None
         x_new, mode = future.result()
-        self._solved(t, status, x_new, mode)
+        self.settled(self._solved(t, status, x_new, mode))
 
     def _solved(self, t: float, status: GpsStatus, x_new: NDArray[np.float64], mode: str) -> StateEstimate:
         """The epoch at ``t`` whose window was solved to ``x_new`` (``mode``): a fix the solver cannot take
