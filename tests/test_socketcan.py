@@ -190,6 +190,23 @@ def _shifted_truth_errors(records: list[dict], sim, offset: float) -> tuple[np.n
     return np.hypot(enu[:, 0] - at.east, enu[:, 1] - at.north), t - sim.settings.start_unix_s
 
 
+MARKER = can.Message(arbitration_id=0x1FFFFFFF, is_extended_id=True, data=b"SUHM")
+MARKER_TEXT = "1FFFFFFF#5355484D"
+"""A frame no drive sends (candump -L's text of it): sent until candump has recorded one, so that canplayer starts
+only once candump listens (under emulation its start-up took long enough to miss the drive's first frames)."""
+
+
+def _listening(candump: subprocess.Popen, bus: can.BusABC, recording: Path, timeout_s: float = 30.0) -> bool:
+    """Send :data:`MARKER` on ``bus`` until ``candump`` (writing to ``recording``) has recorded it."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end and candump.poll() is None:
+        bus.send(MARKER)
+        time.sleep(0.2)
+        if MARKER_TEXT in recording.read_text():
+            return True
+    return False
+
+
 @pytest.mark.skipif(shutil.which("canplayer") is None, reason="needs can-utils (canplayer, candump)")
 def test_canplayer_feeds_the_daemon_and_its_candump_recording_replays(drive, tmp_path):
     """canplayer replays the CAN log; the NMEA goes into the daemon's pty from this process, started when the first
@@ -207,9 +224,12 @@ def test_canplayer_feeds_the_daemon_and_its_candump_recording_replays(drive, tmp
     candump = canplayer = None
     try:
         assert wait_for(svc_log, "sumhe ready", START_S), svc_log.read_text()
-        with open(recording, "w") as rec:
-            candump = subprocess.Popen(["candump", "-L", "vcan0"], stdout=rec, stderr=subprocess.DEVNULL)
+        with open(recording, "w") as rec:  # line-buffered: a line is in the file once candump has it
+            candump = subprocess.Popen(
+                ["stdbuf", "-oL", "candump", "-L", "vcan0"], stdout=rec, stderr=subprocess.DEVNULL
+            )
         with can.Bus(interface="socketcan", channel="vcan0") as watch:
+            assert _listening(candump, watch, recording), "candump recorded no marker frame in 30 s"
             canplayer = subprocess.Popen(
                 ["canplayer", "-I", str(drive_dir / "drive.log"), "vcan0=can0"], stderr=subprocess.PIPE, text=True
             )
@@ -238,7 +258,7 @@ def test_canplayer_feeds_the_daemon_and_its_candump_recording_replays(drive, tmp
     check_drive(
         listener.json, code, stop_s, nmea_offset, sim, svc_text, MAX_STOP_S, emulated=True, status=listener.status
     )
-    recorded = recording.read_text().splitlines()
+    recorded = [line for line in recording.read_text().splitlines() if MARKER_TEXT not in line]
     assert len(recorded) == len(log_lines), "candump recorded every frame canplayer sent"
     # the kernel filters pass the mapped ids only (of those, a reader starved by emulation may lose some)
     mapped = sum(line.split()[2].split("#")[0] in MAPPED_IDS for line in log_lines)
