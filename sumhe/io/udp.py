@@ -48,10 +48,6 @@ def _utc_second(t: int) -> str:
     return dt.datetime.fromtimestamp(t, tz=dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S")
 
 
-def _round(value: float | None, digits: int) -> float | None:
-    return None if value is None or not math.isfinite(value) else round(value, digits)
-
-
 def estimate_to_json(est: Estimate) -> dict[str, Any]:
     """The JSON object sent for one estimate (:func:`json_line`, read back)."""
     out: dict[str, Any] = json.loads(json_line(est))
@@ -71,8 +67,8 @@ def _number(value: float | int | None) -> str:
 
 
 def _fixed(value: float | None, digits: int) -> str:
-    """``value`` rounded to ``digits`` decimals as JSON text (:func:`_round`, then :func:`_number`); null for None
-    and non-finite values."""
+    """``value`` rounded to ``digits`` decimals as JSON text (as :func:`_number` writes it); null for None and
+    non-finite values."""
     if value is None or not math.isfinite(value):
         return "null"
     rounded = round(value, digits)
