@@ -128,7 +128,7 @@ class StreamEstimator(ABC):
         self._at_fix: tuple[float, Spread | None] = (math.nan, None)
         self.started_over = False
         self.unsettled = False
-        self._unsettled: tuple[FixMeasurement, tuple[float, float, float] | None, bool] | None = None
+        self._pending_use: tuple[FixMeasurement, tuple[float, float, float] | None, bool] | None = None
 
     def reset(self) -> None:
         """Forget the estimate, the stream (CAN data, GNSS timing) and the consistency scales; counters are kept."""
@@ -137,7 +137,7 @@ class StreamEstimator(ABC):
         self.consistency.reset()
         self._since_epoch = []
         self._at_fix = (math.nan, None)
-        self._unsettled = None
+        self._pending_use = None
         self.reset_state()
 
     def push(self, sample: LocalFix | CanSample) -> list[StateEstimate]:
@@ -155,7 +155,7 @@ class StreamEstimator(ABC):
                 if estimate is not None and estimate.gps == "ok" and event.fix is not None:
                     used = (event.fix, prior, self.started_over)
                     if self.unsettled:
-                        self._unsettled = used
+                        self._pending_use = used
                     else:
                         self._use(estimate, *used)
             else:
@@ -182,7 +182,7 @@ class StreamEstimator(ABC):
         prediction, its solve still running, as the MHE's solved aside), once solved (None: given up). Its fix, if
         still used, then counts as :meth:`push` counts the others at once: the scales learn from the solved
         estimate, not from the prediction."""
-        pending, self._unsettled = self._unsettled, None
+        pending, self._pending_use = self._pending_use, None
         if pending is not None and estimate is not None and estimate.gps == "ok":
             self._use(estimate, *pending)
 
