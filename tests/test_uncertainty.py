@@ -41,6 +41,24 @@ from sumhe.sim import SimSettings, simulate
 from estimators import estimator_params
 
 
+@pytest.mark.parametrize("q", [0.0, 1e-3, 0.01, 0.3, 0.7, 0.99, 1.0])
+def test_exact_radius_95_holds_95_percent_by_an_independent_quadrature(q: float) -> None:
+    """The radius against the Cartesian form of the probability, integrated adaptively by scipy: ``P(r) = E_x[2
+    Phi(sqrt(r^2 - x^2) / q) - 1 ; |x| < r]`` for a major sigma of 1 (the 1-D answer where ``q`` is 0), split where
+    the inner probability falls from 1 to 0 (``r^2 - x^2 < (8 q)^2``: narrow for a thin ellipse)."""
+    from scipy.integrate import quad
+    from scipy.stats import norm
+
+    r = exact_radius_95(2.0, 2.0 * q) / 2.0
+    if q == 0.0:
+        held = norm.cdf(r) - norm.cdf(-r)
+    else:
+        inner = lambda x: norm.pdf(x) * (2.0 * norm.cdf(math.sqrt(max(r * r - x * x, 0.0)) / q) - 1.0)  # noqa: E731
+        edge = math.sqrt(max(r * r - 64.0 * q * q, 0.0))
+        held = quad(inner, -r, r, epsabs=1e-13, epsrel=1e-13, limit=500, points=[-edge, 0.0, edge])[0]
+    assert held == pytest.approx(0.95, abs=1e-9)
+
+
 @pytest.mark.parametrize(("s1", "s2"), [(2.0, 2.0), (2.0, 1.0), (3.0, 0.3), (1.0, 0.01)])
 def test_radius_95_holds_95_percent_of_a_gaussian_error(s1: float, s2: float) -> None:
     e = np.random.default_rng(7).standard_normal((400_000, 2)) * [s1, s2]
