@@ -21,7 +21,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -43,7 +43,9 @@ from sumhe.io.replay import RecordedDrive
 from sumhe.io.udp import json_line
 from sumhe.messages import Estimate, Sample
 from sumhe.service.pipeline import MonotonicOutput, Pipeline
-from sumhe.sim.truth import Truth
+
+if TYPE_CHECKING:  # the simulator (and python-can with it) is not loaded to replay a drive
+    from sumhe.sim.truth import Truth
 
 TRUTH_CHUNK = 4096
 """Estimates compared with the truth at once (vectorised), then forgotten."""
