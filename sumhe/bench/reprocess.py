@@ -185,6 +185,8 @@ class Recorder:
         self._truth = _TruthScore(truth) if truth is not None else None
         self._last: tuple[float, float] | None = None
         self.order = MonotonicOutput()
+        self._unwritten: list[Estimate] = []
+        """Estimates let through but not yet written: written :data:`READ_AHEAD` at a time, as samples are read."""
 
     def write(self, estimates: list[Estimate], now: float) -> None:
         """Take the estimates made when the input's clock was at ``now`` (s; ``inf`` at the end)."""
@@ -204,11 +206,12 @@ class Recorder:
                 self._truth.add(est)
         if self.out is None:
             return
-        lines = [json_line(est) for est in self.order.release(estimates, now)]
+        self._unwritten += self.order.release(estimates, now)
         if math.isinf(now):
-            lines += [json_line(est) for est in self.order.flush()]
-        if lines:
-            self.out.write("\n".join(lines) + "\n")  # type: ignore[union-attr]
+            self._unwritten += self.order.flush()
+        if len(self._unwritten) >= READ_AHEAD or (math.isinf(now) and self._unwritten):
+            self.out.write("\n".join([json_line(est) for est in self._unwritten]) + "\n")
+            self._unwritten = []
 
     def truth_errors(self) -> TruthErrors | None:
         return self._truth.result() if self._truth is not None else None
