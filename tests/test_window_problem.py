@@ -3,6 +3,7 @@ bounds and no arrival, both give the same trajectory."""
 
 from __future__ import annotations
 
+import casadi as ca
 import numpy as np
 import pytest
 import su_samples as S
@@ -12,8 +13,8 @@ from sumhe.estimator.bounds import noise_bounds
 from sumhe.estimator.grid import build_grid
 from sumhe.estimator.lp import solve_lp
 from sumhe.estimator.mhe.nlp import NlpSolver
-from sumhe.estimator.mhe.problem import WindowProblem
-from sumhe.estimator.mhe.sqp import SqpSolver
+from sumhe.estimator.mhe.problem import WindowProblem, residual_functions
+from sumhe.estimator.mhe.sqp import SqpSolver, _linearisation
 from sumhe.settings import EstimationSettings, with_changes
 
 # "caps": the centre stage runs with q, r at their caps, the MHE's fixed bounds
@@ -69,3 +70,26 @@ def test_the_real_time_iteration_converges_to_it(case: tuple) -> None:
 def test_the_start_point_is_not_the_answer(case: tuple) -> None:
     _, batch, problem = case
     assert np.abs(problem.x[:, :2] - batch.states[:, :2]).max() > 0.05  # the solvers had to move
+
+
+def test_the_window_jacobian_from_one_steps_is_the_whole_windows(case: tuple) -> None:
+    # the SQP solver puts J together from one step's Jacobian: the same pattern and, bit for bit, the same values
+    # as differentiating the whole window's residuals at once
+    model, _, problem = case
+    C, md, n = 6, model.n_dynamic, model.n_outputs
+    lin, rows, cols = _linearisation(model, C)
+    fw, fe = residual_functions(model)
+    Xd, th = ca.SX.sym("x", md, C), ca.SX.sym("theta", model.n_states - md)
+    H, Y = ca.SX.sym("h", 1, C - 1), ca.SX.sym("y", n, C)
+    X = ca.vertcat(Xd, ca.repmat(th, 1, C))
+    res = ca.vertcat(ca.vec(fw.map(C - 1)(X[:, :-1], X[:, 1:], H)), ca.vec(fe.map(C)(X, Y)))
+    z = ca.vertcat(ca.vec(Xd), th)
+    J = ca.jacobian(res, z)
+    whole = ca.Function("whole", [z, H, Y], [ca.vertcat(res, J.nz[:])])
+    assert np.array_equal(rows, J.sparsity().get_triplet()[0]) and np.array_equal(cols, J.sparsity().get_triplet()[1])
+    zz, hh, yy = (
+        np.concatenate([problem.x[:C, :md].reshape(-1), problem.x[0, md:]]),
+        problem.h[: C - 1],
+        problem.y[:C].T,
+    )
+    assert np.array_equal(np.asarray(lin(zz, hh, yy)), np.asarray(whole(zz, hh, yy)))

@@ -9,12 +9,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from sumhe.geo import LocalFrame
-from sumhe.sim.truth import Truth
+
+if TYPE_CHECKING:  # the simulator (and python-can with it) is not loaded to replay a drive
+    from sumhe.sim.truth import Truth
 
 FloatArray = NDArray[np.float64]
 

@@ -34,7 +34,7 @@ from sumhe.bench.fleet import (
     write_record,
     write_table,
 )
-from sumhe.commands.replay import add_outage_option
+from sumhe.commands.options import add_outage_option
 from sumhe.errors import ConfigError
 from sumhe.estimator.registry import estimator_names
 

@@ -17,11 +17,11 @@ import sys
 from contextlib import nullcontext
 
 from sumhe.bench.reprocess import replay_drive
-from sumhe.commands.candump import reference_config
-from sumhe.commands.simulate import outage
+from sumhe.commands.options import add_outage_option
 from sumhe.config import load_config, require_signals
 from sumhe.estimator.registry import make_estimator
 from sumhe.frontend.can import CAN_USED
+from sumhe.io.can import reference_config
 from sumhe.io.replay import RecordedDrive, check_gps_source
 
 
@@ -37,19 +37,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", metavar="FILE", help="JSON lines output (default: stdout)")
     parser.add_argument("--offset", type=float, default=0.0, metavar="S", help="add S seconds to the NMEA times")
     add_outage_option(parser, "--outage", "the first CAN frame")
-
-
-def add_outage_option(parser: argparse.ArgumentParser, flag: str, origin: str) -> None:
-    """``flag START+LEN ...``: outage windows whose fixes are removed, starts in seconds from ``origin``."""
-    parser.add_argument(
-        flag,
-        nargs="+",
-        action="extend",
-        type=outage,
-        default=[],
-        metavar="START+LEN",
-        help=f"remove the fixes of these windows (s from {origin}) and report the errors against them",
-    )
 
 
 def run(args: argparse.Namespace) -> int:

@@ -15,6 +15,7 @@ import argparse
 import dataclasses
 from pathlib import Path
 
+from sumhe.commands.options import outage
 from sumhe.errors import ConfigError, SourceError
 from sumhe.sim import load_settings, simulate, write_drive
 from sumhe.sim.measure import format_table, measure_errors
@@ -37,17 +38,6 @@ _OVERRIDES = {
     "can_drop_rate": "can_drop_rate",
 }
 """Command-line option (dest) -> SimSettings field."""
-
-
-def outage(text: str) -> tuple[float, float]:
-    """``START+LEN`` (s) -> (start_s, length_s)."""
-    start, plus, length = text.partition("+")
-    try:
-        if not plus:
-            raise ValueError(text)
-        return float(start), float(length)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected START+LENGTH in seconds (e.g. 60+10), got {text!r}") from None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
