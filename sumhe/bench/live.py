@@ -319,6 +319,8 @@ def run_live(duration_s: float, estimator: str, say: Any = print) -> dict[str, A
         "rate_hz": len(run.records) / duration_s,
         "latency_ms_p50": last.get("latency_ms_p50"),
         "latency_ms_p99": last.get("latency_ms_p99"),
+        "latency_slow": last.get("latency_slow", {}),
+        "gc": last.get("gc", {}),
         "solve_ms_p50": last.get("solve_ms_p50"),
         "solve_ms_p99": last.get("solve_ms_p99"),
         "out_of_order": last.get("out_of_order"),
@@ -363,6 +365,7 @@ def format_live(fig: dict[str, Any]) -> str:
             f"  output: {fig['estimates']} estimates, {fig['rate_hz']:.1f} Hz; source rates {fig['source_rates_hz']}",
             f"  end-to-end latency (CAN frame timestamp -> UDP send, no reorder hold) p50 {fig['latency_ms_p50']} ms, "
             f"p99 {fig['latency_ms_p99']} ms",
+            f"  {gc_line(fig['gc'], fig['latency_slow'])}",
             "  inbox wait of the CAN speed samples (arrival -> push, ms) p50 / p99 / max "
             f"{' / '.join(f'{w:.2f}' for w in fig['wait_ms'])}; {fig['behind_fix'][0]} waited while a GNSS fix was "
             f"pushed (p50 / max {fig['behind_fix'][1]:.2f} / {fig['behind_fix'][2]:.2f}); the longest push of a fix "
@@ -381,6 +384,21 @@ def format_live(fig: dict[str, Any]) -> str:
             f"(live {(fig['outage_live'][0] / fig['outage_received_held'][0] - 1.0) * 100.0:+.1f} % mean vs held)",
             *crosstalk,
         ]
+    )
+
+
+def gc_line(gc: dict[str, Any], slow: dict[str, int]) -> str:
+    """The daemon's garbage collections (its final status: count and longest pause per generation, objects frozen)
+    and how many of its slowest sends (at or above the p99 of the last status window) were in flight while one
+    ran."""
+    pauses = ", ".join(
+        f"gen{g} {gc[f'gen{g}']['count']} x, max {gc[f'gen{g}']['max_ms']:.2f} ms" for g in range(3) if f"gen{g}" in gc
+    )
+    coincide = " / ".join(str(slow.get(f"gc_gen{g}", 0)) for g in range(3))
+    return (
+        f"GC in the daemon: {pauses or 'not reported'}; {gc.get('frozen', 0)} objects frozen; of its "
+        f"{slow.get('slow', 0)} sends at or above the p99, {coincide} were in flight during a gen0 / gen1 / gen2 "
+        "collection"
     )
 
 
