@@ -236,14 +236,14 @@ class Service:
 
     async def run(self, stop: asyncio.Event) -> None:
         """Run until ``stop`` is set; everything is closed when this returns."""
+        self.gc.install()
+        self.gc.frozen = settle("start-up")  # before "sumhe starting": a player starts on that line
         log.info("sumhe starting (version %s): %s", __version__, self.summary())
         log.info("config: %s", json.dumps(describe(self.config), default=str))
-        self.gc.install()
         for src in self.sources.values():
             start = getattr(src, "start", None)
             if start is not None:
                 await start()  # idempotent: a caller may have started them already
-        settle("start-up")
         tasks = [asyncio.create_task(self._read(name, src), name=f"read-{name}") for name, src in self.sources.items()]
         tasks.append(asyncio.create_task(self._estimate(), name="estimate"))
         tasks.append(asyncio.create_task(self._status(), name="status"))
@@ -270,6 +270,7 @@ class Service:
             self._send_status()
             self.gc.remove()
             gc.unfreeze()  # the policy ends with the service (a process that goes on, as a test does, collects all)
+            self.gc.frozen = 0
             self._udp.close()
             if self._status_udp is not None:
                 self._status_udp.close()
@@ -325,7 +326,7 @@ class Service:
             if not self.inbox:
                 if not self._settled and len(self.stats.solve_ms) >= SETTLE_EPOCHS:
                     self._settled = True
-                    settle(f"after the first {SETTLE_EPOCHS} GNSS epochs, the worker idle")
+                    self.gc.frozen = settle(f"after the first {SETTLE_EPOCHS} GNSS epochs, the worker idle")
                 self.inbox.event.clear()
                 await self.inbox.event.wait()
                 continue

@@ -1,8 +1,8 @@
 """The daemon and Python's cyclic garbage collector: its pauses measured, and the policy that keeps them short.
 
-Measured (:class:`GcWatch`, through ``gc.callbacks``): each collection's generation and length, and the latest
-ones with their times on the service clock, so that the status can say which slow estimates were in flight while
-the collector ran (:meth:`GcWatch.during`).
+Measured (:class:`GcWatch`, through ``gc.callbacks``): each collection's generation and length, and when the
+latest of each generation ended on the service clock, so that the status can say which slow estimates were in
+flight while the collector ran (:meth:`GcWatch.during`).
 
 Policy (:func:`settle`): a collection of the oldest generation traverses every tracked container the process has;
 in ``sumhe run`` those are, after a minute as after an hour, ~110 000 objects made by the imports (functions,
@@ -22,8 +22,8 @@ from __future__ import annotations
 
 import gc
 import logging
+import math
 import time
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -31,8 +31,6 @@ from typing import Any
 log = logging.getLogger(__name__)
 
 GENERATIONS = 3
-RECENT = 256
-"""Collections remembered with their times (the newest), for :meth:`GcWatch.during`."""
 
 
 @dataclass
@@ -45,13 +43,16 @@ class GenerationStats:
 
 
 class GcWatch:
-    """Every collection's length per generation, and the latest :data:`RECENT` as ``(end, generation)``, their ends on
-    ``clock`` (s). :meth:`install` hooks it into ``gc.callbacks``, :meth:`remove` unhooks it (both idempotent)."""
+    """Every collection's length per generation, and when the latest of each ended (``last_end``, on ``clock``, s).
+    :meth:`install` hooks it into ``gc.callbacks``, :meth:`remove` unhooks it (both idempotent)."""
 
     def __init__(self, clock: Callable[[], float] = time.time) -> None:
         self.clock = clock
         self.generations = [GenerationStats() for _ in range(GENERATIONS)]
-        self.recent: deque[tuple[float, int]] = deque(maxlen=RECENT)
+        self.last_end = [-math.inf] * GENERATIONS
+        self.frozen = 0
+        """Objects frozen by the latest :func:`settle` (its caller sets it: ``gc.get_freeze_count()`` walks them all,
+        ~10 ms for 110 000, too long for the status line)."""
         self._start = 0.0
         self._t0 = 0.0
 
@@ -74,26 +75,20 @@ class GcWatch:
         stats.count += 1
         stats.total_ms += ms
         stats.max_ms = max(stats.max_ms, ms)
-        self.recent.append((self._start + ms / 1000.0, gen))
+        self.last_end[gen] = self._start + ms / 1000.0
 
     def during(self, since: float) -> int:
-        """The oldest generation collected, at least in part, after ``since`` (clock s); -1 for none (or none
-        remembered)."""
-        oldest = -1
-        for end, gen in reversed(self.recent):
-            if end < since:
-                break
-            oldest = max(oldest, gen)
-        return oldest
+        """The oldest generation collected, at least in part, after ``since`` (clock s); -1 for none."""
+        return max((g for g, end in enumerate(self.last_end) if end >= since), default=-1)
 
     def figures(self) -> dict[str, Any]:
-        """Per generation: count, longest and total pause (ms); and how many objects are frozen (:func:`settle`)."""
+        """Per generation: count, longest and total pause (ms); and how many objects are frozen (``frozen``)."""
         return {
             **{
                 f"gen{g}": {"count": s.count, "max_ms": round(s.max_ms, 3), "total_ms": round(s.total_ms, 3)}
                 for g, s in enumerate(self.generations)
             },
-            "frozen": gc.get_freeze_count(),
+            "frozen": self.frozen,
         }
 
 
