@@ -4,11 +4,13 @@ collections in flight found, and frozen start-up objects that leave garbage made
 from __future__ import annotations
 
 import gc
+import os
 import time
 import weakref
 
 import pytest
 
+from sumhe.bench.live import _run_queue, gc_line
 from sumhe.service.app import slow_with_gc
 from sumhe.service.collector import GcWatch, settle
 
@@ -76,3 +78,16 @@ def test_the_slow_sends_are_counted_with_the_collection_in_flight():
     assert slow_with_gc(latency, gens, 99) == {"slow": 1, "gc_gen0": 0, "gc_gen1": 0, "gc_gen2": 0}
     assert slow_with_gc(latency, gens, 98) == {"slow": 2, "gc_gen0": 0, "gc_gen1": 0, "gc_gen2": 1}
     assert slow_with_gc([], [], 99) == {"slow": 0}
+
+
+def test_bench_live_reads_the_run_queue_and_says_which_slow_sends_met_a_collection():
+    waited, slices = _run_queue(os.getpid())
+    assert waited >= 0.0 and slices >= 1
+    watch = GcWatch()
+    watch.install()
+    try:
+        gc.collect()
+    finally:
+        watch.remove()
+    line = gc_line(watch.figures(), {"slow": 3, "gc_gen0": 0, "gc_gen1": 0, "gc_gen2": 1})
+    assert "gen2 1 x" in line and "of its 3 sends at or above the p99, 0 / 0 / 1 were in flight" in line

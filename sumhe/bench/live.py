@@ -63,14 +63,15 @@ def _cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def _run_queue_s(pid: int) -> float:
-    """Seconds the threads of a process have waited for a CPU so far (run queue; Linux ``/proc/PID/task/*/schedstat``:
-    CPU time, wait time, time slices; a thread that has ended no longer counts)."""
-    waited = 0
+def _run_queue(pid: int) -> tuple[float, int]:
+    """Seconds the threads of a process have waited for a CPU so far (run queue) and the time slices they ran (Linux
+    ``/proc/PID/task/*/schedstat``: CPU time, wait time, time slices; a thread that has ended no longer counts)."""
+    waited, slices = 0, 0
     for stat in Path(f"/proc/{pid}/task").glob("*/schedstat"):
         with contextlib.suppress(OSError, IndexError, ValueError):
-            waited += int(stat.read_text().split()[1])
-    return waited / 1e9
+            fields = stat.read_text().split()
+            waited, slices = waited + int(fields[1]), slices + int(fields[2])
+    return waited / 1e9, slices
 
 
 def _sumhe(args: list[str], log: Path) -> subprocess.Popen:
@@ -86,7 +87,8 @@ class DaemonRun:
     """What one run of ``sumhe run`` against ``sumhe play`` gave: the JSON estimates with the benchmark's
     ``time.monotonic()`` at their arrival (``arrived``), the status datagrams, the player's clock offset (s:
     service time = drive time + offset), the daemon's CPU use (% of one core), how long its threads waited for a
-    CPU (``run_queue_ms_per_s``: ms per s of the drive, CPU starvation) and the wall time the player took."""
+    CPU (``run_queue_ms_per_s``: ms per s of the drive; ``run_queue_ms_per_slice``: the mean wait before each time
+    slice it ran; CPU starvation) and the wall time the player took."""
 
     records: list[dict[str, Any]] = field(default_factory=list)
     arrived: list[float] = field(default_factory=list)
@@ -94,6 +96,7 @@ class DaemonRun:
     offset_s: float = math.nan
     cpu_percent: float = math.nan
     run_queue_ms_per_s: float = math.nan
+    run_queue_ms_per_slice: float = math.nan
     play_s: float = math.nan
 
     @property
@@ -168,7 +171,7 @@ def run_daemon(
             if service.poll() is not None:
                 raise RuntimeError(f"sumhe run ended: {(tmp / 'service.log').read_text()[-2000:]}")
             time.sleep(0.1)
-        cpu0, queued0, wall0 = _cpu_s(service.pid), _run_queue_s(service.pid), time.monotonic()
+        cpu0, (queued0, slices0), wall0 = _cpu_s(service.pid), _run_queue(service.pid), time.monotonic()
         player = _sumhe(
             [
                 "play",
@@ -190,7 +193,9 @@ def run_daemon(
             _drain_status(status_sock, run.statuses)
         run.play_s = time.monotonic() - wall0
         run.cpu_percent = (_cpu_s(service.pid) - cpu0) / run.play_s * 100.0
-        run.run_queue_ms_per_s = (_run_queue_s(service.pid) - queued0) / run.play_s * 1000.0
+        queued, slices = _run_queue(service.pid)
+        run.run_queue_ms_per_s = (queued - queued0) / run.play_s * 1000.0
+        run.run_queue_ms_per_slice = (queued - queued0) / max(slices - slices0, 1) * 1000.0
         end = time.monotonic() + 2.0
         while time.monotonic() < end:
             time.sleep(0.02)
@@ -343,6 +348,7 @@ def run_live(duration_s: float, estimator: str, say: Any = print) -> dict[str, A
         "source_rates_hz": last.get("rates_hz"),
         "cpu_percent_of_one_core": run.cpu_percent,
         "run_queue_ms_per_s": run.run_queue_ms_per_s,
+        "run_queue_ms_per_slice": run.run_queue_ms_per_slice,
         "outage_live": outage_errors_of(run.records, sim, run.offset_s),
         "outage_held": replayed["held"],
         "outage_arrival": replayed["arrival"],
@@ -390,7 +396,8 @@ def format_live(fig: dict[str, Any]) -> str:
             f"{fig['degraded_sent']}; left out as out of order {fig['out_of_order']}; t decreasing between "
             f"datagrams {fig['nonmonotonic']}",
             f"  CPU: {fig['cpu_percent_of_one_core']:.1f} % of one core; its threads waited for a CPU (run queue) "
-            f"{fig['run_queue_ms_per_s']:.1f} ms per s; late fixes {fig['late_fixes'] or 'none'}",
+            f"{fig['run_queue_ms_per_s']:.1f} ms per s, {fig['run_queue_ms_per_slice']:.3f} ms before each time slice "
+            f"on average; late fixes {fig['late_fixes'] or 'none'}",
             "  outage error (m, mean / p95 / max): "
             f"live {err('outage_live')}; replayed in time order (held) {err('outage_held')}; "
             f"replayed in arrival order {err('outage_arrival')} "
