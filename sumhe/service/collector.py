@@ -5,17 +5,21 @@ latest of each generation ended on the service clock, so that the status can say
 flight while the collector ran (:meth:`GcWatch.during`).
 
 Policy (:func:`settle`): a collection of the oldest generation traverses every tracked container the process has;
-in ``sumhe run`` those are, after a minute as after an hour, ~110 000 objects made by the imports (functions,
-types, modules of numpy, scipy, casadi, python-can), the service's own run-time objects being a few hundred. One
-such pass took 21 ms on an idle core (and up to 44 ms beside a loaded one), on the worker that answers the CAN
-samples. ``gc.freeze()`` moves every tracked object to the permanent generation, which the collector no longer
-traverses; the service calls :func:`settle` twice: when its sources are open (imports done, estimator built) and
-once the first GNSS epoch has been solved and the worker is idle (the objects the first solve makes lazily: solver
-workspaces, late imports), so later collections only see what was made since. Frozen objects are still freed when
-their last reference goes (reference counting is not affected); only a reference cycle among them would stay, and
-each :func:`settle` runs a full collection first, so no garbage is frozen. Collections of the young generations
-stay as they are (the default thresholds; each takes well under a millisecond), and objects made after a freeze are
-collected as before (``tests/test_collector.py`` holds the policy to that). The service unfreezes when it stops.
+in ``sumhe run`` those are ~112 000 objects made by the imports (functions, types, modules of numpy, scipy, casadi,
+python-can; 113 359 after 15 s of ``sumhe bench live``, 112 118 after 65 s), the service's own a few hundred. One
+such pass took 9-29 ms on an idle core and up to 164 ms beside busy ones (24 Nov 2026), on whichever thread
+allocated, while every other thread waits. Without a policy the daemon made its full collections during its imports
+only (the old generation did not grow by the quarter that triggers one, in a minute as in an hour); any later one
+(a burst of new objects: a reconnect, a late import) would stop the worker that answers the CAN samples as long.
+``gc.freeze()`` moves every tracked object to the permanent generation, which the collector no longer traverses;
+the service calls :func:`settle` twice: before it reads any input (imports done, estimator built) and once the
+first GNSS epochs have been pushed and the worker is idle (the objects the first solves make lazily: solver
+workspaces, late imports, the sources' buses), so later collections only see what was made since (a full one
+0.1-0.3 ms, measured). Frozen objects are still freed when their last reference goes (reference counting is not
+affected); only a reference cycle among them would stay, and each :func:`settle` runs a full collection first, so
+no garbage is frozen. Collections of the young generations stay as they are (the default thresholds), and objects
+made after a freeze are collected as before (``tests/test_collector.py`` holds the policy to that). The service
+unfreezes when it stops.
 """
 
 from __future__ import annotations
