@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import datetime as dt
+import gc
 import itertools
 import math
 import time
@@ -100,10 +101,13 @@ def test_the_recorded_inputs_of_a_live_service_replay_to_the_estimates_it_sent(t
                 if k % 10 == 0:
                     pty.write(epoch_at(k // 10))
             await asyncio.sleep(0.3)
+        frozen.append(service.status()["gc"]["frozen"])  # the collector policy (sumhe.service.collector)
         stop.set()
         await task
         recorder.close()
         return service
+
+    frozen: list[int] = []
 
     try:
         service = asyncio.run(asyncio.wait_for(main(), 30.0))
@@ -119,6 +123,8 @@ def test_the_recorded_inputs_of_a_live_service_replay_to_the_estimates_it_sent(t
     replayed = {(e.t, e.east_m, e.north_m) for s in inputs for e in pipeline.push(s)}
     assert len(sent) >= 50 and sum(e.mode == "ekf" for e in sent) >= 50
     assert all((e.t, e.east_m, e.north_m) in replayed for e in sent)
+    assert frozen[0] > 0 and gc.get_freeze_count() == 0  # frozen while it ran, undone when it stopped
+    assert service.status()["latency_slow"]["slow"] >= 1
 
 
 def test_the_inbox_waits_tell_the_can_samples_that_waited_behind_a_fix():

@@ -22,6 +22,7 @@ says so (a WARNING line).
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import math
@@ -62,6 +63,17 @@ def _cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def _run_queue(pid: int) -> tuple[float, int]:
+    """Seconds the threads of a process have waited for a CPU so far (run queue) and the time slices they ran (Linux
+    ``/proc/PID/task/*/schedstat``: CPU time, wait time, time slices; a thread that has ended no longer counts)."""
+    waited, slices = 0, 0
+    for stat in Path(f"/proc/{pid}/task").glob("*/schedstat"):
+        with contextlib.suppress(OSError, IndexError, ValueError):
+            fields = stat.read_text().split()
+            waited, slices = waited + int(fields[1]), slices + int(fields[2])
+    return waited / 1e9, slices
+
+
 def _sumhe(args: list[str], log: Path) -> subprocess.Popen:
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", PYTHONUNBUFFERED="1")
     with open(log, "w") as f:
@@ -74,13 +86,17 @@ def _sumhe(args: list[str], log: Path) -> subprocess.Popen:
 class DaemonRun:
     """What one run of ``sumhe run`` against ``sumhe play`` gave: the JSON estimates with the benchmark's
     ``time.monotonic()`` at their arrival (``arrived``), the status datagrams, the player's clock offset (s:
-    service time = drive time + offset), the daemon's CPU use (% of one core) and the wall time the player took."""
+    service time = drive time + offset), the daemon's CPU use (% of one core), how long its threads waited for a
+    CPU (``run_queue_ms_per_s``: ms per s of the drive; ``run_queue_ms_per_slice``: the mean wait before each time
+    slice it ran; CPU starvation) and the wall time the player took."""
 
     records: list[dict[str, Any]] = field(default_factory=list)
     arrived: list[float] = field(default_factory=list)
     statuses: list[dict[str, Any]] = field(default_factory=list)
     offset_s: float = math.nan
     cpu_percent: float = math.nan
+    run_queue_ms_per_s: float = math.nan
+    run_queue_ms_per_slice: float = math.nan
     play_s: float = math.nan
 
     @property
@@ -155,7 +171,7 @@ def run_daemon(
             if service.poll() is not None:
                 raise RuntimeError(f"sumhe run ended: {(tmp / 'service.log').read_text()[-2000:]}")
             time.sleep(0.1)
-        cpu0, wall0 = _cpu_s(service.pid), time.monotonic()
+        cpu0, (queued0, slices0), wall0 = _cpu_s(service.pid), _run_queue(service.pid), time.monotonic()
         player = _sumhe(
             [
                 "play",
@@ -177,6 +193,9 @@ def run_daemon(
             _drain_status(status_sock, run.statuses)
         run.play_s = time.monotonic() - wall0
         run.cpu_percent = (_cpu_s(service.pid) - cpu0) / run.play_s * 100.0
+        queued, slices = _run_queue(service.pid)
+        run.run_queue_ms_per_s = (queued - queued0) / run.play_s * 1000.0
+        run.run_queue_ms_per_slice = (queued - queued0) / max(slices - slices0, 1) * 1000.0
         end = time.monotonic() + 2.0
         while time.monotonic() < end:
             time.sleep(0.02)
@@ -319,6 +338,8 @@ def run_live(duration_s: float, estimator: str, say: Any = print) -> dict[str, A
         "rate_hz": len(run.records) / duration_s,
         "latency_ms_p50": last.get("latency_ms_p50"),
         "latency_ms_p99": last.get("latency_ms_p99"),
+        "latency_slow": last.get("latency_slow", {}),
+        "gc": last.get("gc", {}),
         "solve_ms_p50": last.get("solve_ms_p50"),
         "solve_ms_p99": last.get("solve_ms_p99"),
         "out_of_order": last.get("out_of_order"),
@@ -326,6 +347,8 @@ def run_live(duration_s: float, estimator: str, say: Any = print) -> dict[str, A
         "degraded_sent": last.get("degraded_sent"),
         "source_rates_hz": last.get("rates_hz"),
         "cpu_percent_of_one_core": run.cpu_percent,
+        "run_queue_ms_per_s": run.run_queue_ms_per_s,
+        "run_queue_ms_per_slice": run.run_queue_ms_per_slice,
         "outage_live": outage_errors_of(run.records, sim, run.offset_s),
         "outage_held": replayed["held"],
         "outage_arrival": replayed["arrival"],
@@ -363,6 +386,7 @@ def format_live(fig: dict[str, Any]) -> str:
             f"  output: {fig['estimates']} estimates, {fig['rate_hz']:.1f} Hz; source rates {fig['source_rates_hz']}",
             f"  end-to-end latency (CAN frame timestamp -> UDP send, no reorder hold) p50 {fig['latency_ms_p50']} ms, "
             f"p99 {fig['latency_ms_p99']} ms",
+            f"  {gc_line(fig['gc'], fig['latency_slow'])}",
             "  inbox wait of the CAN speed samples (arrival -> push, ms) p50 / p99 / max "
             f"{' / '.join(f'{w:.2f}' for w in fig['wait_ms'])}; {fig['behind_fix'][0]} waited while a GNSS fix was "
             f"pushed (p50 / max {fig['behind_fix'][1]:.2f} / {fig['behind_fix'][2]:.2f}); the longest push of a fix "
@@ -371,7 +395,9 @@ def format_live(fig: dict[str, Any]) -> str:
             f"  solve p50 {fig['solve_ms_p50']} ms, p99 {fig['solve_ms_p99']} ms; sent degraded "
             f"{fig['degraded_sent']}; left out as out of order {fig['out_of_order']}; t decreasing between "
             f"datagrams {fig['nonmonotonic']}",
-            f"  CPU: {fig['cpu_percent_of_one_core']:.1f} % of one core; late fixes {fig['late_fixes'] or 'none'}",
+            f"  CPU: {fig['cpu_percent_of_one_core']:.1f} % of one core; its threads waited for a CPU (run queue) "
+            f"{fig['run_queue_ms_per_s']:.1f} ms per s, {fig['run_queue_ms_per_slice']:.3f} ms before each time slice "
+            f"on average; late fixes {fig['late_fixes'] or 'none'}",
             "  outage error (m, mean / p95 / max): "
             f"live {err('outage_live')}; replayed in time order (held) {err('outage_held')}; "
             f"replayed in arrival order {err('outage_arrival')} "
@@ -381,6 +407,21 @@ def format_live(fig: dict[str, Any]) -> str:
             f"(live {(fig['outage_live'][0] / fig['outage_received_held'][0] - 1.0) * 100.0:+.1f} % mean vs held)",
             *crosstalk,
         ]
+    )
+
+
+def gc_line(gc: dict[str, Any], slow: dict[str, int]) -> str:
+    """The daemon's garbage collections (its final status: count and longest pause per generation, objects frozen)
+    and how many of its slowest sends (at or above the p99 of the last status window) were in flight while one
+    ran."""
+    pauses = ", ".join(
+        f"gen{g} {gc[f'gen{g}']['count']} x, max {gc[f'gen{g}']['max_ms']:.2f} ms" for g in range(3) if f"gen{g}" in gc
+    )
+    coincide = " / ".join(str(slow.get(f"gc_gen{g}", 0)) for g in range(3))
+    return (
+        f"GC in the daemon: {pauses or 'not reported'}; {gc.get('frozen', 0)} objects frozen; of its "
+        f"{slow.get('slow', 0)} sends at or above the p99, {coincide} were in flight during a gen0 / gen1 / gen2 "
+        "collection"
     )
 
 

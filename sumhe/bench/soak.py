@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import gc
 import itertools
 import json
 import math
@@ -108,12 +109,20 @@ def _last_position(truth_csv: Path) -> tuple[float, float]:
 
 @dataclass(frozen=True, slots=True)
 class MemoryPoint:
-    """Memory after ``data_s`` seconds of data: RSS now and the peak so far (MB), wall time so far (s)."""
+    """Memory after ``data_s`` seconds of data: RSS now and the peak so far (MB), wall time so far (s), and the
+    objects the cyclic garbage collector tracks (``tracked``: outside the frozen generation, what its collections
+    traverse; :mod:`sumhe.service.collector`)."""
 
     data_s: float
     rss_mb: float
     peak_mb: float
     wall_s: float
+    tracked: int
+
+
+def memory_point(data_s: float, wall_s: float) -> MemoryPoint:
+    """The memory now, after ``data_s`` seconds of data and ``wall_s`` of wall time."""
+    return MemoryPoint(data_s, rss_mb(), peak_rss_mb(), wall_s, len(gc.get_objects()))
 
 
 @dataclass(frozen=True)
@@ -148,18 +157,19 @@ def soak_replay(
     def progress(data_s: float) -> None:
         nonlocal next_at
         if data_s >= next_at or not points:
-            point = MemoryPoint(data_s, rss_mb(), peak_rss_mb(), time.perf_counter() - started)
+            point = memory_point(data_s, time.perf_counter() - started)
             points.append(point)
             say(
                 f"soak: {point.data_s / 3600:5.2f} h of data: RSS {point.rss_mb:6.1f} MB, peak {point.peak_mb:6.1f}"
-                f" MB, {point.wall_s:6.0f} s ({point.data_s / max(point.wall_s, 1e-9):.0f}x real time)"
+                f" MB, {point.tracked} objects tracked by the collector, {point.wall_s:6.0f} s "
+                f"({point.data_s / max(point.wall_s, 1e-9):.0f}x real time)"
             )
             if data_s >= next_at:
                 next_at += every_s
 
     with open(os.devnull, "w", encoding="utf-8") as out:
         summary = replay_drive(drive, est, out=out, progress=progress)
-    end = MemoryPoint(summary.span_s, rss_mb(), peak_rss_mb(), time.perf_counter() - started)
+    end = memory_point(summary.span_s, time.perf_counter() - started)
     return SoakResult(summary, [*points, end], every_s)
 
 
@@ -176,7 +186,8 @@ def format_daemon(status: dict[str, Any], points: Sequence[MemoryPoint], receive
     return (
         f"soak daemon: {last.data_s / 3600:.2f} h of data in {last.wall_s:.0f} s; {status['estimates']} estimates, "
         f"{received} datagrams received; RSS {last.rss_mb:.1f} MB at the end, peak {last.peak_mb:.1f} MB, growth "
-        f"after the first twelfth {100 * growth(points, first_part):+.1f} %; status: {json.dumps(status)}"
+        f"after the first twelfth {100 * growth(points, first_part):+.1f} %; objects tracked by the collector "
+        f"{points[0].tracked} at the start, {last.tracked} at the end; status: {json.dumps(status)}"
     )
 
 
@@ -185,7 +196,8 @@ def format_result(result: SoakResult) -> list[str]:
     return [
         f"soak: {s.estimator}: {s.span_s / 3600:.2f} h of data, {s.estimates} estimates in {s.wall_s:.0f} s "
         f"({s.speed:.0f}x real time); RSS {last.rss_mb:.1f} MB at the end, peak {last.peak_mb:.1f} MB, growth after "
-        f"the first hour {100 * result.growth_after_first_hour:+.1f} %",
+        f"the first hour {100 * result.growth_after_first_hour:+.1f} %; objects tracked by the collector "
+        f"{result.points[0].tracked} at the start, {last.tracked} at the end",
         *s.lines(),
     ]
 
@@ -271,13 +283,13 @@ async def soak_daemon(
         while not source.ended and not task.done():
             await asyncio.sleep(0.5)
             data_s = clock() - first
-            if data_s >= next_at:
-                point = MemoryPoint(data_s, rss_mb(), peak_rss_mb(), time.time() - wall0)
+            if data_s >= next_at and not task.done():  # the service's memory while it runs
+                point = memory_point(data_s, time.time() - wall0)
                 points.append(point)
                 say(
                     f"soak daemon: {data_s / 3600:5.2f} h of data: RSS {point.rss_mb:6.1f} MB, peak "
-                    f"{point.peak_mb:6.1f} MB, {service.pipeline.stats.estimates} estimates, {counter.received} "
-                    "datagrams received"
+                    f"{point.peak_mb:6.1f} MB, {point.tracked} objects tracked by the collector, "
+                    f"{service.pipeline.stats.estimates} estimates, {counter.received} datagrams received"
                 )
                 next_at += every_s
         await asyncio.sleep(1.0)
@@ -288,5 +300,5 @@ async def soak_daemon(
         while counter.received < service.status()["sent"] and time.monotonic() < deadline:
             await asyncio.sleep(0.05)  # the last datagrams are still on their way to the client
         transport.close()
-    points.append(MemoryPoint(source.stats.last_t - first, rss_mb(), peak_rss_mb(), time.time() - wall0))
+    points.append(memory_point(source.stats.last_t - first, time.time() - wall0))
     return service.status(), points, counter.received

@@ -48,6 +48,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import gc
 import heapq
 import itertools
 import json
@@ -57,7 +58,7 @@ import signal
 import threading
 import time
 from collections import deque
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -70,6 +71,7 @@ from sumhe.io.fixtime import FixClock
 from sumhe.io.source import SourceTimeout
 from sumhe.io.udp import UdpSender, UdpSink
 from sumhe.messages import Estimate, GnssFix, Sample
+from sumhe.service.collector import GcWatch, settle
 from sumhe.service.pipeline import MonotonicOutput, Pipeline, TimeRules
 
 log = logging.getLogger(__name__)
@@ -90,6 +92,9 @@ MAX_CHUNK = 64
 MAX_BACKLOG = 20_000
 """Samples waiting at most; beyond, the oldest are dropped (``backlog_dropped``)."""
 SOLVE_WINDOW = 2000
+SETTLE_EPOCHS = 10
+"""GNSS epochs pushed (the estimator's objects made, its solver's too) before the worker's first idle moment
+freezes what exists (:func:`~sumhe.service.collector.settle`; the first freeze is at start-up)."""
 READY_POLL_S = 0.1
 SOURCE_COUNTERS = (
     "reconnects",
@@ -124,6 +129,9 @@ class ServiceStats:
     stalls: int = 0
     solve_ms: deque[float] = field(default_factory=lambda: deque(maxlen=SOLVE_WINDOW))
     latency_ms: deque[float] = field(default_factory=lambda: deque(maxlen=SOLVE_WINDOW))
+    latency_gc: deque[int] = field(default_factory=lambda: deque(maxlen=SOLVE_WINDOW))
+    """Beside each of ``latency_ms``: the oldest generation the garbage collector took while that estimate was in
+    flight (from its time to its send), -1 for none (:meth:`~sumhe.service.collector.GcWatch.during`)."""
 
 
 class Inbox:
@@ -174,6 +182,17 @@ def percentile(values: deque[float] | list[float], q: float) -> float:
     return float(np.percentile(np.fromiter(values, float), q)) if values else float("nan")
 
 
+def slow_with_gc(latency_ms: Sequence[float], gens: Sequence[int], q: float) -> dict[str, int]:
+    """Of the sends at or above the ``q`` percentile of ``latency_ms``: how many (``slow``), and how many of them
+    were in flight while the collector took generation 0, 1 or 2 at the oldest (``gc_gen0`` ...; ``gens`` beside
+    ``latency_ms``, -1 for no collection)."""
+    if not latency_ms:
+        return {"slow": 0}
+    lat = np.fromiter(latency_ms, float)
+    gen = np.fromiter(gens, int)[lat >= np.percentile(lat, q)]
+    return {"slow": int(gen.size), **{f"gc_gen{g}": int(np.sum(gen == g)) for g in range(3)}}
+
+
 class Service:
     """One running instance: ``await Service(...).run(stop)``."""
 
@@ -210,11 +229,15 @@ class Service:
         self._extra_sink = sink
         self._record = record
         self._output_lock = threading.Lock()
+        self.gc = GcWatch(clock)
+        self._settled = False
         if hasattr(estimator, "solve_aside"):
             estimator.solve_aside = True  # the CAN samples after an epoch do not wait for its solve (docstring)
 
     async def run(self, stop: asyncio.Event) -> None:
         """Run until ``stop`` is set; everything is closed when this returns."""
+        self.gc.install()
+        self.gc.frozen = settle("start-up")  # before "sumhe starting": a player starts on that line
         log.info("sumhe starting (version %s): %s", __version__, self.summary())
         log.info("config: %s", json.dumps(describe(self.config), default=str))
         for src in self.sources.values():
@@ -245,6 +268,9 @@ class Service:
                     self._send(est)
             log.info("sumhe stopped after %.1f s: %s", time.monotonic() - self.stats.started_wall, self.status_line())
             self._send_status()
+            self.gc.remove()
+            gc.unfreeze()  # the policy ends with the service (a process that goes on, as a test does, collects all)
+            self.gc.frozen = 0
             self._udp.close()
             if self._status_udp is not None:
                 self._status_udp.close()
@@ -298,6 +324,9 @@ class Service:
         stalled = False
         while True:
             if not self.inbox:
+                if not self._settled and len(self.stats.solve_ms) >= SETTLE_EPOCHS:
+                    self._settled = True
+                    self.gc.frozen = settle(f"after the first {SETTLE_EPOCHS} GNSS epochs, the worker idle")
                 self.inbox.event.clear()
                 await self.inbox.event.wait()
                 continue
@@ -369,6 +398,7 @@ class Service:
             est = dataclasses.replace(est, mode="degraded")
             self.stats.degraded_sent += 1
         self.stats.latency_ms.append((self.clock() - est.t) * 1000.0)
+        self.stats.latency_gc.append(self.gc.during(est.t))
         if self._udp is not None:
             self._udp.send(est)
         if self._extra_sink is not None:
@@ -411,6 +441,8 @@ class Service:
             "solve_ms_p99": round(percentile(self.stats.solve_ms, 99), 3),
             "latency_ms_p50": round(percentile(self.stats.latency_ms, 50), 3),
             "latency_ms_p99": round(percentile(self.stats.latency_ms, 99), 3),
+            "latency_slow": slow_with_gc(self.stats.latency_ms, self.stats.latency_gc, 99),
+            "gc": self.gc.figures(),
             "window": est.window if est else 0,
             "mode": est.mode if est else "no fix yet",
             "gps": est.gps if est else "outage",
