@@ -72,6 +72,7 @@ from sumhe.io.source import SourceTimeout
 from sumhe.io.udp import UdpSender, UdpSink
 from sumhe.messages import Estimate, GnssFix, Sample
 from sumhe.service.collector import GcWatch, settle
+from sumhe.service.histogram import LogHistogram
 from sumhe.service.pipeline import MonotonicOutput, Pipeline, TimeRules
 
 log = logging.getLogger(__name__)
@@ -92,6 +93,8 @@ MAX_CHUNK = 64
 MAX_BACKLOG = 20_000
 """Samples waiting at most; beyond, the oldest are dropped (``backlog_dropped``)."""
 SOLVE_WINDOW = 2000
+LATENCY_MIN_MS, LATENCY_MAX_MS = 1e-3, 1e6
+"""The range of :attr:`ServiceStats.latency_run`'s bins (ms); beyond, its low and high bins."""
 SETTLE_EPOCHS = 10
 """GNSS epochs pushed (the estimator's objects made, its solver's too) before the worker's first idle moment
 freezes what exists (:func:`~sumhe.service.collector.settle`; the first freeze is at start-up)."""
@@ -129,6 +132,8 @@ class ServiceStats:
     stalls: int = 0
     solve_ms: deque[float] = field(default_factory=lambda: deque(maxlen=SOLVE_WINDOW))
     latency_ms: deque[float] = field(default_factory=lambda: deque(maxlen=SOLVE_WINDOW))
+    latency_run: LogHistogram = field(default_factory=lambda: LogHistogram(LATENCY_MIN_MS, LATENCY_MAX_MS))
+    """Every send's latency since the start (``latency_ms`` holds the latest :data:`SOLVE_WINDOW`)."""
     latency_gc: deque[int] = field(default_factory=lambda: deque(maxlen=SOLVE_WINDOW))
     """Beside each of ``latency_ms``: the oldest generation the garbage collector took while that estimate was in
     flight (from its time to its send), -1 for none (:meth:`~sumhe.service.collector.GcWatch.during`)."""
@@ -180,6 +185,12 @@ class Inbox:
 
 def percentile(values: deque[float] | list[float], q: float) -> float:
     return float(np.percentile(np.fromiter(values, float), q)) if values else float("nan")
+
+
+def _run_figures(h: LogHistogram) -> dict[str, Any]:
+    """A run's latency figures (ms): sends, p50, p99 (each the upper edge of its bin: :class:`LogHistogram`), max."""
+    worst = round(h.max, 3) if h.count else math.nan
+    return {"sends": h.count, **{f"p{q}": round(h.percentile(q), 3) for q in (50, 99)}, "max": worst}
 
 
 def slow_with_gc(latency_ms: Sequence[float], gens: Sequence[int], q: float) -> dict[str, int]:
@@ -397,7 +408,9 @@ class Service:
         if self.degraded_since is not None:
             est = dataclasses.replace(est, mode="degraded")
             self.stats.degraded_sent += 1
-        self.stats.latency_ms.append((self.clock() - est.t) * 1000.0)
+        latency_ms = (self.clock() - est.t) * 1000.0
+        self.stats.latency_ms.append(latency_ms)
+        self.stats.latency_run.add(latency_ms)
         self.stats.latency_gc.append(self.gc.during(est.t))
         if self._udp is not None:
             self._udp.send(est)
@@ -441,6 +454,7 @@ class Service:
             "solve_ms_p99": round(percentile(self.stats.solve_ms, 99), 3),
             "latency_ms_p50": round(percentile(self.stats.latency_ms, 50), 3),
             "latency_ms_p99": round(percentile(self.stats.latency_ms, 99), 3),
+            "latency_run": _run_figures(self.stats.latency_run),
             "latency_slow": slow_with_gc(self.stats.latency_ms, self.stats.latency_gc, 99),
             "gc": self.gc.figures(),
             "window": est.window if est else 0,
