@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import minimize_scalar  # at import: the daemon searches the lag mid-drive, on its worker
 
 LAGS_S = np.round(np.arange(-1.0, 1.0001, 0.02), 6)
 """The lags tried (s): a receiver's latency plus a clock's offset stays within a second."""
@@ -122,8 +123,6 @@ def _minimum_between(f: Callable[[float], float], lo: float, hi: float) -> float
     is no parabola (the CAN data are interpolated between samples as far apart as the grid's step), whose vertex
     was pulled towards the grid's points by up to 2 ms, so the lag learned moved by 4.4 ms when the fixes' stamps
     moved by 6.2 ms; searched, it moves with them."""
-    from scipy.optimize import minimize_scalar  # here: scipy.optimize is a fifth of a second of start-up
-
     return float(minimize_scalar(f, bounds=(lo, hi), method="bounded", options={"xatol": LAG_TOLERANCE_S}).x)
 
 
