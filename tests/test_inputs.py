@@ -128,7 +128,7 @@ def test_the_recorded_inputs_of_a_live_service_replay_to_the_estimates_it_sent(t
     assert status["latency_slow"]["slow"] >= 1
     run = status["latency_run"]  # every send since the start, beside the status window's
     assert run["sends"] == len(sent) == service.stats.sent
-    assert 0.0 < run["p50"] <= run["p99"] <= run["max"]
+    assert 0.0 < run["p50"] <= run["p99"] <= run["max"] * 10 ** (0.5 / 100)  # a bin's centre: half a bin over
 
 
 def test_the_inbox_waits_tell_the_can_samples_that_waited_behind_a_fix():

@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from sumhe.bench.metrics import percentiles
-from sumhe.bench.reprocess import Histogram, counter_deltas, replay_drive
+from sumhe.bench.metrics import Histogram, percentiles
+from sumhe.bench.reprocess import counter_deltas, replay_drive
 from sumhe.estimator.registry import estimator_names, make_estimator
 from sumhe.frontend.can import CAN_USED
 from sumhe.io.can import reference_config
@@ -65,3 +65,22 @@ def test_every_estimator_reads_only_the_can_inputs(tmp_path, name):
     (every, every_samples), (inputs, input_samples) = runs
     assert every == inputs and len(every) > 10
     assert input_samples < every_samples
+
+
+def test_an_interrupted_replay_keeps_what_it_estimated(tmp_path):
+    """The lines are written in batches; a replay stopped part way (here by its progress callback, at 60 s of
+    data) still writes every estimate let through before it stopped."""
+    write_drive(simulate(SimSettings(seed=4, duration_s=90.0)), tmp_path)
+    config = reference_config()
+    out = io.StringIO()
+
+    def stop_at_a_minute(done_s: float) -> None:
+        if done_s >= 60.0:
+            raise KeyboardInterrupt
+
+    drive = RecordedDrive(config, tmp_path / "drive.log", tmp_path / "drive.nmea")
+    with pytest.raises(KeyboardInterrupt):
+        replay_drive(drive, make_estimator("ekf", config), out=out, progress=stop_at_a_minute)
+    times = [json.loads(line)["t"] for line in out.getvalue().splitlines()]
+    assert len(times) > 2000  # ~50 a second for a minute: more than one batch's worth of samples read ahead
+    assert times[-1] - times[0] > 55.0

@@ -184,6 +184,67 @@ def histogram_percentile(counts: ArrayLike, q: float) -> float:
     return float(math.sqrt(LATENCY_EDGES_MS[k] * LATENCY_EDGES_MS[k + 1]))
 
 
+FOLD_EVERY = 4096
+"""Values a :class:`Histogram` holds before it bins them (vectorised)."""
+
+
+class Histogram:
+    """Counts of positive values in the fixed log bins of :func:`latency_histogram` (1e-4 to 1e5, 100 bins a
+    decade: percentiles to within 2.3 %), with their exact count, sum and maximum; NaN is not counted. Fixed size
+    whatever the number of values (values are binned :data:`FOLD_EVERY` at a time): the replay's errors and solve
+    times, the daemon's latency since it started."""
+
+    def __init__(self) -> None:
+        self._counts = latency_histogram([])
+        self._n = 0
+        self._total = 0.0
+        self._max = math.nan
+        self._pending: list[float] = []
+
+    def add(self, value: float) -> None:
+        self._pending.append(value)
+        if len(self._pending) >= FOLD_EVERY:
+            self._fold()
+
+    def extend(self, values: ArrayLike) -> None:
+        self._fold()
+        v = np.asarray(values, dtype=float).ravel()
+        v = v[np.isfinite(v)]
+        if v.size:
+            self._counts += latency_histogram(v)
+            self._n += int(v.size)
+            self._total += float(v.sum())
+            self._max = float(v.max()) if math.isnan(self._max) else max(self._max, float(v.max()))
+
+    @property
+    def counts(self) -> np.ndarray:
+        self._fold()
+        return self._counts
+
+    @property
+    def n(self) -> int:
+        self._fold()
+        return self._n
+
+    @property
+    def mean(self) -> float:
+        self._fold()
+        return self._total / self._n if self._n else math.nan
+
+    @property
+    def max(self) -> float:
+        self._fold()
+        return self._max
+
+    def percentile(self, q: float) -> float:
+        return histogram_percentile(self.counts, q)
+
+    def _fold(self) -> None:
+        if self._pending:
+            values, self._pending = self._pending, []
+            self.extend(values)
+
+
 def throughput(span_s: float, wall_s: float) -> float:
     """How many times faster than real time: seconds of data (``span_s``) per second of computing (``wall_s``);
     NaN when either is not positive."""

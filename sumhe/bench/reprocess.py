@@ -24,9 +24,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
-from numpy.typing import ArrayLike
 
-from sumhe.bench.metrics import histogram_percentile, latency_histogram, throughput
+from sumhe.bench.metrics import Histogram, throughput
 from sumhe.bench.outages import (
     MAX_INTERPOLATION_GAP_S,
     FixCut,
@@ -51,70 +50,14 @@ TRUTH_CHUNK = 4096
 """Estimates compared with the truth at once (vectorised), then forgotten."""
 
 PROGRESS_EVERY_S = 60.0
+"""How often (s of data) :func:`replay_drive` reports progress."""
 READ_AHEAD = 4096
 """Samples read from the logs at a time before they are fed to the estimator: reading and estimating in turn,
 sample by sample, made the replay of the bundled drive a sixth slower (each half of the loop evicting the other's
 code and data from the CPU caches); a few MB at most."""
-"""How often (s of data) :func:`replay_drive` reports progress."""
 
 GAUGES = frozenset({"window", "period_s"})
 """Estimator statistics that are levels, not counters: :func:`counter_deltas` reports them as they are."""
-
-
-class Histogram:
-    """Counts of positive values in the fixed log bins of :func:`~sumhe.bench.metrics.latency_histogram`
-    (1e-4 to 1e5, 100 bins a decade: percentiles to within 2.3 %), with their exact count, sum and maximum; NaN
-    is not counted. Fixed size whatever the number of values (values are binned :data:`TRUTH_CHUNK` at a time)."""
-
-    def __init__(self) -> None:
-        self._counts = latency_histogram([])
-        self._n = 0
-        self._total = 0.0
-        self._max = math.nan
-        self._pending: list[float] = []
-
-    def add(self, value: float) -> None:
-        self._pending.append(value)
-        if len(self._pending) >= TRUTH_CHUNK:
-            self._fold()
-
-    def extend(self, values: ArrayLike) -> None:
-        self._fold()
-        v = np.asarray(values, dtype=float).ravel()
-        v = v[np.isfinite(v)]
-        if v.size:
-            self._counts += latency_histogram(v)
-            self._n += int(v.size)
-            self._total += float(v.sum())
-            self._max = float(v.max()) if math.isnan(self._max) else max(self._max, float(v.max()))
-
-    @property
-    def counts(self) -> np.ndarray:
-        self._fold()
-        return self._counts
-
-    @property
-    def n(self) -> int:
-        self._fold()
-        return self._n
-
-    @property
-    def mean(self) -> float:
-        self._fold()
-        return self._total / self._n if self._n else math.nan
-
-    @property
-    def max(self) -> float:
-        self._fold()
-        return self._max
-
-    def percentile(self, q: float) -> float:
-        return histogram_percentile(self.counts, q)
-
-    def _fold(self) -> None:
-        if self._pending:
-            values, self._pending = self._pending, []
-            self.extend(values)
 
 
 @dataclass(frozen=True, slots=True)
@@ -209,7 +152,12 @@ class Recorder:
         self._unwritten += self.order.release(estimates, now)
         if math.isinf(now):
             self._unwritten += self.order.flush()
-        if len(self._unwritten) >= READ_AHEAD or (math.isinf(now) and self._unwritten):
+        if len(self._unwritten) >= READ_AHEAD or math.isinf(now):
+            self.flush()
+
+    def flush(self) -> None:
+        """Write the estimates let through so far (at the end, and where the replay is interrupted)."""
+        if self.out is not None and self._unwritten:
             self.out.write("\n".join([json_line(est) for est in self._unwritten]) + "\n")
             self._unwritten = []
 
@@ -329,18 +277,21 @@ def replay_drive(
     next_report = -math.inf
     wall0, cpu0 = time.perf_counter(), time.process_time()
     push, keep, write = pipeline.push, cut.keep, recorder.write
-    for sample in _read_ahead(drive.samples()):
-        last_t = sample.t
-        if keep(sample):
-            estimates = push(sample)
-            if estimates:
-                write(estimates, last_t)
-        if last_t >= next_report:  # the first sample, then once a minute of data
-            first_t = last_t if math.isnan(first_t) else first_t
-            next_report = last_t + PROGRESS_EVERY_S
-            if progress is not None:
-                progress(last_t - first_t)
-    write(pipeline.finish(), math.inf)
+    try:
+        for sample in _read_ahead(drive.samples()):
+            last_t = sample.t
+            if keep(sample):
+                estimates = push(sample)
+                if estimates:
+                    write(estimates, last_t)
+            if last_t >= next_report:  # the first sample, then once a minute of data
+                first_t = last_t if math.isnan(first_t) else first_t
+                next_report = last_t + PROGRESS_EVERY_S
+                if progress is not None:
+                    progress(last_t - first_t)
+        write(pipeline.finish(), math.inf)
+    finally:
+        recorder.flush()  # an interrupted replay keeps what it estimated, as before the batches
     wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     span = last_t - first_t if math.isfinite(first_t) and math.isfinite(last_t) else 0.0
     per_window: Sequence[OutageErrors] = []
