@@ -9,12 +9,13 @@ import math
 import numpy as np
 import pytest
 
-from sumhe.bench.metrics import Histogram, percentiles
+from sumhe.bench.metrics import percentiles
 from sumhe.bench.reprocess import counter_deltas, replay_drive
 from sumhe.estimator.registry import estimator_names, make_estimator
 from sumhe.frontend.can import CAN_USED
 from sumhe.io.can import reference_config
 from sumhe.io.replay import RecordedDrive
+from sumhe.service.histogram import Histogram
 from sumhe.sim import SimSettings, simulate, write_drive
 
 

@@ -40,6 +40,7 @@ from sumhe.config import Config
 from sumhe.errors import ConfigError, SumheError
 from sumhe.estimator.registry import estimator_class, make_estimator
 from sumhe.messages import Estimate, GnssFix
+from sumhe.service.histogram import latency_histogram
 from sumhe.service.pipeline import Pipeline
 
 log = logging.getLogger(__name__)
@@ -64,7 +65,7 @@ class BenchRunError(SumheError):
 @dataclass(frozen=True, eq=False)
 class RunResult:
     """One estimator on one drive. Errors in m, heading errors in rad; latency histograms of
-    :func:`~sumhe.bench.metrics.latency_histogram` (ms); times in s; memory in MB. ``error`` when it failed."""
+    :func:`~sumhe.service.histogram.latency_histogram` (ms); times in s; memory in MB. ``error`` when it failed."""
 
     estimator: str
     drive: str
@@ -77,8 +78,8 @@ class RunResult:
     heading_errors: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
     calib_gps: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, len(metrics.CALIBRATION_COLUMNS))))
     calib_outage: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, len(metrics.CALIBRATION_COLUMNS))))
-    sample_hist: NDArray[np.int64] = field(default_factory=lambda: metrics.latency_histogram([]))
-    epoch_hist: NDArray[np.int64] = field(default_factory=lambda: metrics.latency_histogram([]))
+    sample_hist: NDArray[np.int64] = field(default_factory=lambda: latency_histogram([]))
+    epoch_hist: NDArray[np.int64] = field(default_factory=lambda: latency_histogram([]))
     span_s: float = 0.0
     push_s: float = 0.0
     finish_s: float = 0.0
@@ -151,8 +152,8 @@ def run_estimator(name: str, drive: BenchDrive, heading_min_speed_mps: float = 2
         heading_errors=heading,
         calib_gps=calib_gps,
         calib_outage=calib_outage,
-        sample_hist=metrics.latency_histogram(push_ms),
-        epoch_hist=metrics.latency_histogram(push_ms[is_fix]),
+        sample_hist=latency_histogram(push_ms),
+        epoch_hist=latency_histogram(push_ms[is_fix]),
         span_s=drive.span_s,
         push_s=float(push_ms.sum() / 1e3),
         finish_s=finish_s,

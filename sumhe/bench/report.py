@@ -13,6 +13,7 @@ from numpy.typing import NDArray
 
 from sumhe.bench import metrics
 from sumhe.bench.peers import MEMORY_METHOD, BenchReport, DriveInfo, RunResult
+from sumhe.service.histogram import histogram_percentile, latency_histogram
 
 MOTION_ORDER = ("straight", "bend", "sharp", "stop")
 
@@ -46,7 +47,7 @@ def summarise_estimator(name: str, results: Sequence[RunResult], drives_: Sequen
             by_length.setdefault(_length_key(outage.length_s), []).append(errs)
             by_motion.setdefault(outage.motion, []).append(errs)
     lengths = sorted({_length_key(o.length_s) for d in drives_ for o in d.outages}, key=float)
-    empty = metrics.latency_histogram([])
+    empty = latency_histogram([])
     hists = {
         "sample": sum((r.sample_hist for r in ok), empty),
         "epoch": sum((r.epoch_hist for r in ok), empty),
@@ -71,8 +72,8 @@ def summarise_estimator(name: str, results: Sequence[RunResult], drives_: Sequen
         "latency_ms": {
             kind: {
                 "n": int(hist.sum()),
-                "p50": metrics.histogram_percentile(hist, 50.0),
-                "p99": metrics.histogram_percentile(hist, 99.0),
+                "p50": histogram_percentile(hist, 50.0),
+                "p99": histogram_percentile(hist, 99.0),
             }
             for kind, hist in hists.items()
         },

@@ -5,7 +5,7 @@ tabulates.
 :class:`~sumhe.service.pipeline.Pipeline`, with the fixes of outage windows cut out (:mod:`sumhe.bench.outages`),
 writes each estimate as the JSON line the UDP output sends, and returns a :class:`DriveSummary`. Everything it
 keeps grows with nothing but the outage windows: solve times and errors go into fixed histograms
-(:func:`~sumhe.bench.metrics.latency_histogram`), modes into a counter, positions only near the windows; a day of
+(:func:`~sumhe.service.histogram.latency_histogram`), modes into a counter, positions only near the windows; a day of
 data costs what an hour does.
 
 Units: seconds (``t`` on the drive's clock), metres, milliseconds where named ``_ms``.
@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
-from sumhe.bench.metrics import Histogram, throughput
+from sumhe.bench.metrics import throughput
 from sumhe.bench.outages import (
     MAX_INTERPOLATION_GAP_S,
     FixCut,
@@ -41,6 +41,7 @@ from sumhe.geo import LocalFrame
 from sumhe.io.replay import RecordedDrive
 from sumhe.io.udp import json_line
 from sumhe.messages import Estimate, Sample
+from sumhe.service.histogram import Histogram
 from sumhe.service.pipeline import MonotonicOutput, Pipeline
 
 if TYPE_CHECKING:  # the simulator (and python-can with it) is not loaded to replay a drive

@@ -65,7 +65,6 @@ from typing import Any
 import numpy as np
 
 from sumhe import __version__
-from sumhe.bench.metrics import Histogram
 from sumhe.config import Config, describe
 from sumhe.estimator.base import Estimator
 from sumhe.io.fixtime import FixClock
@@ -73,6 +72,7 @@ from sumhe.io.source import SourceTimeout
 from sumhe.io.udp import UdpSender, UdpSink
 from sumhe.messages import Estimate, GnssFix, Sample
 from sumhe.service.collector import GcWatch, settle
+from sumhe.service.histogram import Histogram
 from sumhe.service.pipeline import MonotonicOutput, Pipeline, TimeRules
 
 log = logging.getLogger(__name__)
@@ -186,7 +186,7 @@ def percentile(values: deque[float] | list[float], q: float) -> float:
 
 
 def _run_figures(h: Histogram) -> dict[str, Any]:
-    """A run's latency figures (ms): sends, p50, p99 (within 2.3 %: :class:`~sumhe.bench.metrics.Histogram`), max."""
+    """A run's latency figures (ms): sends, p50, p99 (within 2.3 %: :class:`Histogram`), max."""
     return {"sends": h.n, **{f"p{q}": round(h.percentile(q), 3) for q in (50, 99)}, "max": round(h.max, 3)}
 
 
