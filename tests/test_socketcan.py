@@ -118,9 +118,10 @@ def _foreign_frames() -> None:
             bus.send(can.Message(arbitration_id=CAN_ERR_CRTL, is_error_frame=True, data=bytes(8)))
 
 
-def _stop(service: subprocess.Popen, listener: Listener) -> tuple[int, float]:
+def _stop(service: subprocess.Popen, listener: Listener, log: Path) -> tuple[int, float]:
     """SIGTERM once the daemon has sent everything (under emulation it may lag real time by seconds); the exit
-    code and how long the daemon took to exit after SIGTERM (s)."""
+    code and how long the daemon took to exit after SIGTERM (s). A daemon still running after twice the allowed
+    stop time fails the test with the end of its ``log``."""
     count, quiet_since, deadline = -1, time.monotonic(), time.monotonic() + 300
     while time.monotonic() - quiet_since < 3.0 and time.monotonic() < deadline:
         if len(listener.json) != count:
@@ -128,7 +129,11 @@ def _stop(service: subprocess.Popen, listener: Listener) -> tuple[int, float]:
         time.sleep(0.2)
     service.send_signal(signal.SIGTERM)
     t_term = time.monotonic()
-    code = service.wait(2 * MAX_STOP_S)
+    try:
+        code = service.wait(2 * MAX_STOP_S)
+    except subprocess.TimeoutExpired:
+        tail = log.read_text()[-4000:]
+        pytest.fail(f"sumhe run still running {2 * MAX_STOP_S:g} s after SIGTERM; its log ends:\n{tail}")
     return code, time.monotonic() - t_term
 
 
@@ -155,12 +160,13 @@ def test_sumhe_play_on_vcan0_through_link_down_and_foreign_frames(drive, tmp_pat
             _at(drive_t0 + FOREIGN_AT_S, _foreign_frames),
         ]
         assert player.wait(DURATION_S + 60) == 0, player_log.read_text()
-        code, stop_s = _stop(service, listener)
+        code, stop_s = _stop(service, listener, svc_log)
     finally:
         for timer in timers:
             timer.cancel()
         if service.poll() is None:
             service.kill()
+            service.wait(10)
         listener.close()
         _ip_link("up")
     svc_text = svc_log.read_text()
@@ -240,7 +246,7 @@ def test_canplayer_feeds_the_daemon_and_its_candump_recording_replays(drive, tmp
         nmea.start()
         assert canplayer.wait(DURATION_S + 60) == 0, canplayer.stderr.read()
         assert nmea.join(30)
-        code, stop_s = _stop(service, listener)
+        code, stop_s = _stop(service, listener, svc_log)
     finally:
         nmea.stop()
         pty.close()
@@ -250,6 +256,7 @@ def test_canplayer_feeds_the_daemon_and_its_candump_recording_replays(drive, tmp
                 proc.wait(10)
         if service.poll() is None:
             service.kill()
+            service.wait(10)
         listener.close()
     nmea_offset = nmea.start_t - nmea.t0
     lead = nmea_offset - can_offset
