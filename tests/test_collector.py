@@ -1,18 +1,21 @@
 """The daemon's garbage-collector watch and policy (``sumhe.service.collector``): pauses counted per generation,
-collections in flight found, and frozen start-up objects that leave garbage made later collectable."""
+collections in flight found, frozen start-up objects that leave garbage made later collectable, and the send
+latencies the status reads beside each send's collection."""
 
 from __future__ import annotations
 
 import gc
+import math
 import os
+import threading
 import time
 import weakref
 
 import pytest
 
 from sumhe.bench.live import _run_queue, gc_line
-from sumhe.service.app import slow_with_gc
 from sumhe.service.collector import GcWatch, settle
+from sumhe.service.latency import SendLatency, slow_with_gc
 
 
 class Node:
@@ -91,3 +94,40 @@ def test_bench_live_reads_the_run_queue_and_says_which_slow_sends_met_a_collecti
         watch.remove()
     line = gc_line(watch.figures(), {"slow": 3, "gc_gen0": 0, "gc_gen1": 0, "gc_gen2": 1})
     assert "gen2 1 x" in line and "of its 3 sends at or above the p99, 0 / 0 / 1 were in flight" in line
+
+
+def test_send_latencies_read_while_a_thread_adds_them_stay_whole():
+    """The status reads the latencies in the event loop while the worker thread adds them (the status once found
+    the latency and collection columns of different lengths and stopped the service)."""
+    latency = SendLatency(window=500)
+    added = threading.Event()
+    count = 0
+
+    def send() -> None:
+        nonlocal count
+        while not added.is_set():
+            latency.add(1.0 + count % 7, count % 4 - 1)
+            count += 1
+
+    sender = threading.Thread(target=send)
+    sender.start()
+    seen = []
+    try:
+        while not count:
+            time.sleep(0.001)
+        deadline = time.monotonic() + 0.5
+        while time.monotonic() < deadline:
+            seen.append(latency.figures())
+    finally:
+        added.set()
+        sender.join()
+    assert len(seen) > 10 and count > 1000
+    assert all(f["latency_slow"]["slow"] >= 1 and f["latency_ms_p50"] <= f["latency_ms_p99"] for f in seen)
+    assert latency.figures()["latency_run"]["sends"] == count
+    assert latency.figures()["latency_ms_p99"] == 7.0
+
+
+def test_send_latencies_before_any_send_are_empty():
+    figures = SendLatency(window=10).figures()
+    assert math.isnan(figures["latency_ms_p50"]) and figures["latency_slow"] == {"slow": 0}
+    assert figures["latency_run"]["sends"] == 0

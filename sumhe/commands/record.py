@@ -25,7 +25,7 @@ from sumhe.errors import ConfigError
 from sumhe.io.can_source import CanFrameSource
 from sumhe.io.nmea import format_log_line
 from sumhe.io.serial import NmeaLine, SerialLineSource
-from sumhe.io.source import SourceTimeout, ThreadedSource
+from sumhe.io.source import SourceTimeout, ThreadedSource, wait_event
 
 log = logging.getLogger(__name__)
 
@@ -96,8 +96,7 @@ async def record(args: argparse.Namespace) -> dict[str, int]:
             tasks.append(asyncio.create_task(_pump_nmea(gps_src, nmea_file, counts)))
         tasks.append(asyncio.create_task(_flush_every([f for f in (nmea_file,) if f], writer)))
         log.info("recording to %s", out_dir)
-        with contextlib.suppress(asyncio.TimeoutError):
-            await asyncio.wait_for(stop.wait(), args.duration)
+        await wait_event(stop, args.duration)
     finally:
         for task in tasks:
             task.cancel()

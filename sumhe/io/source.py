@@ -67,6 +67,17 @@ class Backoff:
         self._next = self.first_s
 
 
+async def wait_event(event: asyncio.Event, timeout_s: float) -> bool:
+    """Wait for ``event`` at most ``timeout_s``: whether it was set. A cancellation always propagates
+    (``asyncio.wait_for`` on Python 3.11 swallows one that comes as the event is set: the waiting task goes on)."""
+    waiter = asyncio.ensure_future(event.wait())
+    try:
+        done, _ = await asyncio.wait({waiter}, timeout=timeout_s)
+    finally:
+        waiter.cancel()
+    return bool(done)
+
+
 class DropOldestQueue(Generic[T]):
     """A bounded thread-to-asyncio queue that drops the oldest item when full."""
 
@@ -98,10 +109,8 @@ class DropOldestQueue(Generic[T]):
             if self._error is not None:
                 raise self._error
             self._event.clear()
-            try:
-                await asyncio.wait_for(self._event.wait(), timeout_s)
-            except asyncio.TimeoutError as e:
-                raise SourceTimeout(f"nothing received for {timeout_s:g} s") from e
+            if not await wait_event(self._event, timeout_s):
+                raise SourceTimeout(f"nothing received for {timeout_s:g} s")
         return self._items.popleft()
 
     def __len__(self) -> int:

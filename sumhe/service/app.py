@@ -58,7 +58,7 @@ import signal
 import threading
 import time
 from collections import deque
-from collections.abc import AsyncIterator, Callable, Sequence
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -72,7 +72,7 @@ from sumhe.io.source import SourceTimeout
 from sumhe.io.udp import UdpSender, UdpSink
 from sumhe.messages import Estimate, GnssFix, Sample
 from sumhe.service.collector import GcWatch, settle
-from sumhe.service.histogram import Histogram
+from sumhe.service.latency import SendLatency
 from sumhe.service.pipeline import MonotonicOutput, Pipeline, TimeRules
 
 log = logging.getLogger(__name__)
@@ -129,12 +129,8 @@ class ServiceStats:
     backlog_dropped: int = 0
     stalls: int = 0
     solve_ms: deque[float] = field(default_factory=lambda: deque(maxlen=SOLVE_WINDOW))
-    latency_ms: deque[float] = field(default_factory=lambda: deque(maxlen=SOLVE_WINDOW))
-    latency_run: Histogram = field(default_factory=Histogram)
-    """Every send's latency since the start (``latency_ms`` holds the latest :data:`SOLVE_WINDOW`)."""
-    latency_gc: deque[int] = field(default_factory=lambda: deque(maxlen=SOLVE_WINDOW))
-    """Beside each of ``latency_ms``: the oldest generation the garbage collector took while that estimate was in
-    flight (from its time to its send), -1 for none (:meth:`~sumhe.service.collector.GcWatch.during`)."""
+    latency: SendLatency = field(default_factory=lambda: SendLatency(SOLVE_WINDOW))
+    """Every send's latency and the garbage collection it met (from the estimate's time to its send)."""
 
 
 class Inbox:
@@ -183,22 +179,6 @@ class Inbox:
 
 def percentile(values: deque[float] | list[float], q: float) -> float:
     return float(np.percentile(np.fromiter(values, float), q)) if values else float("nan")
-
-
-def _run_figures(h: Histogram) -> dict[str, Any]:
-    """A run's latency figures (ms): sends, p50, p99 (within 2.3 %: :class:`Histogram`), max."""
-    return {"sends": h.n, **{f"p{q}": round(h.percentile(q), 3) for q in (50, 99)}, "max": round(h.max, 3)}
-
-
-def slow_with_gc(latency_ms: Sequence[float], gens: Sequence[int], q: float) -> dict[str, int]:
-    """Of the sends at or above the ``q`` percentile of ``latency_ms``: how many (``slow``), and how many of them
-    were in flight while the collector took generation 0, 1 or 2 at the oldest (``gc_gen0`` ...; ``gens`` beside
-    ``latency_ms``, -1 for no collection)."""
-    if not latency_ms:
-        return {"slow": 0}
-    lat = np.fromiter(latency_ms, float)
-    gen = np.fromiter(gens, int)[lat >= np.percentile(lat, q)]
-    return {"slow": int(gen.size), **{f"gc_gen{g}": int(np.sum(gen == g)) for g in range(3)}}
 
 
 class Service:
@@ -405,10 +385,7 @@ class Service:
         if self.degraded_since is not None:
             est = dataclasses.replace(est, mode="degraded")
             self.stats.degraded_sent += 1
-        latency_ms = (self.clock() - est.t) * 1000.0
-        self.stats.latency_ms.append(latency_ms)
-        self.stats.latency_run.add(latency_ms)
-        self.stats.latency_gc.append(self.gc.during(est.t))
+        self.stats.latency.add((self.clock() - est.t) * 1000.0, self.gc.during(est.t))
         if self._udp is not None:
             self._udp.send(est)
         if self._extra_sink is not None:
@@ -449,10 +426,7 @@ class Service:
             "stalls": self.stats.stalls,
             "solve_ms_p50": round(percentile(self.stats.solve_ms, 50), 3),
             "solve_ms_p99": round(percentile(self.stats.solve_ms, 99), 3),
-            "latency_ms_p50": round(percentile(self.stats.latency_ms, 50), 3),
-            "latency_ms_p99": round(percentile(self.stats.latency_ms, 99), 3),
-            "latency_run": _run_figures(self.stats.latency_run),
-            "latency_slow": slow_with_gc(self.stats.latency_ms, self.stats.latency_gc, 99),
+            **self.stats.latency.figures(),
             "gc": self.gc.figures(),
             "window": est.window if est else 0,
             "mode": est.mode if est else "no fix yet",
