@@ -202,3 +202,21 @@ def test_sighup_stops_the_daemon_cleanly_with_the_stopped_line(tmp_path):
         _, err = proc.communicate(timeout=20)
     assert proc.returncode == 0, err
     assert re.search(r"sumhe stopped after \d+\.\d s:", err), err
+
+
+def _python_can_mf4(argv: list[str]) -> str:
+    """In a fresh interpreter: ``skip_mf4_reader(argv)``, then whether python-can's MF4 reader has asammdf and
+    whether asammdf can still be imported afterwards."""
+    code = (
+        "import sys; from sumhe.cli import skip_mf4_reader; skip_mf4_reader(sys.argv[1:]); import can.io.mf4; "
+        "import importlib.util; print(can.io.mf4.asammdf is not None, importlib.util.find_spec('asammdf') is not None)"
+    )
+    run = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, check=True)
+    return run.stdout.strip()
+
+
+def test_a_replay_of_candump_logs_loads_python_can_without_its_mf4_reader_and_others_with_it():
+    pytest.importorskip("asammdf")
+    assert _python_can_mf4(["-v", "replay", "drive.log", "--nmea", "drive.nmea"]) == "False True"
+    assert _python_can_mf4(["replay", "a.log", "b.MF4"]) == "True True"
+    assert _python_can_mf4(["run", "--config", "x.toml"]) == "True True"

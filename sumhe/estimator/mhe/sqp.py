@@ -66,13 +66,16 @@ def _linearisation(model: SuModel, C: int) -> tuple[ca.Function, NDArray[np.int6
     jw, je = ca.jacobian(w, ca.vertcat(xp, xn, th)), ca.jacobian(e, ca.vertcat(x, th))
     step_w = ca.Function("mhe_w_lin", [xp, xn, th, h], [w, jw.nz[:]])
     step_e = ca.Function("mhe_e_lin", [x, th, y], [e, je.nz[:]])
-    Xd, TH = ca.SX.sym("x", md, C), ca.SX.sym("theta", nt)
-    H, Y = ca.SX.sym("h", 1, C - 1), ca.SX.sym("y", n, C)
+    # the window's function calls the step functions (MX: a map node each), not copies of their expressions (SX):
+    # the same arithmetic, bit for bit, built in a few ms at any size instead of 12-26 ms (11 sizes at start-up)
+    nx = C * md
+    z = ca.MX.sym("z", nx + nt)
+    Xd, TH = ca.reshape(z[:nx], md, C), z[nx:]
+    H, Y = ca.MX.sym("h", 1, C - 1), ca.MX.sym("y", n, C)
     W, JW = step_w.map(C - 1)(Xd[:, :-1], Xd[:, 1:], TH, H)
     E, JE = step_e.map(C)(Xd, TH, Y)
     # each step's entries placed: its rows after the previous steps', its states' columns at its step (then the
     # next step's for a state noise), the CAN states' after all dynamic states
-    nx = C * md
     rw, cw = (np.asarray(a) for a in jw.sparsity().get_triplet())
     re, ce = (np.asarray(a) for a in je.sparsity().get_triplet())
     kw, ke = np.arange(C - 1)[:, None], np.arange(C)[:, None]
@@ -85,7 +88,6 @@ def _linearisation(model: SuModel, C: int) -> tuple[ca.Function, NDArray[np.int6
     )
     order = np.lexsort((rows, cols))
     nz = ca.vertcat(ca.vec(JW), ca.vec(JE))[order.tolist()]
-    z = ca.vertcat(ca.vec(Xd), TH)
     lin = ca.Function("mhe_lin", [z, H, Y], [ca.vertcat(ca.vec(W), ca.vec(E), nz)])
     return lin, rows[order].astype(np.int64), cols[order].astype(np.int64)
 
