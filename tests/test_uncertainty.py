@@ -16,7 +16,7 @@ from sumhe.bench import metrics
 from sumhe.bench.mhe import drive_stream
 from sumhe.bench.report import calibration_cells
 from sumhe.commands.candump import reference_config
-from sumhe.estimator.base import StateEstimate, predicted_at, sensor_drift, to_estimate
+from sumhe.estimator.base import Receiver, StateEstimate, predicted_at, sensor_drift, to_estimate
 from sumhe.estimator.registry import make_estimator
 from sumhe.estimator.uncertainty import (
     K1,
@@ -30,6 +30,8 @@ from sumhe.estimator.uncertainty import (
     gpsd_errors,
     radius_95,
 )
+from sumhe.frontend.fixes import LocalFix
+from sumhe.frontend.stream import FixMeasurement
 from sumhe.geo import LocalFrame
 from sumhe.io.nmea_format import nmea_checksum
 from sumhe.io.udp import encode_json, encode_nmea
@@ -451,3 +453,26 @@ def test_the_drift_of_the_can_calibration_is_the_least_growth_through_an_outage(
     scale.add(0.0, np.zeros(2), 0.0, 2.0, 0.0, 1.0)
     scale.add(50.0, np.array([8.0, 0.0]), 0.0, 2.0, 0.0, 50.0, drift_m2=62.5)
     assert scale.growth_scale == pytest.approx((64.0 - 2.0) / 62.5, rel=0.01)
+
+
+def test_the_receiver_adds_only_the_fixes_error_that_carries_from_fix_to_fix() -> None:
+    # fixes of 2 m sigma per axis (8 m^2) whose innovations change by a white 1 m per axis from one fix to the next:
+    # the calibrated covariance at the fix holds that white part; the offset every estimate carries is the rest
+    # (the old rule added all 8 m^2, counting the white 2 m^2 twice)
+    scale = InnovationScale()
+    rng = np.random.default_rng(3)
+    for k in range(400):
+        scale.add(float(k), rng.standard_normal(2), 8.0, 2.0, 0.0, 1.0)
+    white = scale.white_m2(8.0)
+    assert white == pytest.approx(2.0, rel=0.15)
+    fix = FixMeasurement(0.0, 0.0, 0.0, 2.0, 2.0, None, 0.01, False, None, 0.1, LocalFix(t=0.0, valid=True))
+    receiver = Receiver(fix, None, True, white)
+    assert receiver.var_east_m2 == pytest.approx(4.0 * (1.0 - white / 8.0))
+    assert receiver.var_north_m2 == pytest.approx(receiver.var_east_m2)
+    at_fix = Spread(1.0, 1.0, 0.0, 0.1, 0.01)
+    spread, _, _ = receiver.tag("outage", at_fix)
+    assert spread is not None and spread.var_east_m2 == pytest.approx(1.0 + 4.0 - 0.5 * white)
+    # a receiver whose errors are all white (before two consecutive fixes: all of it) adds nothing; dead
+    # reckoning (offset False), which takes each fix as it is, never
+    assert Receiver(fix, None, True, 8.0).var_east_m2 == 0.0
+    assert Receiver(fix, None, False, 0.0).var_east_m2 == 0.0

@@ -151,11 +151,12 @@ def gpsd_errors(spread: Spread) -> ErrorEstimate:
 INNOVATION_MEMORY_S = 300.0
 """Time constant (s) of :class:`InnovationScale`'s exponential forgetting of the growth scale: a few GNSS error
 correlation times (it rests on one fix after each gap)."""
-FIX_MEMORY_S = 30.0
+FIX_MEMORY_S = 20.0
 """Time constant (s) of the forgetting of the scale at a fix: an estimator's lag behind the fixes comes and goes
-with the manoeuvres (a turn, a braking: seconds to tens of seconds), and a scale averaged over minutes spread it
-over the straight stretches between them (with 300 s, 82 % of the EKF's errors within ``eph`` with GPS on the
-realistic drives; with 30 s, 90 %)."""
+with the manoeuvres (a turn, a braking: 5-20 s), and a scale averaged over minutes spread it over the straight
+stretches between them (with 300 s, 82 % of the EKF's errors within ``eph`` with GPS on the realistic drives; with
+30 s, 90 %; with 30 s and :class:`~sumhe.estimator.base.Receiver` no longer counting the fixes' white error twice,
+89.0 %, whose heavy tail the over-count had covered; with 20 s, the length of the longer manoeuvres, 91.2 %)."""
 MIN_GROWTH_SCALE, MAX_GROWTH_SCALE = 1e-3, 1e5
 """The range of the growth scale (:class:`InnovationScale`): a growth the gaps' fixes found all but nil, one they
 found wider than any estimator's own by orders of magnitude."""
@@ -256,7 +257,7 @@ class InnovationScale:
       and its own covariance (what ``eph`` describes: the estimate, not the prediction before it; 89.4 against
       89.9 % with GPS for the EKF on the realistic drives). A filter tuned for accuracy with little process noise,
       whose covariance says centimetres where it lags the fixes by metres, gets a large one. It forgets in
-      ``fix_memory_s`` (30 s: :data:`FIX_MEMORY_S`). At least 1: below, the innovations' share of the fixes'
+      ``fix_memory_s`` (20 s: :data:`FIX_MEMORY_S`). At least 1: below, the innovations' share of the fixes'
       slow error (which they cannot see, below) would be taken for a licence to shrink;
     * :attr:`growth_scale`, of the growth since, from the fixes after a longer gap (missed fixes, outages), with
       the prediction's innovation, whose expected square is ``scale tr P0 + W + s tr G`` for a growth scale ``s``:
@@ -293,10 +294,12 @@ class InnovationScale:
     88.3 and 80.1 % (10, 30, 60 s outages) to 95.1, 93.0 and 79.0 %, and the MHE's from 93.4, 87.9 and 87.1 % to
     93.4, 89.0 and 90.0 %.
 
-    What the innovations cannot tell apart: the part of a fix's slow error an estimator smooths over (it is then
-    nearer the truth than the fixes, and ``Receiver``'s offset counts that part twice) from its own lag. The MHE,
-    which follows the fixes, had 96.8 % with GPS under the old rule and 98.3 % under this one; the EKF 81.6 and
-    89.9 %.
+    The fix's white part ``W`` is in the calibrated covariance at a fix (the scale is what the innovations say
+    beyond it), so :class:`~sumhe.estimator.base.Receiver` adds only the rest of the fix's variance,
+    ``tr R - W`` (:meth:`white_m2`), the slow offset that carries from fix to fix: adding all of ``tr R`` counted
+    ``W`` twice (the MHE, which follows the fixes, had 98.3 % of its errors within ``eph`` with GPS on the
+    realistic drives, 3.0 times its median error; 97.9 % and 2.7 times without; the EKF 90.4 and 91.2 %, with the
+    scale at a fix forgetting in 20 s, not 30 s: :data:`FIX_MEMORY_S`).
 
     Robust to outliers and restarts: after a gap an innovation counts at most ``OUTLIER_CAP`` times the square the
     calibrated prediction expects (the growth scale rests on few fixes, one after each gap: an outlier the gate let
@@ -347,7 +350,7 @@ class InnovationScale:
             change = nu - self._last[1]
             self._white.add(t, 0.5 * float(change @ change), 1.0)
         self._last = (t, nu)
-        white = min(self._white.mean(trace_r), trace_r)
+        white = self.white_m2(trace_r)
         if consecutive:
             self._fix.add(t, float(nu @ nu) - white, trace_p0 + trace_g)
         elif (growth := max(trace_g, drift_m2)) > 0.0:
@@ -356,6 +359,12 @@ class InnovationScale:
             square = min(float(nu @ nu), OUTLIER_CAP * expected)
             self._growth.add(t, square, prior + white, growth, self.scale)
             self._growth_spread = _predictive(self._growth.count)
+
+    def white_m2(self, trace_r: float) -> float:
+        """The white part (trace, m^2) of the error of a fix of covariance trace ``trace_r``: half the mean squared
+        change of the innovation from one fix to the next, at most ``trace_r`` (all of it until two consecutive
+        fixes were seen)."""
+        return min(self._white.mean(trace_r), trace_r)
 
     def skip(self) -> None:
         """A fix not fed (the estimator restarted there): the next one's innovation change is not the white
