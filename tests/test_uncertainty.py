@@ -16,7 +16,7 @@ from sumhe.bench import metrics
 from sumhe.bench.mhe import drive_stream
 from sumhe.bench.report import calibration_cells
 from sumhe.commands.candump import reference_config
-from sumhe.estimator.base import StateEstimate, predicted_at, sensor_drift, to_estimate
+from sumhe.estimator.base import Receiver, StateEstimate, predicted_at, sensor_drift, to_estimate
 from sumhe.estimator.registry import make_estimator
 from sumhe.estimator.uncertainty import (
     K1,
@@ -30,6 +30,8 @@ from sumhe.estimator.uncertainty import (
     gpsd_errors,
     radius_95,
 )
+from sumhe.frontend.fixes import LocalFix
+from sumhe.frontend.stream import FixMeasurement
 from sumhe.geo import LocalFrame
 from sumhe.io.nmea_format import nmea_checksum
 from sumhe.io.udp import encode_json, encode_nmea
@@ -308,7 +310,40 @@ def test_an_underconfident_growth_is_shrunk_to_what_the_gaps_say() -> None:
     assert scale.growth_scale == pytest.approx(0.25, abs=0.1)
     # innovations below even the fix's own errors: the growth scale stays positive
     _innovations(scale, 500, var_p=0.0, var_r=0.25, var_g=1e-6, periods=30.0)
-    assert scale.growth_scale == MIN_GROWTH_SCALE
+    assert MIN_GROWTH_SCALE <= scale.growth_scale < 0.01
+
+
+def test_a_gap_too_short_to_grow_does_not_move_the_growth_scale() -> None:
+    # a fix or two missed: the estimator's own growth since (0.0003 m^2) is nothing beside its error at the fix
+    # and the fix's (25 m^2), so the innovation says nothing of the growth. The old rule (a ratio of sums,
+    # (|nu|^2 - fixed) / growth = -16000) took the growth scale to its floor, and a 56 s outage that followed on a
+    # realistic highway drive had an eph of 5 m against errors to 31 m
+    scale = InnovationScale()
+    scale.add(0.0, np.zeros(2), 5.0, 20.0, 0.0, 1.0)
+    scale.add(1.0, np.array([2.0, 1.0]), 5.0, 20.0, 3e-4, 10.0)
+    assert scale.growth_scale == pytest.approx(1.0, rel=0.01)
+    at_fix, outage = Spread(0.5, 0.5, 0.0, 0.1, 0.01), Spread(150.0, 150.0, 0.0, 0.1, 0.01)
+    grown = scale.calibrated(outage, at_fix)
+    assert grown.var_east_m2 + grown.var_north_m2 > 299.0  # the estimator's own growth, at least
+    # nor to 10^4 when its innovation is large: a gap whose growth is 10^-8 of the fixed part cannot tell
+    scale.add(2.0, np.array([20.0, 0.0]), 5.0, 20.0, 3e-7, 10.0)
+    assert scale.growth_scale < 2.0
+    # an informative gap (its growth as large as the rest) then sets it, as a ratio would
+    scale.add(60.0, np.array([20.0, 0.0]), 5.0, 20.0, 200.0, 60.0)
+    assert scale.growth_scale == pytest.approx((400.0 - 25.0) / 200.0, rel=0.1)
+
+
+def test_gaps_that_say_nothing_of_the_growth_leave_what_the_others_said() -> None:
+    # ten 30 s gaps find the growth 4 times too small; then a burst of fixes missed one at a time, each innovation
+    # all the fix's and the estimate's own error: the old rule dragged the scale down by their negative excess
+    scale = InnovationScale()
+    _innovations(scale, 300, var_p=1.0, var_r=0.25, var_g=4.0, periods=30.0)
+    learned = scale.growth_scale
+    assert learned == pytest.approx(4.0, rel=0.25)
+    t = scale._growth.t
+    for k in range(20):
+        scale.add(t + 1.0 + k, np.array([0.1, 0.0]), 0.5, 2.0, 1e-4, 3.0)
+    assert scale.growth_scale == pytest.approx(learned, rel=0.1)
 
 
 def test_a_growth_scale_learned_from_few_gaps_widens_the_growth_by_the_predictive_factor() -> None:
@@ -319,13 +354,13 @@ def test_a_growth_scale_learned_from_few_gaps_widens_the_growth_by_the_predictiv
     at_fix, later = Spread(1.0, 1.0, 0.0, 0.1, 0.01), Spread(2.0, 2.0, 0.0, 0.1, 0.01)
     scale.add(0.0, np.zeros(2), 0.0, 2.0, 0.0, 1.0)
     scale.add(30.0, np.array([2.0, 0.0]), 0.0, 2.0, 2.0, 30.0)
-    assert scale.growth_scale == pytest.approx(1.0)
+    assert scale.growth_scale == pytest.approx(1.0, rel=1e-3)  # (4 - 2) / 2, to the likelihood grid's resolution
     assert scale.growth_spread == pytest.approx(6.34, rel=0.01)
     assert scale.calibrated(later, at_fix).var_east_m2 == pytest.approx(0.5 * (2.0 + 2.0 * 6.34), rel=0.01)
     # many gaps (the sums forget in 300 s: gaps 30 s apart weigh as 20): the factor near 1, the Gaussian radius
     for k in range(2, 200):
         scale.add(30.0 * k, np.array([2.0, 0.0]), 0.0, 2.0, 2.0, 30.0)
-    assert scale.growth_scale == pytest.approx(1.0) and 1.0 < scale.growth_spread < 1.1
+    assert scale.growth_scale == pytest.approx(1.0, rel=1e-3) and 1.0 < scale.growth_spread < 1.1
 
 
 @pytest.mark.parametrize("n", [1.0, 1.5, 3.0, 20.0, 1e4])
@@ -417,4 +452,27 @@ def test_the_drift_of_the_can_calibration_is_the_least_growth_through_an_outage(
     # a gap's fix then measures the growth against the larger of the two
     scale.add(0.0, np.zeros(2), 0.0, 2.0, 0.0, 1.0)
     scale.add(50.0, np.array([8.0, 0.0]), 0.0, 2.0, 0.0, 50.0, drift_m2=62.5)
-    assert scale.growth_scale == pytest.approx((64.0 - 2.0) / 62.5)
+    assert scale.growth_scale == pytest.approx((64.0 - 2.0) / 62.5, rel=0.01)
+
+
+def test_the_receiver_adds_only_the_fixes_error_that_carries_from_fix_to_fix() -> None:
+    # fixes of 2 m sigma per axis (8 m^2) whose innovations change by a white 1 m per axis from one fix to the next:
+    # the calibrated covariance at the fix holds that white part; the offset every estimate carries is the rest
+    # (the old rule added all 8 m^2, counting the white 2 m^2 twice)
+    scale = InnovationScale()
+    rng = np.random.default_rng(3)
+    for k in range(400):
+        scale.add(float(k), rng.standard_normal(2), 8.0, 2.0, 0.0, 1.0)
+    white = scale.white_m2(8.0)
+    assert white == pytest.approx(2.0, rel=0.15)
+    fix = FixMeasurement(0.0, 0.0, 0.0, 2.0, 2.0, None, 0.01, False, None, 0.1, LocalFix(t=0.0, valid=True))
+    receiver = Receiver(fix, None, True, white)
+    assert receiver.var_east_m2 == pytest.approx(4.0 * (1.0 - white / 8.0))
+    assert receiver.var_north_m2 == pytest.approx(receiver.var_east_m2)
+    at_fix = Spread(1.0, 1.0, 0.0, 0.1, 0.01)
+    spread, _, _ = receiver.tag("outage", at_fix)
+    assert spread is not None and spread.var_east_m2 == pytest.approx(1.0 + 4.0 - 0.5 * white)
+    # a receiver whose errors are all white (before two consecutive fixes: all of it) adds nothing; dead
+    # reckoning (offset False), which takes each fix as it is, never
+    assert Receiver(fix, None, True, 8.0).var_east_m2 == 0.0
+    assert Receiver(fix, None, False, 0.0).var_east_m2 == 0.0
