@@ -100,12 +100,12 @@ def test_send_latencies_read_while_a_thread_adds_them_stay_whole():
     """The status reads the latencies in the event loop while the worker thread adds them (the status once found
     the latency and collection columns of different lengths and stopped the service)."""
     latency = SendLatency(window=500)
-    added = threading.Event()
+    stop = threading.Event()
     count = 0
 
     def send() -> None:
         nonlocal count
-        while not added.is_set():
+        while not stop.is_set():
             latency.add(1.0 + count % 7, count % 4 - 1)
             count += 1
 
@@ -119,7 +119,7 @@ def test_send_latencies_read_while_a_thread_adds_them_stay_whole():
         while time.monotonic() < deadline:
             seen.append(latency.figures())
     finally:
-        added.set()
+        stop.set()
         sender.join()
     assert len(seen) > 10 and count > 1000
     assert all(f["latency_slow"]["slow"] >= 1 and f["latency_ms_p50"] <= f["latency_ms_p99"] for f in seen)
