@@ -87,8 +87,15 @@ def test_a_clock_on_utc_and_gps_time_receive_stamp_as_stamp_fix(gps, utc_s, rece
 def test_the_service_stamps_fixes_read_from_a_pty_at_their_utc_time_on_its_clock():
     """The live service reads a receiver (a real pseudo-terminal) whose UTC is years off the service clock and
     whose epochs come with uneven delays: each epoch's estimate is at the fix's UTC time plus the median receive
-    offset of the fixes so far (what a :class:`FixClock` gives for the receive times the source stamped)."""
+    offset of the fixes so far (what a :class:`FixClock` gives for the receive times the source stamped). On a
+    loaded machine the writer's epochs may come late in a bunch: an epoch whose fix came after the estimator's
+    deadline is estimated as an outage, and the stamps of bunched fixes come closer than the epochs: every estimate
+    on a fix is still at that fix's stamped time."""
     from sumhe.service.app import Service
+
+    def stamped(fixes: list[GnssFix]) -> list[float]:
+        check = FixClock(GpsSettings(latency_s=LATENCY_S))
+        return [check.stamp(f).t for f in fixes]
 
     pty = Pty()
     raw: list[GnssFix] = []
@@ -114,7 +121,8 @@ def test_the_service_stamps_fixes_read_from_a_pty_at_their_utc_time_on_its_clock
         for k, delay in enumerate(delays):
             await asyncio.sleep(max(0.0, start + 0.1 * k + delay - time.monotonic()))
             pty.write(epoch_at(k))
-        await until(lambda: len(got) >= len(delays))  # the last epoch ends on the serial idle gap
+        # the last epoch ends on the serial idle gap; its estimate is the last
+        await until(lambda: len(raw) == len(delays) and bool(got) and got[-1].t >= stamped(raw)[-1] - 1e-6)
         stop.set()
         await task
         await source.close()
@@ -123,9 +131,12 @@ def test_the_service_stamps_fixes_read_from_a_pty_at_their_utc_time_on_its_clock
         asyncio.run(asyncio.wait_for(main(), 30.0))
     finally:
         pty.close()
-    check = FixClock(GpsSettings(latency_s=LATENCY_S))
-    expected = [check.stamp(f).t for f in raw]
+    expected = stamped(raw)
     assert len(raw) == len(delays)
-    assert [e.t for e in got] == pytest.approx(expected, abs=1e-6)
+    late = [e for e in got if e.gps == "outage"]
+    assert [e.gps for e in got if e not in late] == ["ok"] * (len(got) - len(late))
+    if not late:
+        assert [e.t for e in got] == pytest.approx(expected, abs=1e-6)
+    assert all(min(abs(e.t - x) for x in expected) < 1e-6 for e in got if e not in late)
     assert all(b > a for a, b in itertools.pairwise(e.t for e in got))
     assert abs(got[0].t - raw[0].time_utc.timestamp()) > 86400.0  # the service clock is not UTC's
