@@ -62,8 +62,6 @@ from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
-
 from sumhe import __version__
 from sumhe.config import Config, describe
 from sumhe.estimator.base import Estimator
@@ -72,7 +70,7 @@ from sumhe.io.source import SourceTimeout
 from sumhe.io.udp import UdpSender, UdpSink
 from sumhe.messages import Estimate, GnssFix, Sample
 from sumhe.service.collector import GcWatch, settle
-from sumhe.service.latency import SendLatency
+from sumhe.service.latency import SendLatency, percentile
 from sumhe.service.pipeline import MonotonicOutput, Pipeline, TimeRules
 
 log = logging.getLogger(__name__)
@@ -175,10 +173,6 @@ class Inbox:
 
     def __len__(self) -> int:
         return len(self._heap)
-
-
-def percentile(values: deque[float] | list[float], q: float) -> float:
-    return float(np.percentile(np.fromiter(values, float), q)) if values else float("nan")
 
 
 class Service:

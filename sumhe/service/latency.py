@@ -11,8 +11,15 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from sumhe.service.histogram import Histogram
+
+
+def percentile(values: ArrayLike, q: float) -> float:
+    """The ``q`` percentile of ``values`` (NaN when there are none)."""
+    v = np.asarray(values, dtype=float)
+    return float(np.percentile(v, q)) if v.size else math.nan
 
 
 def slow_with_gc(latency_ms: Sequence[float], gens: Sequence[int], q: float) -> dict[str, int]:
@@ -52,10 +59,9 @@ class SendLatency:
             recent = np.array(self._recent, dtype=float).reshape(-1, 2)
             run = run_figures(self._run)
         lat = recent[:, 0]
-        p50, p99 = np.percentile(lat, [50, 99]) if lat.size else (math.nan, math.nan)
         return {
-            "latency_ms_p50": round(float(p50), 3),
-            "latency_ms_p99": round(float(p99), 3),
+            "latency_ms_p50": round(percentile(lat, 50), 3),
+            "latency_ms_p99": round(percentile(lat, 99), 3),
             "latency_run": run,
             "latency_slow": slow_with_gc(lat, recent[:, 1].astype(int), 99),
         }
