@@ -158,7 +158,7 @@ class SqpSolver:
         self._bw = bw = int(np.max(cj[xx] - ci[xx], initial=0))
         if self._bw < self.md - 1:
             raise SolverError(f"MHE problem: band {self._bw} narrower than a state ({self.md})")
-        self._pairs = (pa, pb, rows[pa])
+        self._pairs = (pa, pb)
         # places: the band (bw + 1 x nx, column-major), then the state-CAN block (nx x nt), then the CAN-CAN one
         n_band = (bw + 1) * nx
         self._normal_at = np.concatenate(
@@ -234,8 +234,9 @@ class SqpSolver:
         ``L`` steps and the CAN states (None if the normal matrix is singular); ``js = J / B``, ``rs = r / B``,
         ``dz_0`` the first state's variables."""
         md, nt, nx, bw = self.md, self.nt, self.capacity * self.md, self._bw
-        pa, pb, pair_rows = self._pairs
-        prod = weight[pair_rows] * js[pa] * js[pb]
+        pa, pb = self._pairs
+        # weight[rows[pa]] * js[pa] * js[pb], the row's weight taken once per entry rather than once per pair
+        prod = (weight[self._rows] * js)[pa] * js[pb]
         normal = np.bincount(self._normal_at, prod, minlength=self._normal_size)
         n_band = (bw + 1) * nx
         band = normal[:n_band].reshape(bw + 1, nx, order="F")
