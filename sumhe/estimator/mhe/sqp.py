@@ -105,7 +105,13 @@ class SqpSolver:
         tol: float = 1e-5,
         iterations: int = 1,
         banded: bool = True,
+        flat: bool = False,
     ) -> None:
+        """``flat``: the window's residual-and-Jacobian function expanded into one flat (SX) function: the same
+        operations on the same numbers, bit for bit, in 35 us instead of 55-65 us per epoch on a 50-step window
+        within a replay (the MX function calls the one-step functions a hundred times), for 2 ms more to build and
+        0.7 MB more at 50 steps (all 11 default sizes: 90 ms and 25 MB, so only the window's normal size is
+        flat)."""
         if capacity < 2:
             raise ValueError(f"capacity: need at least 2 steps, got {capacity}")
         t0 = time.perf_counter()
@@ -115,9 +121,8 @@ class SqpSolver:
         self.nz = C * md + self.nt
         self.nw, self.ne = md * (C - 1), n * C
         self.nv = nv = self.nz + self.nw + self.ne
-        self._window_lin, self._rows, self._cols = _linearisation(model, C)
-        self._lin: NumpyFunction | None = None
-        """The window function expanded into one flat (SX) function, made at its first use (:meth:`_linearise`)."""
+        lin, self._rows, self._cols = _linearisation(model, C)
+        self._lin = NumpyFunction(lin.expand() if flat else lin)
         self._row_step = np.concatenate([np.repeat(np.arange(C - 1), md), np.repeat(np.arange(C), n)])
         self._z_step = np.concatenate([np.repeat(np.arange(C), md), np.zeros(self.nt, dtype=np.int64)])
         # the first state's variables: x_0 (dynamic) then the CAN states, in the order of the model's states
@@ -266,17 +271,6 @@ class SqpSolver:
         dz[nx:] = dtheta
         return dz
 
-    def _linearise(self, z: NDArray[np.float64], h: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
-        """The residuals and Jacobian entries of :func:`_linearisation` at ``z``, by its function expanded into one
-        flat (SX) function: the same operations on the same numbers, bit for bit, in 35 us instead of 55-65 us
-        per epoch on a 50-step window within a replay (the MX function calls the one-step functions a hundred
-        times). Expanded at the first solve of its size, not at the build: 2 ms at 50 steps, 14 ms at 300, 90 ms
-        over the 11 default sizes, which a short replay would not win back; a window size a drive never reaches
-        costs nothing."""
-        if self._lin is None:
-            self._lin = NumpyFunction(self._window_lin.expand())
-        return self._lin(z, h, y)
-
     def _shifted_duals(self, shift: int | None) -> NDArray[np.float64]:
         y = np.zeros(self.nw + self.ne + self.nv)
         if shift is None or self._y_prev is None:
@@ -310,7 +304,7 @@ class SqpSolver:
         for it in range(iterations or self.iterations):
             t0 = time.perf_counter()
             zbar = np.concatenate([x[:, :md].reshape(-1), x[0, md:]])
-            lin = self._linearise(zbar, problem.h, problem.y.T)
+            lin = self._lin(zbar, problem.h, problem.y.T)
             res, jac = lin[: self.nw + self.ne], lin[self.nw + self.ne :]
             res[: self.nw] -= problem.offset.reshape(-1)
             t1 = time.perf_counter()
