@@ -116,7 +116,7 @@ def step_motion(
     offset[i_e], offset[i_n] = east - pred[i_e], north - pred[i_n]
     offset[model.i_phi] = phi - pred[model.i_phi]
     n_speed = bisect.bisect_right(tv, t1) - bisect.bisect_right(tv, t0)
-    bound = can_step_bound(model, t1 - t0, n_speed, len(inner) + 1, float(np.mean(np.abs(speed))), settings)
+    bound = can_step_bound(model, t1 - t0, n_speed, len(inner) + 1, float(np.abs(speed).sum()) / len(speed), settings)
     if not math.isfinite(float(offset[model.i_phi])):
         return None
     return offset, bound
