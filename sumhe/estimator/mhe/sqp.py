@@ -127,6 +127,8 @@ class SqpSolver:
         self._z_step = np.concatenate([np.repeat(np.arange(C), md), np.zeros(self.nt, dtype=np.int64)])
         # the first state's variables: x_0 (dynamic) then the CAN states, in the order of the model's states
         self._first = np.concatenate([np.arange(md), self.nz - self.nt + np.arange(self.nt)])
+        # the azimuth states' variables, step by step
+        self._angles = (np.arange(C)[:, None] * md + np.array(model.angle_states)[None, :]).ravel()
         self._setup_banded()
         self._osqp_settings = (max_iter, tol)
         self._osqp: osqp.OSQP | None = None
@@ -376,8 +378,8 @@ class SqpSolver:
 
     def _turned(self, dz: NDArray[np.float64], L: int) -> float:
         """The largest change of an azimuth state over the first ``L`` steps (rad)."""
-        angles = dz[: L * self.md].reshape(L, self.md)[:, list(self.model.angle_states)]
-        return float(np.max(np.abs(angles), initial=0.0))
+        angles = dz[self._angles[: L * len(self.model.angle_states)]]
+        return float(np.abs(angles).max(initial=0.0))
 
     def _apply(self, x: NDArray[np.float64], dz: NDArray[np.float64], L: int) -> None:
         md = self.md
