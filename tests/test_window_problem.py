@@ -67,6 +67,14 @@ def test_the_real_time_iteration_converges_to_it(case: tuple) -> None:
     assert np.abs(result.x[:, :2] - batch.states[:, :2]).max() < 1e-3
 
 
+def test_the_flat_window_function_gives_the_same_bits(case: tuple) -> None:
+    # the window's function expanded into one SX function does the same operations on the same numbers
+    model, _, problem = case
+    plain, flat = (SqpSolver(model, problem.n_steps, iterations=3, flat=f).solve(problem, None) for f in (False, True))
+    assert plain.status == flat.status == "banded"
+    assert np.array_equal(plain.x, flat.x)
+
+
 def test_the_start_point_is_not_the_answer(case: tuple) -> None:
     _, batch, problem = case
     assert np.abs(problem.x[:, :2] - batch.states[:, :2]).max() > 0.05  # the solvers had to move

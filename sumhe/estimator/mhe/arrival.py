@@ -116,14 +116,14 @@ def arrival_update(
         q = Q[k] if k < len(Q) else q_caps
         w, dwp, dwn, e, dep = step_jac(win.x[k], win.x[k + 1], float(win.t[k + 1] - win.t[k]), win.y[k])
         w = w - win.offset[k + 1, :md]
-        J = np.zeros((md, nx + nt))
-        J[:, k * md : (k + 2) * md] = np.hstack([dwp[:, :md], dwn[:, :md]]) / q[:, None]
-        J[:, nx:] = dwp[:, md:] / q[:, None]
+        # the rows divided by their bounds: the state noise's by q, the present outputs' by their allowances
+        Jp, J = dwp / q[:, None], np.zeros((md, nx + nt))
+        J[:, k * md : (k + 1) * md], J[:, nx:] = Jp[:, :md], Jp[:, md:]
+        J[:, (k + 1) * md : (k + 2) * md] = dwn[:, :md] / q[:, None]
         ok = win.avail[k]
         r = (win.allow[k] * out_factor)[ok]
-        Je = np.zeros((int(ok.sum()), nx + nt))
-        Je[:, k * md : (k + 1) * md] = dep[ok, :md] / r[:, None]
-        Je[:, nx:] = dep[ok, md:] / r[:, None]
+        Jo, Je = dep[ok] / r[:, None], np.zeros((len(r), nx + nt))
+        Je[:, k * md : (k + 1) * md], Je[:, nx:] = Jo[:, :md], Jo[:, md:]
         H += J.T @ J + Je.T @ Je
         g += J.T @ (w / q) + Je.T @ (e[ok] / r)
         alpha = np.minimum(alpha, measured_bounds(model, win, k, theta_range, out_factor))

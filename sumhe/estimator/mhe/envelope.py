@@ -32,6 +32,8 @@ class OutputEnvelope:
     def __init__(self, n_outputs: int, history: int, margin: float, max_factor: float) -> None:
         self.margin, self.max_factor = margin, max_factor
         self._blocks: list[deque[float]] = [deque(maxlen=max(history // BLOCK, 1)) for _ in range(n_outputs)]
+        self._block_peak = [0.0] * n_outputs
+        """The largest of each output's blocks (0 before the first): updated as a block is added, not per epoch."""
         self._current = [0.0] * n_outputs
         self._count = [0] * n_outputs
         self.factor = np.ones(n_outputs)
@@ -48,6 +50,7 @@ class OutputEnvelope:
                 count[j] += 1
                 if count[j] == BLOCK:
                     self._blocks[j].append(current[j])
+                    self._block_peak[j] = max(self._blocks[j])
                     current[j], count[j] = 0.0, 0
-            peak = max(max(self._blocks[j], default=0.0), current[j])
+            peak = max(self._block_peak[j], current[j])
             self.factor[j] = min(max(peak * self.margin, 1.0), self.max_factor)

@@ -226,14 +226,14 @@ class MovingHorizonEstimator(StreamEstimator):
         self.newest.start(self.window, half, limits, self.envelope.factor, self._theta_range)
         self._status = "ok"
         self.tally.counts["gps_ok"] += 1
-        self.propagation.restart(list(x), t, can)
-        return self._estimate(list(x), t, "ok", "init")
+        self.propagation.restart(x.tolist(), t, can)
+        return self._estimate(x.tolist(), t, "ok", "init")
 
     def _epoch(self, t: float, fix: FixMeasurement | None) -> StateEstimate:
         """One GNSS epoch at ``t`` (``fix`` None: no usable fix): gate, append, plan, solve, report."""
         win, model, s, can = self.window, self.model, self.settings, self.frontend.can
         h_prev = t - float(win.t[-1])
-        x_pred = np.array(advance(model, list(win.x[-1]), float(win.t[-1]), t, can, s.can.max_gap_s))
+        x_pred = np.array(advance(model, win.x[-1].tolist(), float(win.t[-1]), t, can, s.can.max_gap_s))
         self.gate.drove(abs(float(x_pred[model.i_v])) * h_prev)
         i_e, i_n = model.position
         status: GpsStatus = "outage"
@@ -284,7 +284,7 @@ class MovingHorizonEstimator(StreamEstimator):
             self.tally.counts["deferred_epochs"] += 1
             self._unsolved = True
             self.gate.done(t, status, status == "ok" and bool(win.avail[-1, model.j_azimuth]))
-            return self._estimate(list(win.x[-1]), t, status, "degraded")
+            return self._estimate(win.x[-1].tolist(), t, status, "degraded")
         shift = None if plan.merge or self._unsolved else plan.drop
         self._unsolved = False
         if self.solve_aside:
@@ -292,8 +292,8 @@ class MovingHorizonEstimator(StreamEstimator):
                 self._aside = ThreadPoolExecutor(1, thread_name_prefix="mhe-solve")
             self._pending = (t, status, self._aside.submit(self._solve, shift))
             self.unsettled = True
-            self.propagation.restart(list(win.x[-1]), t, can)
-            return self._estimate(list(win.x[-1]), t, status, "aside")
+            self.propagation.restart(win.x[-1].tolist(), t, can)
+            return self._estimate(win.x[-1].tolist(), t, status, "aside")
         x_new, mode = self._solve(shift)
         return self._solved(t, status, x_new, mode)
 
@@ -334,8 +334,8 @@ class MovingHorizonEstimator(StreamEstimator):
         self.gate.done(t, status, status == "ok" and bool(win.avail[-1, model.j_azimuth]))
         win.x[:] = x_new
         self.newest.epoch(win, self.solve.Q, self.envelope.factor, self._theta_range)
-        self.propagation.restart(list(x_new[-1]), t, can)
-        return self._estimate(list(x_new[-1]), t, status, mode)
+        self.propagation.restart(x_new[-1].tolist(), t, can)
+        return self._estimate(x_new[-1].tolist(), t, status, mode)
 
     def _fill(self, fix: FixMeasurement) -> StateEstimate | None:
         """A fix that came after its epoch was declared missed (``Epoch.fills``), put in that epoch's step as a
@@ -368,13 +368,13 @@ class MovingHorizonEstimator(StreamEstimator):
                 return None
             win.x[:] = x_new
             self.newest.epoch(win, self.solve.Q, self.envelope.factor, self._theta_range)
-            self.propagation.restart(list(x_new[-1]), float(win.t[-1]), self.frontend.can)
+            self.propagation.restart(x_new[-1].tolist(), float(win.t[-1]), self.frontend.can)
         self._unsolved = self.defer_solves
         if j == len(win) - 1:
             self._status = "ok"
             self.gate.done(fix.t, "ok", bool(win.avail[j, model.j_azimuth]))
         self.tally.counts["missed_epochs_filled"] += 1
-        return self._estimate(list(win.x[j]), fix.t, "ok", mode)
+        return self._estimate(win.x[j].tolist(), fix.t, "ok", mode)
 
     def _learn_bounds(self, x: NDArray[np.float64], steps: slice) -> None:
         """Show the envelope (:mod:`.envelope`) the residual-to-allowance ratios of the window's ``steps`` at the

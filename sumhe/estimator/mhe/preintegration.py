@@ -43,8 +43,10 @@ def _samples(can: CanBuffer, quantity: str, t0: float, t1: float, max_gap: float
     ts, vs = store.t, store.v
     i = max(bisect.bisect_right(ts, t0) - 1, 0)
     j = min(bisect.bisect_left(ts, t1) + 1, len(ts))
-    keep = [k for k in range(i, j) if t0 - max_gap <= ts[k] <= t1 + max_gap]
-    return [ts[k] for k in keep], [vs[k] for k in keep]
+    # of those, the ones within max_gap: a slice, the times being ordered
+    i = bisect.bisect_left(ts, t0 - max_gap, i, j)
+    j = bisect.bisect_right(ts, t1 + max_gap, i, j)
+    return ts[i:j], vs[i:j]
 
 
 def _widest_gap(t0: float, times: list[float], t1: float) -> float:
@@ -93,7 +95,7 @@ def step_motion(
     if not tv or not tw or _widest_gap(t0, tv, t1) > 2.0 * gap or _widest_gap(t0, tw, t1) > 2.0 * gap:
         return None
     # in plain floats (numpy's formulas in numpy's order: the same bits), a few samples twice an epoch
-    inner = [t for t in tw if t0 < t < t1]
+    inner = tw[bisect.bisect_right(tw, t0) : bisect.bisect_left(tw, t1)]
     grid = [t0, *inner, t1]
     raw_speed, raw_yaw = [interp(g, tv, v) for g in grid], [interp(g, tw, w) for g in grid]
     if ends is not None:
@@ -113,8 +115,8 @@ def step_motion(
     offset = np.zeros(model.n_states)
     offset[i_e], offset[i_n] = east - pred[i_e], north - pred[i_n]
     offset[model.i_phi] = phi - pred[model.i_phi]
-    n_speed = sum(1 for t in tv if t0 < t <= t1)
-    bound = can_step_bound(model, t1 - t0, n_speed, len(inner) + 1, float(np.mean(np.abs(speed))), settings)
+    n_speed = bisect.bisect_right(tv, t1) - bisect.bisect_right(tv, t0)
+    bound = can_step_bound(model, t1 - t0, n_speed, len(inner) + 1, float(np.abs(speed).sum()) / len(speed), settings)
     if not math.isfinite(float(offset[model.i_phi])):
         return None
     return offset, bound

@@ -47,11 +47,14 @@ def mhe_q_caps(model: SuModel, h: float, settings: EstimationSettings) -> NDArra
     return caps
 
 
-def make_solver(model: SuModel, capacity: int, name: str, max_iter: int, tol: float, iterations: int) -> WindowSolver:
-    """The window solver ``name`` (``"sqp"``, ``"ipopt"``, ``"fatrop"``) for ``capacity`` steps."""
+def make_solver(
+    model: SuModel, capacity: int, name: str, max_iter: int, tol: float, iterations: int, flat: bool = False
+) -> WindowSolver:
+    """The window solver ``name`` (``"sqp"``, ``"ipopt"``, ``"fatrop"``) for ``capacity`` steps (``flat``: see
+    :class:`~sumhe.estimator.mhe.sqp.SqpSolver`)."""
     try:
         if name == "sqp":
-            return SqpSolver(model, capacity, max_iter, tol, iterations)
+            return SqpSolver(model, capacity, max_iter, tol, iterations, flat=flat)
         return NlpSolver(model, capacity, name, max_iter, tol)
     except RuntimeError as e:
         raise SolverError(f"cannot build the {name} MHE solver for {capacity} steps: {e}") from e
@@ -89,7 +92,9 @@ class WindowSolve:
             m = self.settings.estimator.mhe
             t0 = time.perf_counter()
             max_iter, tol = (m.qp_max_iter, m.qp_tol) if m.solver == "sqp" else (m.nlp_max_iter, NLP_TOL)
-            solver = make_solver(self.model, capacity, m.solver, max_iter, tol, m.sqp_iterations)
+            # the window's normal size, where nearly every epoch is solved, with the faster flat function
+            flat = capacity == self.buckets[0]
+            solver = make_solver(self.model, capacity, m.solver, max_iter, tol, m.sqp_iterations, flat)
             self._solvers[capacity] = solver
             self.tally.counts["solver_builds"] += 1
             log.info(
