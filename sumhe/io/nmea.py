@@ -404,10 +404,11 @@ def _assemble(parts: Iterable[_Part], t: float, time_utc: dt.datetime | None) ->
     best: dict[str, tuple[tuple[int, int, int], float | int, _Part]] = {}
     verdicts: dict[str, _Part] = {}
     for p in parts:
+        rank = p.rank
         for name, value in p.values.items():
-            if name not in best or p.rank > best[name][0]:
-                best[name] = (p.rank, value, p)
-        if p.fix is not None and (p.kind not in verdicts or p.rank > verdicts[p.kind].rank):
+            if name not in best or rank > best[name][0]:
+                best[name] = (rank, value, p)
+        if p.fix is not None and (p.kind not in verdicts or rank > verdicts[p.kind].rank):
             verdicts[p.kind] = p
     valid = bool(verdicts) and all(p.fix for p in verdicts.values()) and "lat_deg" in best
 
