@@ -100,7 +100,7 @@ def json_line(est: Estimate) -> str:
     error figures, bounds, satellites and HDOP only where the estimate has them. Written from a template (the same
     text as encoding the object with :mod:`json`, a few times faster: one line per estimate)."""
     text = (
-        f'{{"class":"TPV","time":"{iso_utc(est.t)}","t":{_number(round(est.t, 4))},"lat":{_fixed(est.lat_deg, 9)},'
+        f'{{"class":"TPV","time":"{iso_utc(est.t)}","t":{_fixed(est.t, 4)},"lat":{_fixed(est.lat_deg, 9)},'
         f'"lon":{_fixed(est.lon_deg, 9)},"alt":{_fixed(est.alt_m, 3)},"east":{_fixed(est.east_m, 3)},'
         f'"north":{_fixed(est.north_m, 3)},"track":{_fixed(math.degrees(est.track_rad) % 360.0, 3)},'
         f'"speed":{_fixed(est.speed_mps, 3)},"yaw_rate":{_fixed(est.yaw_rate_rps, 5)},'
