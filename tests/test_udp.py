@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from sumhe.io.udp import UdpSender, encode_json, estimate_to_json, iso_utc, json_line
+from sumhe.io.udp import UdpSender, _fixed, encode_json, estimate_to_json, iso_utc, json_line
 from sumhe.messages import ErrorEstimate, Estimate
 
 
@@ -207,3 +207,41 @@ def test_a_destination_that_does_not_resolve_is_a_config_error_naming_the_key():
 
     with pytest.raises(ConfigError, match=r"^c\.toml: output\.nmea: cannot resolve 'no-such-host\.invalid'"):
         UdpSender(["no-such-host.invalid:10110"], "output.nmea", "c.toml")
+
+
+def _fixed_reference(value, digits):
+    """What :func:`_fixed` writes, the slow way: ``json`` writing ``round(value, digits)``, null for non-finite."""
+    return json.dumps(_round(value, digits))
+
+
+_HALVES = [k / 2 * 10.0**-d for k in range(1, 400, 2) for d in (2, 3, 5, 9)]
+"""Decimal halves (0.005, 2.675, ...): their floats lie either side of the half, rounded by their exact value."""
+_EDGES = [
+    *_HALVES,
+    *(-v for v in _HALVES),
+    0.0, -0.0, 1e-4, -1e-4, 0.99999e-4, 1.00001e-4, 5e-5, -5e-5, 0.00049999, 0.0005, 0.0004, -0.0004,
+    999.9995, 999999.9999999995, 12345678.123456789, 1234567890123.4567, 1e6, 1e11, 1e12, 1e13, 1e15, 1e16,
+    1.7803008e9 + 0.12345, -1.7803008e9 - 0.5,
+    math.nan, math.inf, -math.inf, 1, -3, 0, 10**20, True,
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("digits", [2, 3, 4, 5, 9])
+def test_fixed_writes_the_text_of_the_rounded_value_at_the_edges(digits):
+    """The formatted path and the ``round`` fallback write what ``json`` writes for ``round(value, digits)``:
+    negatives, -0.0 (and values rounding to it), NaN and infinities as null, decimal halves, the ends of the
+    formatted range (1e-4, 15 significant digits), ints."""
+    for value in _EDGES:
+        assert _fixed(value, digits) == _fixed_reference(value, digits), value
+
+
+@given(value=st.floats(allow_nan=True, allow_infinity=True), digits=st.sampled_from([2, 3, 4, 5, 9]))
+def test_fixed_writes_the_text_of_the_rounded_value(value, digits):
+    assert _fixed(value, digits) == _fixed_reference(value, digits)
+
+
+@given(mantissa=st.integers(-(10**18), 10**18), digits=st.sampled_from([2, 3, 5, 9]), extra=st.integers(0, 3))
+def test_fixed_writes_the_text_of_the_rounded_value_for_decimals(mantissa, digits, extra):
+    """Values that are (nearly) short decimals, where rounding halves and trailing zeros are: the hard cases."""
+    value = mantissa / 10.0 ** (digits + extra)
+    assert _fixed(value, digits) == _fixed_reference(value, digits)

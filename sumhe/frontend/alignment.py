@@ -20,6 +20,7 @@ makes a parabola look sharp. Pure functions on arrays (:func:`speed_lag`, :func:
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections import deque
 from collections.abc import Callable
@@ -270,8 +271,14 @@ class ClockLearner:
     def _fit(self) -> None:
         if len(self._fixes) < MIN_PAIRS or len(self._can) < 2:
             return
-        f, c = np.array(self._fixes), np.array(self._can)
+        f, c = _columns(self._fixes), _columns(self._can)
         fit = speed_lag(f[:, 0], f[:, 1], c[:, 0], c[:, 1])
         if fit is not None and fit.std_s <= self.max_std_s:
             self.offset_s, self.std_s = -fit.lag_s, fit.std_s
             self.fits += 1
+
+
+def _columns(pairs: deque[tuple[float, float]]) -> NDArray[np.float64]:
+    """``numpy.array(pairs)`` (n x 2), built from a flat iterator: 2.5 times faster for the learner's 15 000 CAN
+    speeds (``numpy.array`` inspects each tuple), refitted every 10 s."""
+    return np.fromiter(itertools.chain.from_iterable(pairs), float, 2 * len(pairs)).reshape(-1, 2)

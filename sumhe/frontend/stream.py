@@ -58,6 +58,9 @@ MISSED_KEPT = 32
 """At most this many epochs declared missed wait for a fix that comes after (:meth:`FrontEnd._after_missed`)."""
 OFFSET_SLEW = 0.2
 """The applied GNSS time offset moves towards the learned one by at most this fraction of a period per fix."""
+_NUMBER = (float, int)
+"""What ``isinstance`` takes a sample's time and value for: a tuple, built once (``float | int`` in the call builds a
+union per CAN sample)."""
 
 
 class Tally:
@@ -173,7 +176,7 @@ class FrontEnd:
 
     def _can(self, sample: CanSample) -> list[Epoch | CanTick]:
         q, value, stamp = sample.quantity, sample.value, sample.t
-        if not (isinstance(stamp, float | int) and isinstance(value, float | int) and math.isfinite(stamp)):
+        if not (isinstance(stamp, _NUMBER) and isinstance(value, _NUMBER) and math.isfinite(stamp)):
             self.tally.count("bad_samples", "CAN %s sample with a non-finite time or value", q)
             return []
         t = stamp - self.settings.can.delay_s
@@ -282,7 +285,7 @@ class FrontEnd:
 
     def _on_can_clock(self, fix: LocalFix) -> LocalFix:
         """The fix at its time on the CAN clock: its stamped time plus the GNSS time offset (module docstring)."""
-        if self.aligner is not None and isinstance(fix.t, float | int) and math.isfinite(fix.t):
+        if self.aligner is not None and isinstance(fix.t, _NUMBER) and math.isfinite(fix.t):
             self.aligner.add_fix(fix.t, fix.speed_mps if fix.valid else None)
             step = OFFSET_SLEW * self.period_s
             self.time_offset_s += min(max(self.aligner.offset_s - self.time_offset_s, -step), step)

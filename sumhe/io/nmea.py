@@ -208,15 +208,19 @@ def _tod(msg: pynmea2.TalkerSentence) -> dt.time | None:
 
 
 def _position(msg: pynmea2.TalkerSentence) -> tuple[float, float] | None:
-    """(lat, lon) in degrees, None when both are empty; pynmea2 converts, we check directions and ranges."""
-    if not msg.lat and not msg.lon:
+    """(lat, lon) in degrees, None when both are empty; pynmea2 converts (``dm_to_sd``, signed by the hemisphere as
+    its ``latitude`` and ``longitude`` do), we check directions and ranges. Each field is read once: a pynmea2
+    field is an ``__getattr__`` call, a microsecond, and the properties read them again (10 reads a sentence)."""
+    lat_dm, lon_dm, lat_dir, lon_dir = msg.lat, msg.lon, msg.lat_dir, msg.lon_dir
+    if not lat_dm and not lon_dm:
         return None
-    if msg.lat_dir not in ("N", "S") or msg.lon_dir not in ("E", "W"):
-        raise DecodeError(f"position: bad hemisphere {msg.lat_dir!r}/{msg.lon_dir!r}")
-    for raw in (msg.lat, msg.lon):
+    if lat_dir not in ("N", "S") or lon_dir not in ("E", "W"):
+        raise DecodeError(f"position: bad hemisphere {lat_dir!r}/{lon_dir!r}")
+    for raw in (lat_dm, lon_dm):
         if divmod(float(raw), 100.0)[1] >= 60.0:
             raise DecodeError(f"position: minutes >= 60 in {raw!r}")
-    lat, lon = msg.latitude, msg.longitude
+    lat, lon = pynmea2.nmea_utils.dm_to_sd(lat_dm), pynmea2.nmea_utils.dm_to_sd(lon_dm)
+    lat, lon = (lat if lat_dir == "N" else -lat), (lon if lon_dir == "E" else -lon)
     if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
         raise DecodeError(f"position: out of range: {lat}, {lon}")
     return lat, lon
@@ -404,10 +408,11 @@ def _assemble(parts: Iterable[_Part], t: float, time_utc: dt.datetime | None) ->
     best: dict[str, tuple[tuple[int, int, int], float | int, _Part]] = {}
     verdicts: dict[str, _Part] = {}
     for p in parts:
+        rank = p.rank
         for name, value in p.values.items():
-            if name not in best or p.rank > best[name][0]:
-                best[name] = (p.rank, value, p)
-        if p.fix is not None and (p.kind not in verdicts or p.rank > verdicts[p.kind].rank):
+            if name not in best or rank > best[name][0]:
+                best[name] = (rank, value, p)
+        if p.fix is not None and (p.kind not in verdicts or rank > verdicts[p.kind].rank):
             verdicts[p.kind] = p
     valid = bool(verdicts) and all(p.fix for p in verdicts.values()) and "lat_deg" in best
 
