@@ -8,8 +8,6 @@ from pathlib import Path
 import can
 import cantools
 import pytest
-from hypothesis import given
-from hypothesis import strategies as st
 
 from sumhe.config import SignalSpec, load_config
 from sumhe.errors import ConfigError, SourceError
@@ -21,8 +19,6 @@ from sumhe.io.can import (
     CanDecoder,
     LogStats,
     _in_use,
-    decode_bits,
-    intel_fields,
     load_dbc,
     read_log,
     si_factor,
@@ -349,60 +345,6 @@ def test_a_message_with_only_the_signals_in_use_decodes_them_as_the_whole_messag
     assert checked > 1000 and kept > 0
     with pytest.raises(cantools.database.errors.DecodeError):  # a message kept whole: no decode at all
         toyota_db().get_message_by_name("PCS_HUD").decode(bytes(8))
-
-
-def _same_values(got: dict, want: dict) -> bool:
-    """The same names and values, of the same types (``repr`` tells -0.0 from 0.0)."""
-    return set(got) == set(want) and all(type(got[k]) is type(want[k]) and repr(got[k]) == repr(want[k]) for k in want)
-
-
-def test_bit_fields_decode_as_cantools_does_every_intel_message_of_the_dbcs(extra_db):
-    """:func:`decode_bits` gives, for random payloads of every message :func:`intel_fields` takes (little-endian
-    integer signals: signed, scaled, offset, one-bit flags), the values cantools gives, of the same types; messages
-    with a big-endian, float or multiplexed signal are left to cantools."""
-    rng = random.Random(17)
-    checked = left = 0
-    for db in _dbcs(extra_db):
-        for message in db.messages:
-            fields = intel_fields(message)
-            if fields is None:
-                left += 1
-                continue
-            for _ in range(30):
-                data = bytes(rng.getrandbits(8) for _ in range(message.length))
-                assert _same_values(decode_bits(fields, data), message.decode(data, decode_choices=False)), data.hex()
-                checked += 1
-    assert checked > 300 and left > 0
-    assert intel_fields(extra_db.get_message_by_name("FLOATS")) is None
-    assert intel_fields(extra_db.get_message_by_name("MUXED")) is None
-
-
-@given(
-    start=st.integers(0, 63),
-    length=st.integers(1, 64),
-    signed=st.booleans(),
-    scale=st.sampled_from([1, 2, 0.01, 0.1, 1e-7, -0.5, 0.00390625]),
-    offset=st.sampled_from([0, -40, 0.5, -327.68]),
-    data=st.binary(min_size=8, max_size=8),
-)
-def test_bit_fields_decode_any_intel_signal_as_cantools_does(start, length, signed, scale, offset, data):
-    """One little-endian integer signal anywhere in the payload, any width and sign, integer or float scaling."""
-    length = min(length, 64 - start)
-    sign = "-" if signed else "+"
-    db = cantools.database.can.Database()
-    signal = f'SG_ S : {start}|{length}@1{sign} ({scale},{offset}) [0|0] "" ECU'
-    db.add_dbc_string(f'VERSION ""\nBS_:\nBU_: ECU\nBO_ 100 M: 8 ECU\n {signal}\n')
-    message = db.get_message_by_name("M")
-    fields = intel_fields(message)
-    assert fields is not None
-    assert _same_values(decode_bits(fields, data), message.decode(data, decode_choices=False))
-
-
-def test_the_reference_speed_and_yaw_rate_take_the_bit_fields():
-    """The frames of the bundled drive decode through :func:`decode_bits` (what makes the replay's decoding a
-    fifth faster), to the same samples."""
-    decoder = reference_decoder(**{"can.signals": {q: REFERENCE_SIGNALS[q] for q in ("speed", "yaw_rate")}})
-    assert all(route.bits is not None for route in decoder._routes.values())
 
 
 # --- the acceptance case: a public production-car DBC by config alone -----------------------------------------

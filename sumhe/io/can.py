@@ -41,7 +41,6 @@ from typing import Any, TextIO
 import can
 import cantools
 from cantools.database.can import Database, Message, Signal
-from cantools.database.conversion import BaseConversion
 
 from sumhe.config import Config, SignalSpec, load_config
 from sumhe.errors import ConfigError, SourceError, printable
@@ -273,54 +272,7 @@ class _Route:
     used: Message
     """What :meth:`CanDecoder.decode` decodes: of a message that is not multiplexed, the signals its fields read
     alone (the same values, without decoding the others: an IMU message carries a dozen); else the message."""
-    bits: tuple[_Bits, ...] | None = None
-    """``used``'s signals as bit fields (:func:`intel_fields`), where they all are little-endian integers."""
     last_counter: int | None = None
-
-
-@dataclass(frozen=True, slots=True)
-class _Bits:
-    """A little-endian integer signal: bits ``start`` on (``mask`` wide) of the payload read as one little-endian
-    integer, two's complement where ``sign`` (its top bit) is set, scaled by its cantools conversion."""
-
-    name: str
-    start: int
-    mask: int
-    sign: int
-    conversion: BaseConversion
-
-
-def intel_fields(message: Message) -> tuple[_Bits, ...] | None:
-    """The signals of ``message`` as bit fields, for :func:`decode_bits`; None unless every one is a little-endian
-    (Intel) integer signal within the message's length, and the message neither multiplexed nor a container.
-
-    cantools decodes such a message through two bitstruct formats and a loop of scalings: 1.4 us a reference speed or
-    yaw-rate frame, against 0.4 us for a shift and a mask per signal (the bundled drive's 31 502 frames in use
-    decoded in 0.071 s instead of 0.088 s, best of 7).
-    """
-    if message.is_multiplexed() or message.is_container:
-        return None
-    out = []
-    for s in message.signals:
-        if s.byte_order != "little_endian" or s.is_float or s.start + s.length > 8 * message.length:
-            return None
-        out.append(
-            _Bits(s.name, s.start, (1 << s.length) - 1, (1 << (s.length - 1)) if s.is_signed else 0, s.conversion)
-        )
-    return tuple(out)
-
-
-def decode_bits(fields: tuple[_Bits, ...], data: bytes) -> dict[str, Any]:
-    """``message.decode(data, decode_choices=False)`` of the message whose :func:`intel_fields` these are (``data``
-    at least its length): the same values, of the same types."""
-    word = int.from_bytes(data, "little")
-    out = {}
-    for f in fields:
-        raw = (word >> f.start) & f.mask
-        if raw & f.sign:
-            raw -= f.sign << 1
-        out[f.name] = f.conversion.raw_to_scaled(raw, False)
-    return out
 
 
 @dataclass(frozen=True, slots=True)
@@ -431,7 +383,6 @@ class CanDecoder:
         top = next((s.name for s in muxes if s.multiplexer_signal is None), None)
         known = {i for s in message.signals if s.multiplexer_signal == top for i in s.multiplexer_ids or ()}
         gnss = any(f.gnss for f in fields)
-        used = _in_use(message, {f.signal for f in fields} | {f.valid for f in fields if f.valid is not None})
         self._routes[key] = _Route(
             message.name,
             message,
@@ -442,8 +393,7 @@ class CanDecoder:
             top,
             frozenset(known),
             gnss,
-            used,
-            intel_fields(used) if used is not message else None,
+            _in_use(message, {f.signal for f in fields} | {f.valid for f in fields if f.valid is not None}),
         )
 
     def can_filters(self) -> list[dict[str, int | bool]]:
@@ -480,7 +430,7 @@ class CanDecoder:
             if not fields:
                 self.stats.other_mux += 1
                 return out
-        values = self._decode(route.used, route.name, data) if route.bits is None else decode_bits(route.bits, data)
+        values = self._decode(route.used, route.name, data)
         if values is None:
             return out
         gnss: dict[str, float | None] = {}
