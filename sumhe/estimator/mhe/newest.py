@@ -29,10 +29,13 @@ is ``r_cap_sigmas`` sigmas), so its sigma is the drift over ``r_cap_sigmas`` (0.
 for the yaw-rate bias by default; the realistic profile draws its sensors' drift densities from 0 to 0.05, RMS
 0.029). Read as a sigma itself it was 16 times the arrival's variance, and the drift's ``t^5`` growth of the
 position's variance (with the bias's ``t^4`` from the wider bias it kept at a fix) made the growth through an outage
-rise faster with time than the errors: on the realistic drives ``eph`` was 2.7 times the median error 5-10 s into
+rise faster with time than the errors: on the realistic drives ``eph`` was 2.8 times the median error 5-10 s into
 an outage and 18 times at 45-60 s (4.9 times over all outages, 98.2 % of the errors within it); read as a bound,
-2.7 and 8.5 times (3.4 times, 98.0 %), with the growth scale learned from the gaps (:class:`~sumhe.estimator.
-uncertainty.InnovationScale`) as before.
+2.7 and 8.5 times (3.4 times, 98.0 %; with the estimator's drift floor at the same reading,
+:class:`~sumhe.estimator.mhe.estimator.MovingHorizonEstimator`), the growth scale learned from the gaps
+(:class:`~sumhe.estimator.uncertainty.InnovationScale`) as before. What is left of the late excess is that scale's:
+it is learned mostly from short gaps, whose innovations hold the change of the fixes' slow error over the gap
+(metres after 10 s) beside decimetres of the MHE's own growth, and applied to the long outages' growth.
 """
 
 from __future__ import annotations
