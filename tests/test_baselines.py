@@ -456,3 +456,18 @@ def test_imm_model_probabilities_follow_the_manoeuvre() -> None:
     turning = [p for t, p in p_turn if 11.0 <= t < 20.0]
     assert max(straight) < 0.5 and np.mean(straight) < 0.2
     assert min(turning) > 0.9
+
+
+def test_speed_over_ground_sigma_grows_with_acceleration_times_the_time_uncertainty() -> None:
+    """A fix's speed over ground taken 0.3 s off while the car accelerates at 2 m/s^2 errs by 0.6 m/s: the
+    Gaussian filters widen its sigma by that (the speed scale state took it for a 12 % scale error before)."""
+    from sumhe.baseline.ekf import can_acceleration, timed_speed_sigma
+    from sumhe.frontend.can import Samples
+
+    speed = Samples()
+    for k in range(11):
+        speed.add(0.1 * k, 5.0 + 0.2 * k)  # 2 m/s^2
+    assert can_acceleration(speed, 1.0, 0.2) == pytest.approx(2.0)
+    assert can_acceleration(Samples(), 1.0, 0.2) == 0.0
+    assert timed_speed_sigma(0.05, 2.0, 0.3) == pytest.approx(math.hypot(0.05, 0.6))
+    assert timed_speed_sigma(0.05, 0.0, 0.3) == pytest.approx(0.05)
