@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from sumhe.baseline import kinematics as kin
-from sumhe.baseline.kinematics import PHI, FloatArray
+from sumhe.baseline.kinematics import OMEGA, PHI, FloatArray, V
 from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
 from sumhe.config import Config
 from sumhe.frontend.can import Samples
@@ -139,6 +139,14 @@ def can_acceleration(speed: Samples, t: float, max_age_s: float) -> float:
     return 0.0 if now is None or before is None else (now - before) / ACCELERATION_SPAN_S
 
 
+def lever_course_sigma(yaw_rate_rps: float, speed_mps: float, lever_m: float, min_speed_mps: float) -> float:
+    """The error (rad, 1-sigma) of taking the course over ground of an antenna ``lever_m`` ahead of the reference
+    point for the reference point's: in a turn the antenna's velocity has ``yaw rate x lever`` across the track,
+    so its course turns by ``|omega| lever / v`` (the speed at least ``min_speed_mps``, below which the front-end
+    takes no course)."""
+    return abs(yaw_rate_rps) * lever_m / max(abs(speed_mps), min_speed_mps)
+
+
 class GaussianFilter(RecursiveEstimator):
     """A filter whose belief is a mean ``x`` and a covariance ``P`` (the layout of :mod:`.kinematics`); its noise
     is its own table's (:meth:`tuned`) unless given."""
@@ -185,6 +193,20 @@ class GaussianFilter(RecursiveEstimator):
         time_sd = learner.std_s if math.isfinite(learner.std_s) else UNLEARNED_TIME_OFFSET_SD_S
         acceleration = can_acceleration(self.frontend.can["speed"], fix.t, self.settings.can.max_gap_s)
         return timed_speed_sigma(fix.speed_sigma_mps, acceleration, time_sd)
+
+    def _fix_angle(self, fix: FixMeasurement) -> tuple[float, float] | None:
+        """A course's sigma with the lever arm's error added (:func:`lever_course_sigma`, the lever the antenna's
+        forward offset and its range, ``vehicle.antenna_forward_m`` and ``antenna_forward_range_m``, in quadrature):
+        the filter models no antenna offset. Without it, a course bent by 4-7 deg in a turn failed the gate of a
+        filter whose azimuth sigma said 0.1 deg, and the azimuth followed the CAN yaw rate, its gain error
+        unchecked: azimuth errors of 3-30 deg rms over the realistic drives with GPS."""
+        angle = super()._fix_angle(fix)
+        if angle is None or fix.heading:
+            return angle
+        vehicle = self.settings.vehicle
+        lever = math.hypot(vehicle.antenna_forward_m, vehicle.antenna_forward_range_m)
+        floor = self.settings.gnss.course_min_speed_mps
+        return angle[0], math.hypot(angle[1], lever_course_sigma(self.x[OMEGA], self.x[V], lever, floor))
 
     def _init_heading(self, phi: float, sigma: float) -> None:
         self.x, self.P = set_heading(self.x, self.P, phi, sigma)
