@@ -456,3 +456,29 @@ def test_imm_model_probabilities_follow_the_manoeuvre() -> None:
     turning = [p for t, p in p_turn if 11.0 <= t < 20.0]
     assert max(straight) < 0.5 and np.mean(straight) < 0.2
     assert min(turning) > 0.9
+
+
+def test_speed_over_ground_sigma_grows_with_acceleration_times_the_time_uncertainty() -> None:
+    """A fix's speed over ground taken 0.3 s off while the car accelerates at 2 m/s^2 errs by 0.6 m/s: the
+    Gaussian filters widen its sigma by that (the speed scale state took it for a 12 % scale error before)."""
+    from sumhe.baseline.ekf import can_acceleration, timed_speed_sigma
+    from sumhe.frontend.can import Samples
+
+    speed = Samples()
+    for k in range(11):
+        speed.add(0.1 * k, 5.0 + 0.2 * k)  # 2 m/s^2
+    assert can_acceleration(speed, 1.0, 0.2) == pytest.approx(2.0)
+    assert can_acceleration(Samples(), 1.0, 0.2) == 0.0
+    assert timed_speed_sigma(0.05, 2.0, 0.3) == pytest.approx(math.hypot(0.05, 0.6))
+    assert timed_speed_sigma(0.05, 0.0, 0.3) == pytest.approx(0.05)
+
+
+def test_a_course_of_an_antenna_ahead_bends_by_yaw_rate_times_lever_over_speed() -> None:
+    """At 0.3 rad/s and 8 m/s an antenna 2 m ahead moves 0.6 m/s across the track: its course is 0.075 rad off
+    the reference point's; below the course's minimum speed the front-end takes none, so the speed is floored."""
+    from sumhe.baseline.ekf import lever_course_sigma
+
+    assert lever_course_sigma(0.3, 8.0, 2.0, 2.0) == pytest.approx(0.075)
+    assert lever_course_sigma(-0.3, -8.0, 2.0, 2.0) == pytest.approx(0.075)
+    assert lever_course_sigma(0.3, 0.5, 2.0, 2.0) == pytest.approx(0.3)
+    assert lever_course_sigma(0.0, 8.0, 2.0, 2.0) == 0.0

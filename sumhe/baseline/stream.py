@@ -44,7 +44,8 @@ about 1 kB per stored state for the EKF, 37 kB for the 500-particle filter (75 s
 no history: its graph takes a late fix at the fix's own node.
 
 Measurement noise: a fix's position sigmas (the front-end's) times ``gps_scale``; a course's sigma with the
-filter's model error ``course_rad`` added (``hypot``); a heading's and the speed over ground's as they are. A
+filter's model error ``course_rad`` added (``hypot``); a heading's as it is; the speed over ground's as it is
+(``_speed_sigma``; the Gaussian filters add what the fix's uncertain time makes of it while the car accelerates). A
 numerical failure (non-finite state) restarts the filter from the next usable fix.
 """
 
@@ -494,12 +495,16 @@ class RecursiveEstimator(StreamEstimator):
             return status
         self._angle_update(fix, lag)
         if fix.speed_mps is not None:
-            sigma_v = fix.speed_sigma_mps
+            sigma_v = self._speed_sigma(fix)
             R = np.array([[sigma_v**2]])
             z = np.array([fix.speed_mps])
             if self._gated_update(GPS_SPEED, z, R, lag, self._sog_gate, t, sigma_v) == "rejected":
                 self.tally.count("speed_rejected", "GNSS speed over ground rejected by the gate")
         return status
+
+    def _speed_sigma(self, fix: FixMeasurement) -> float:
+        """The sigma (m/s) the filter gives a fix's speed over ground: the front-end's."""
+        return fix.speed_sigma_mps
 
     def _angle_update(self, fix: FixMeasurement, lag: float) -> None:
         angle = self._fix_angle(fix)
