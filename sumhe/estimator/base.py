@@ -302,13 +302,15 @@ class Receiver:
         return spread, 0, hdop
 
 
-def sensor_drift(settings: EstimationSettings) -> tuple[float, float]:
+def sensor_drift(settings: EstimationSettings, sigmas: float = 1.0) -> tuple[float, float]:
     """The random-walk densities of the yaw-rate bias (rad/s per square-root s) and of the speed scale (1 per
     square-root s) the config allows: ``estimator.mhe.theta_drift`` of their half-ranges
     (``sensors.can.yaw_rate_bias_max_rps``, ``speed_scale_max``) per square-root minute, the MHE's own figure of
     how far the CAN calibration may drift (by default 0.057 deg/s per square-root minute for the bias, the top of
-    the drifts of real yaw-rate sensors the realistic profile draws from: docs/simulator.md)."""
-    per_s = settings.estimator.mhe.theta_drift / math.sqrt(60.0)
+    the drifts of real yaw-rate sensors the realistic profile draws from: docs/simulator.md), read as ``sigmas``
+    standard deviations (1 for the peers; the MHE reads it as the bound of ``estimator.r_cap_sigmas`` sigmas its
+    arrival cost makes of it: :mod:`sumhe.estimator.mhe.newest`)."""
+    per_s = settings.estimator.mhe.theta_drift / math.sqrt(60.0) / sigmas
     return per_s * settings.can.yaw_rate_bias_max_rps, per_s * settings.can.speed_scale_max
 
 

@@ -40,7 +40,7 @@ from numpy.typing import NDArray
 
 from sumhe.config import Config
 from sumhe.errors import ConfigError
-from sumhe.estimator.base import StateEstimate, StreamEstimator
+from sumhe.estimator.base import StateEstimate, StreamEstimator, sensor_drift
 from sumhe.estimator.batch import model_for, nominal_parameters
 from sumhe.estimator.mhe.arrival import Arrival, arrival_update, prior_arrival
 from sumhe.estimator.mhe.envelope import OutputEnvelope
@@ -82,12 +82,11 @@ class MovingHorizonEstimator(StreamEstimator):
                 f"estimator.model: the moving-horizon estimator supports su5 only, got {s.estimator.model!r}"
             )
         super().__init__(s)
-        self._drift = tuple(d / s.estimator.r_cap_sigmas for d in self._drift)
-        """The drift floor of the growth (:meth:`~sumhe.estimator.base.StreamEstimator._drift_m2`) at the MHE's own
-        reading of ``theta_drift``, a bound of ``r_cap_sigmas`` sigmas (:mod:`.newest`): the base class reads it as
-        one sigma, whose ``t^5`` then set the late shape of the growth in place of the MHE's own (above it at 76 % of
-        the estimates 45-60 s into the realistic profile's outages; ``eph`` 17.8 times the median error there, 8.5
-        times with this floor, 3.42 and 3.40 times over all outages)."""
+        # the drift floor of the growth (StreamEstimator._drift_m2) at the MHE's own reading of theta_drift, a bound
+        # of r_cap_sigmas sigmas (.newest): read as one sigma, its t^5 set the late shape of the growth in place of
+        # the MHE's own (above it at 76 % of the estimates 45-60 s into the realistic profile's outages; eph 17.8
+        # times the median error there, 8.5 times with this floor, 3.42 and 3.40 times over all outages)
+        self._drift = sensor_drift(s, s.estimator.r_cap_sigmas)
         self.model = model = model_for(s)
         self.policy = s.estimator.mhe
         self.window = Window(self.policy.max_steps + 1, model.n_states, model.n_outputs, model.j_position[0])
