@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from sumhe.baseline import kinematics as kin
-from sumhe.baseline.ekf import Ekf
+from sumhe.baseline.ekf import Ekf, can_acceleration, lever_course_sigma, timed_speed_sigma
 from sumhe.baseline.imm import Imm, transition_matrix
 from sumhe.baseline.kinematics import Layout
 from sumhe.baseline.particle import ParticleFilter, systematic_resample
@@ -21,6 +21,7 @@ from sumhe.config import load_config
 from sumhe.errors import ConfigError
 from sumhe.estimator.base import StateEstimate
 from sumhe.estimator.registry import ESTIMATORS, estimator_class, estimator_names, make_estimator
+from sumhe.frontend.can import Samples
 from sumhe.frontend.fixes import LocalFix
 from sumhe.messages import CanSample
 from sumhe.settings import EstimationSettings, NoiseSettings, with_changes
@@ -461,9 +462,6 @@ def test_imm_model_probabilities_follow_the_manoeuvre() -> None:
 def test_speed_over_ground_sigma_grows_with_acceleration_times_the_time_uncertainty() -> None:
     """A fix's speed over ground taken 0.3 s off while the car accelerates at 2 m/s^2 errs by 0.6 m/s: the
     Gaussian filters widen its sigma by that (the speed scale state took it for a 12 % scale error before)."""
-    from sumhe.baseline.ekf import can_acceleration, timed_speed_sigma
-    from sumhe.frontend.can import Samples
-
     speed = Samples()
     for k in range(11):
         speed.add(0.1 * k, 5.0 + 0.2 * k)  # 2 m/s^2
@@ -476,8 +474,6 @@ def test_speed_over_ground_sigma_grows_with_acceleration_times_the_time_uncertai
 def test_a_course_of_an_antenna_ahead_bends_by_yaw_rate_times_lever_over_speed() -> None:
     """At 0.3 rad/s and 8 m/s an antenna 2 m ahead moves 0.6 m/s across the track: its course is 0.075 rad off
     the reference point's; below the course's minimum speed the front-end takes none, so the speed is floored."""
-    from sumhe.baseline.ekf import lever_course_sigma
-
     assert lever_course_sigma(0.3, 8.0, 2.0, 2.0) == pytest.approx(0.075)
     assert lever_course_sigma(-0.3, -8.0, 2.0, 2.0) == pytest.approx(0.075)
     assert lever_course_sigma(0.3, 0.5, 2.0, 2.0) == pytest.approx(0.3)
