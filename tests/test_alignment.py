@@ -2,11 +2,14 @@
 lag, scale and bias."""
 
 import math
+from collections import deque
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
-from sumhe.frontend.alignment import ClockLearner, course_lag, speed_lag
+from sumhe.frontend.alignment import ClockLearner, _Series, course_lag, speed_lag
 from sumhe.sim import SimSettings, simulate
 
 RNG = np.random.default_rng(7)
@@ -136,3 +139,24 @@ def test_course_lag_with_the_scale_held_gives_the_bias():
     fit = course_lag(t_fix, course, np.full(len(t_fix), 15.0), t_yaw, yaw, fixed_scale=1.0)
     assert fit is not None and fit.scale == 1.0
     assert fit.offset == pytest.approx(math.radians(0.4), abs=math.radians(0.03))
+
+
+@given(
+    st.lists(st.floats(-1e3, 1e3), max_size=60),
+    st.lists(st.tuples(st.integers(0, 60), st.floats(-1e3, 1e3)), max_size=10),
+)
+def test_series_keeps_what_a_deque_trimmed_by_its_second_pair_keeps(times, trims):
+    """The learner's CAN speeds: the same pairs as the deque they replaced, popped from the front while more than
+    two remain and the second is before the trim time (in or out of order), at every length and trim."""
+    series, pairs = _Series(), deque()
+    for i, t in enumerate(times):
+        series.append(t, float(i))
+        pairs.append((t, float(i)))
+        for at, t_min in trims:
+            if at == i:
+                series.trim(t_min, keep=2)
+                while len(pairs) > 2 and pairs[1][0] < t_min:
+                    pairs.popleft()
+        assert len(series) == len(pairs)
+        t, v = series.columns()
+        assert t.tolist() == [p[0] for p in pairs] and v.tolist() == [p[1] for p in pairs]

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from array import array
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -232,6 +233,40 @@ def _fit_lags(
     return rss, coef
 
 
+class _Series:
+    """(t, value) pairs appended in time order into two flat ``array('d')`` columns, forgotten from the front by
+    moving a start index (the arrays compacted once half is forgotten). The learner's CAN speeds (15 000 in its
+    300 s window at 50 Hz) come to each refit as numpy arrays copied in one go (2.5 us; a deque of tuples flattened
+    by ``numpy.fromiter``: 0.6 ms), and are appended without a tuple each: the front-end over the bundled drive
+    (21 refits) 125 -> 100 ms."""
+
+    def __init__(self) -> None:
+        self.t = array("d")
+        self.v = array("d")
+        self.start = 0
+
+    def __len__(self) -> int:
+        return len(self.t) - self.start
+
+    def append(self, t: float, value: float) -> None:
+        self.t.append(t)
+        self.v.append(value)
+
+    def trim(self, t_min: float, keep: int) -> None:
+        """Forget the oldest pair while more than ``keep`` remain and the one after it is before ``t_min``."""
+        start, t, n = self.start, self.t, len(self.t)
+        while n - start > keep and t[start + 1] < t_min:
+            start += 1
+        if start > n // 2:
+            del self.t[:start], self.v[:start]
+            start = 0
+        self.start = start
+
+    def columns(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The times and values kept (copies)."""
+        return np.frombuffer(self.t[self.start :]), np.frombuffer(self.v[self.start :])
+
+
 class ClockLearner:
     """The GNSS time offset learned on line from the receiver's speed over ground and the CAN speed
     (:func:`speed_lag` over the last ``window_s`` s, refitted every ``refit_s`` s). ``offset_s`` is the offset
@@ -246,12 +281,12 @@ class ClockLearner:
         self.fits = 0
         self.window_s, self.refit_s, self.max_std_s = window_s, refit_s, max_std_s
         self._fixes: deque[tuple[float, float]] = deque()
-        self._can: deque[tuple[float, float]] = deque()
+        self._can = _Series()
         self._next_fit = -math.inf
 
     def add_can_speed(self, t: float, speed_mps: float) -> None:
         """A CAN speed sample (s, m/s) on the CAN clock."""
-        self._can.append((t, speed_mps))
+        self._can.append(t, speed_mps)
 
     def add_fix(self, t: float, speed_mps: float | None) -> None:
         """A fix's stamped time (s, before the offset) and its speed over ground (m/s, None if it has none)."""
@@ -265,20 +300,19 @@ class ClockLearner:
     def _trim(self, t_min: float) -> None:
         while self._fixes and self._fixes[0][0] < t_min:
             self._fixes.popleft()
-        while len(self._can) > 2 and self._can[1][0] < t_min - 2.0:
-            self._can.popleft()
+        self._can.trim(t_min - 2.0, keep=2)
 
     def _fit(self) -> None:
         if len(self._fixes) < MIN_PAIRS or len(self._can) < 2:
             return
-        f, c = _columns(self._fixes), _columns(self._can)
-        fit = speed_lag(f[:, 0], f[:, 1], c[:, 0], c[:, 1])
+        f = _columns(self._fixes)
+        fit = speed_lag(f[:, 0], f[:, 1], *self._can.columns())
         if fit is not None and fit.std_s <= self.max_std_s:
             self.offset_s, self.std_s = -fit.lag_s, fit.std_s
             self.fits += 1
 
 
 def _columns(pairs: deque[tuple[float, float]]) -> NDArray[np.float64]:
-    """``numpy.array(pairs)`` (n x 2), built from a flat iterator: 2.5 times faster for the learner's 15 000 CAN
-    speeds (``numpy.array`` inspects each tuple), refitted every 10 s."""
+    """``numpy.array(pairs)`` (n x 2), built from a flat iterator (``numpy.array`` inspects each tuple, 2.5 times
+    slower)."""
     return np.fromiter(itertools.chain.from_iterable(pairs), float, 2 * len(pairs)).reshape(-1, 2)

@@ -179,24 +179,26 @@ class FrontEnd:
         if not (isinstance(stamp, _NUMBER) and isinstance(value, _NUMBER) and math.isfinite(stamp)):
             self.tally.count("bad_samples", "CAN %s sample with a non-finite time or value", q)
             return []
-        t = stamp - self.settings.can.delay_s
+        settings = self.settings
+        t = stamp - settings.can.delay_s
         store = self.can.samples[q]
         if t < store.newest:
             self.tally.count("dropped_backwards", "CAN %s sample %.3f s back in time dropped", q, store.newest - t)
             return []
-        vehicle = self.settings.vehicle
-        limit = vehicle.max_speed_mps if q == "speed" else 2.0 * vehicle.max_yaw_rate_rps
+        speed = q == "speed"
+        limit = settings.vehicle.max_speed_mps if speed else 2.0 * settings.vehicle.max_yaw_rate_rps
         if not (math.isfinite(value) and abs(value) <= limit):
             self.tally.count("bad_samples", "CAN %s = %r beyond the vehicle limits dropped", q, value)
             return []
         self._check_gap(t)
-        store.add(t, float(value))
-        if q == "speed" and self.aligner is not None:
-            self.aligner.add_can_speed(t, float(value))
+        value = float(value)
+        store.add(t, value)
+        if speed and self.aligner is not None:
+            self.aligner.add_can_speed(t, value)
         if not self.started:
             return []
         events: list[Epoch | CanTick] = self._missed(t - self.clock.delay_s)
-        events.append(CanTick(t, stamp, q, float(value), output=q == OUTPUT_QUANTITY))
+        events.append(CanTick(t, stamp, q, value, q == OUTPUT_QUANTITY))
         return events
 
     # ---- GNSS -------------------------------------------------------------------------------------------------
