@@ -198,8 +198,20 @@ def _angle_rad(value: object, name: str) -> float | None:
     return 0.0 if deg == 360.0 else math.radians(deg)  # a tiny negative angle wraps to 360.0 in floating point
 
 
+def _text(msg: pynmea2.TalkerSentence, name: str) -> str:
+    """The text of the field ``name`` ("" when empty or missing): what pynmea2's attribute converts, for the fields
+    whose conversion (float, int, none) :func:`_number` and :func:`_count` redo with the same result and errors (an
+    attribute is an ``__getattr__`` call that converts; the text is an index). VTG and HDT (Decimal fields) and ZDA
+    (int fields used as they come) keep the attributes."""
+    i = type(msg).name_to_idx[name]
+    data = msg.data
+    return data[i] if i < len(data) else ""
+
+
 def _tod(msg: pynmea2.TalkerSentence) -> dt.time | None:
-    value = msg.timestamp
+    """The time of fix, parsed through a cache (the sentences of an epoch share it: 2 us a parse)."""
+    text = _text(msg, "timestamp")
+    value = _time_of(text) if text else None
     if value is None:
         return None
     if not isinstance(value, dt.time):
@@ -207,11 +219,21 @@ def _tod(msg: pynmea2.TalkerSentence) -> dt.time | None:
     return value
 
 
+@functools.lru_cache(maxsize=16)
+def _time_of(text: str) -> object:
+    """pynmea2's time of a field's text (the text itself where it is not a time, as pynmea2 gives it back)."""
+    try:
+        return pynmea2.nmea_utils.timestamp(text)
+    except Exception:  # pynmea2 gives the field's text back for any failure
+        return text
+
+
 def _position(msg: pynmea2.TalkerSentence) -> tuple[float, float] | None:
     """(lat, lon) in degrees, None when both are empty; pynmea2 converts (``dm_to_sd``, signed by the hemisphere as
-    its ``latitude`` and ``longitude`` do), we check directions and ranges. Each field is read once: a pynmea2
-    field is an ``__getattr__`` call, a microsecond, and the properties read them again (10 reads a sentence)."""
-    lat_dm, lon_dm, lat_dir, lon_dir = msg.lat, msg.lon, msg.lat_dir, msg.lon_dir
+    its ``latitude`` and ``longitude`` do), we check directions and ranges. Each field is read once, as text
+    (pynmea2's properties read them again: 10 reads a sentence)."""
+    lat_dm, lon_dm = _text(msg, "lat"), _text(msg, "lon")
+    lat_dir, lon_dir = _text(msg, "lat_dir"), _text(msg, "lon_dir")
     if not lat_dm and not lon_dm:
         return None
     if lat_dir not in ("N", "S") or lon_dir not in ("E", "W"):
@@ -238,45 +260,45 @@ def _fix_values(fix: bool, pos: tuple[float, float] | None, **values: float | in
 
 
 def _gga(msg: pynmea2.TalkerSentence) -> _Part:
-    quality = _count(msg.gps_qual, "quality") or 0
+    quality = _count(_text(msg, "gps_qual"), "quality") or 0
     pos = _position(msg)
-    sats = _count(msg.num_sats, "sats")
+    sats = _count(_text(msg, "num_sats"), "sats")
     fix = quality in GOOD_QUALITY and pos is not None and sats != 0
     values = _fix_values(
         fix,
         pos,
         quality=quality,
-        alt_m=_number(msg.altitude, "altitude"),
+        alt_m=_number(_text(msg, "altitude"), "altitude"),
         sats=sats,
-        hdop=_non_negative(msg.horizontal_dil, "hdop"),
+        hdop=_non_negative(_text(msg, "horizontal_dil"), "hdop"),
     )
     return _Part("GGA", msg.talker, _tod(msg), fix=fix, values=values)
 
 
 def _gns(msg: pynmea2.TalkerSentence) -> _Part:
-    qualities = [MODE_QUALITY[c] for c in msg.mode_indicator if c in MODE_QUALITY]
+    qualities = [MODE_QUALITY[c] for c in _text(msg, "mode_indicator") if c in MODE_QUALITY]
     good = [q for q in qualities if q in GOOD_QUALITY]
     quality = max(good) if good else max(qualities, default=0)
     pos = _position(msg)
-    sats = _count(msg.num_sats, "sats")
+    sats = _count(_text(msg, "num_sats"), "sats")
     fix = bool(good) and pos is not None and sats != 0
     values = _fix_values(
         fix,
         pos,
         quality=quality,
-        alt_m=_number(msg.altitude, "altitude"),
+        alt_m=_number(_text(msg, "altitude"), "altitude"),
         sats=sats,
-        hdop=_non_negative(msg.hdop, "hdop"),
+        hdop=_non_negative(_text(msg, "hdop"), "hdop"),
     )
     return _Part("GNS", msg.talker, _tod(msg), fix=fix, values=values)
 
 
 def _rmc(msg: pynmea2.TalkerSentence) -> _Part:
-    status = msg.status
-    quality = MODE_QUALITY.get(msg.mode_indicator, 1) if status == "A" else 0
+    status = _text(msg, "status")
+    quality = MODE_QUALITY.get(_text(msg, "mode_indicator"), 1) if status == "A" else 0
     pos = _position(msg)
     fix = quality in GOOD_QUALITY and pos is not None
-    speed_kn = _non_negative(msg.spd_over_grnd, "speed")
+    speed_kn = _non_negative(_text(msg, "spd_over_grnd"), "speed")
     date = _datestamp(msg)
     if date is not None and not isinstance(date, dt.date):
         raise DecodeError(f"date: not ddmmyy: {date!r}")
@@ -285,7 +307,7 @@ def _rmc(msg: pynmea2.TalkerSentence) -> _Part:
         pos,
         quality=quality,
         speed_mps=None if speed_kn is None else speed_kn * KNOT_MPS,
-        course_rad=_angle_rad(msg.true_course, "course"),
+        course_rad=_angle_rad(_text(msg, "true_course"), "course"),
     )
     return _Part("RMC", msg.talker, _tod(msg), date=date, fix=fix, values=values)
 
@@ -293,8 +315,7 @@ def _rmc(msg: pynmea2.TalkerSentence) -> _Part:
 def _datestamp(msg: pynmea2.TalkerSentence) -> object:
     """``msg.datestamp`` (pynmea2's: None for an empty field, the text where it is not a date), through a cache
     (the date repeats for every fix of a day, and ``strptime`` was a tenth of the NMEA decoding)."""
-    i = type(msg).name_to_idx["datestamp"]
-    text = msg.data[i] if i < len(msg.data) else ""
+    text = _text(msg, "datestamp")
     return _date_of(text) if text else None
 
 
@@ -307,7 +328,7 @@ def _date_of(text: str) -> object:
 
 
 def _gll(msg: pynmea2.TalkerSentence) -> _Part:
-    quality = MODE_QUALITY.get(msg.faa_mode, 1) if msg.status == "A" else 0
+    quality = MODE_QUALITY.get(_text(msg, "faa_mode"), 1) if _text(msg, "status") == "A" else 0
     pos = _position(msg)
     fix = quality in GOOD_QUALITY and pos is not None
     return _Part("GLL", msg.talker, _tod(msg), fix=fix, values=_fix_values(fix, pos, quality=quality))
@@ -330,21 +351,21 @@ def _hdt(msg: pynmea2.TalkerSentence) -> _Part:
 
 
 def _ths(msg: pynmea2.TalkerSentence) -> _Part:
-    heading = _angle_rad(msg.heading, "heading")
-    usable = heading is not None and msg.mode_indicator != "V"
+    heading = _angle_rad(_text(msg, "heading"), "heading")
+    usable = heading is not None and _text(msg, "mode_indicator") != "V"
     return _Part("THS", msg.talker, values={"heading_rad": heading} if usable else {})
 
 
 def _gsa(msg: pynmea2.TalkerSentence) -> _Part:
-    hdop = _non_negative(msg.hdop, "hdop")
+    hdop = _non_negative(_text(msg, "hdop"), "hdop")
     return _Part("GSA", msg.talker, values={} if hdop is None else {"hdop": hdop})
 
 
 def _gst(msg: pynmea2.TalkerSentence) -> _Part:
     sigmas = {
-        "sigma_lat_m": _non_negative(msg.std_dev_latitude, "sigma_lat"),
-        "sigma_lon_m": _non_negative(msg.std_dev_longitude, "sigma_lon"),
-        "sigma_alt_m": _non_negative(msg.std_dev_altitude, "sigma_alt"),
+        "sigma_lat_m": _non_negative(_text(msg, "std_dev_latitude"), "sigma_lat"),
+        "sigma_lon_m": _non_negative(_text(msg, "std_dev_longitude"), "sigma_lon"),
+        "sigma_alt_m": _non_negative(_text(msg, "std_dev_altitude"), "sigma_alt"),
     }
     return _Part("GST", msg.talker, _tod(msg), values={k: v for k, v in sigmas.items() if v is not None})
 
