@@ -14,12 +14,11 @@ Units: seconds (``t`` on the drive's clock), metres, milliseconds where named ``
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import json
 import math
 import time
 from collections import Counter
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TextIO
 
@@ -38,9 +37,9 @@ from sumhe.bench.outages import (
 from sumhe.errors import ConfigError
 from sumhe.estimator.base import Estimator
 from sumhe.geo import LocalFrame
-from sumhe.io.replay import RecordedDrive
+from sumhe.io.replay import RecordedDrive, read_ahead
 from sumhe.io.udp import json_line
-from sumhe.messages import Estimate, Sample
+from sumhe.messages import Estimate
 from sumhe.service.histogram import Histogram
 from sumhe.service.pipeline import MonotonicOutput, Pipeline
 
@@ -279,7 +278,7 @@ def replay_drive(
     wall0, cpu0 = time.perf_counter(), time.process_time()
     push, keep, write = pipeline.push, cut.keep, recorder.write
     try:
-        for sample in _read_ahead(drive.samples()):
+        for sample in read_ahead(drive.samples(), READ_AHEAD):
             last_t = sample.t
             if keep(sample):
                 estimates = push(sample)
@@ -326,12 +325,6 @@ def replay_drive(
         warnings=drive.decoder.silent() if drive.decoder is not None else [],
         first_t=t0,
     )
-
-
-def _read_ahead(samples: Iterator[Sample]) -> Iterator[Sample]:
-    """``samples`` in the same order, read :data:`READ_AHEAD` at a time."""
-    while chunk := list(itertools.islice(samples, READ_AHEAD)):
-        yield from chunk
 
 
 def _input_counters(drive: RecordedDrive) -> dict[str, Any]:

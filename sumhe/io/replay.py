@@ -20,6 +20,7 @@ import operator
 from collections.abc import AsyncIterator, Collection, Iterable, Iterator, Sequence
 from os import PathLike
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
@@ -32,6 +33,12 @@ from sumhe.messages import GnssFix, Sample
 
 REORDER_MARGIN_S = 0.1
 """Added to the longest a fix decoded from CAN can come after later-stamped samples (:func:`reorder_hold_s`)."""
+FIXES_AHEAD = 64
+"""NMEA fixes decoded at a time, ahead of the CAN samples they are merged with: decoding the two logs in turn, a
+fix every 15 CAN samples, made reading the bundled drive a seventh slower (each decoder evicting the other's code
+and data from the CPU caches, as :data:`sumhe.bench.reprocess.READ_AHEAD` says of reading and estimating)."""
+
+_Item = TypeVar("_Item")
 
 
 _time = operator.attrgetter("t")
@@ -40,6 +47,14 @@ _time = operator.attrgetter("t")
 def merge_by_time(*streams: Iterable[Sample]) -> Iterator[Sample]:
     """Merge time-ordered streams into one, ordered by ``t`` (stable: ties keep stream order)."""
     return heapq.merge(*streams, key=_time)
+
+
+def read_ahead(items: Iterable[_Item], n: int) -> Iterator[_Item]:
+    """``items`` in the same order, taken ``n`` at a time (one stage of a pipeline running for a while before the
+    next, for the CPU caches' sake)."""
+    it = iter(items)
+    while chunk := list(itertools.islice(it, n)):
+        yield from chunk
 
 
 def time_ordered(samples: Iterable[Sample], hold_s: float) -> Iterator[Sample]:
@@ -156,7 +171,8 @@ class RecordedDrive:
                     for p, d in zip(self.nmea_logs, self.nmea_decoders, strict=True)
                 )
             )
-            streams.append(stamp_fix(fix, gps) for fix in shift_fixes(fixes, self.offset_s))  # type: ignore[arg-type]
+            stamped = (stamp_fix(fix, gps) for fix in shift_fixes(fixes, self.offset_s))  # type: ignore[arg-type]
+            streams.append(read_ahead(stamped, FIXES_AHEAD))
         return merge_by_time(*streams)
 
     def can_pause(self, before: float, after: float) -> bool:
