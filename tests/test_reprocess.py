@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import io
 import json
 import math
@@ -85,3 +86,17 @@ def test_an_interrupted_replay_keeps_what_it_estimated(tmp_path):
     times = [json.loads(line)["t"] for line in out.getvalue().splitlines()]
     assert len(times) > 2000  # ~50 a second for a minute: more than one batch's worth of samples read ahead
     assert times[-1] - times[0] > 55.0
+    assert gc.get_freeze_count() == 0  # what the loop froze is handed back to the collector, interrupted too
+
+
+def test_a_replay_leaves_the_callers_frozen_objects_frozen(tmp_path):
+    """The loop freezes what was made before it only where nothing is frozen yet, and unfreezes only that."""
+    write_drive(simulate(SimSettings(seed=4, duration_s=5.0)), tmp_path)
+    config = reference_config()
+    drive = RecordedDrive(config, tmp_path / "drive.log", tmp_path / "drive.nmea")
+    gc.freeze()
+    try:
+        replay_drive(drive, make_estimator("ekf", config))
+        assert gc.get_freeze_count() > 0  # (objects freed since leave the count)
+    finally:
+        gc.unfreeze()
