@@ -768,14 +768,17 @@ class _CandumpReader:
                 t, channel, can_id, data, flag = m.groups()
                 arbitration_id = int(can_id, 16)
                 if not arbitration_id & _CAN_ERR_FLAG:
-                    yield message(
-                        timestamp=float(t),
-                        arbitration_id=arbitration_id & 0x1FFFFFFF,
-                        is_extended_id=len(can_id) > 3,
-                        is_rx=flag is None or flag in "Rr",
-                        dlc=len(data) // 2,
-                        data=bytearray.fromhex(data),
-                        channel=int(channel) if channel.isdigit() else channel,
+                    yield message(  # positional: matching keywords made a Message twice as dear (0.5 us)
+                        float(t),  # timestamp
+                        arbitration_id & 0x1FFFFFFF,
+                        len(can_id) > 3,  # is_extended_id
+                        False,  # is_remote_frame
+                        False,  # is_error_frame
+                        int(channel) if channel.isdigit() else channel,
+                        len(data) // 2,  # dlc
+                        bytearray.fromhex(data),
+                        False,  # is_fd
+                        flag is None or flag in "Rr",  # is_rx
                     )
                     continue
             if general(stripped):
