@@ -111,7 +111,9 @@ class SqpSolver:
         operations on the same numbers, bit for bit, in 35 us instead of 55-65 us per epoch on a 50-step window
         within a replay (the MX function calls the one-step functions a hundred times), for 2 ms more to build and
         0.7 MB more at 50 steps (all 11 default sizes: 90 ms and 25 MB, so only the window's normal size is
-        flat)."""
+        flat). Its common subexpressions are merged (CasADi's ``cse``: each value computed once, from the same
+        operands, so the same bits): 8202 instructions instead of 9679 at 50 steps, 16 us instead of 21 us a call
+        (alone), for 12 ms more to build."""
         if capacity < 2:
             raise ValueError(f"capacity: need at least 2 steps, got {capacity}")
         t0 = time.perf_counter()
@@ -122,7 +124,7 @@ class SqpSolver:
         self.nw, self.ne = md * (C - 1), n * C
         self.nv = nv = self.nz + self.nw + self.ne
         lin, self._rows, self._cols = _linearisation(model, C)
-        self._lin = NumpyFunction(lin.expand() if flat else lin)
+        self._lin = NumpyFunction(lin.expand(lin.name(), {"cse": True}) if flat else lin)
         self._row_step = np.concatenate([np.repeat(np.arange(C - 1), md), np.repeat(np.arange(C), n)])
         self._z_step = np.concatenate([np.repeat(np.arange(C), md), np.zeros(self.nt, dtype=np.int64)])
         self._live_masks: dict[int, tuple[NDArray[np.bool_], NDArray[np.bool_]]] = {}
