@@ -81,6 +81,11 @@ def _height(p: Any, z: Any, lat: Any, m: _Maths) -> Any:
     return p * cl + z * sl - WGS84_A * m.sqrt(1.0 - WGS84_E2 * sl * sl)
 
 
+def _one_point(east_m: object, north_m: object, up_m: object) -> bool:
+    """Whether :meth:`LocalFrame.to_geodetic` takes its plain-float path for these arguments."""
+    return type(east_m) is float and type(north_m) is float and isinstance(up_m, float | int)
+
+
 @dataclass(frozen=True)
 class LocalFrame:
     """A local east/north/up frame tangent to WGS84 at (lat0_deg, lon0_deg, alt0_m)."""
@@ -91,7 +96,7 @@ class LocalFrame:
     _origin: NDArray[np.float64] = field(init=False, repr=False, compare=False)
     _rot: NDArray[np.float64] = field(init=False, repr=False, compare=False)
     _rows: tuple[tuple[float, ...], ...] = field(init=False, repr=False, compare=False)
-    """Rows of the rotation and the origin as floats (the one-estimate path of :meth:`to_geodetic`)."""
+    """Rows of the rotation and the origin as floats (the one-point path, :meth:`point_to_geodetic`)."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.lat0_deg) and -90.0 <= self.lat0_deg <= 90.0):
@@ -105,6 +110,19 @@ class LocalFrame:
         object.__setattr__(self, "_rot", rot)
         object.__setattr__(self, "_rows", (*map(tuple, rot.tolist()), tuple(self._origin.tolist())))
 
+    def point_to_geodetic(self, east_m: float, north_m: float, up_m: float = 0.0) -> tuple[float, float, float]:
+        """:meth:`to_geodetic` of one point as plain floats, the same bits: the path of every estimate, where the
+        array and its three conversions back took half of the 2.5 us. Numbers not of type ``float`` (numpy's) take
+        :meth:`to_geodetic`'s array path, as they do there."""
+        if not _one_point(east_m, north_m, up_m):
+            lat_deg, lon_deg, alt_m = self.to_geodetic(east_m, north_m, up_m).tolist()
+            return lat_deg, lon_deg, alt_m
+        (ex, ey, ez), (nx, ny, nz), (ux, uy, uz), (ox, oy, oz) = self._rows
+        e, n, u = east_m, north_m, float(up_m)
+        x, y, z = e * ex + n * nx + u * ux + ox, e * ey + n * ny + u * uy + oy, e * ez + n * nz + u * uz + oz
+        lat, lon, alt = _geodetic(x, y, z, _MATH)
+        return lat, lon, alt
+
     def to_enu(self, lat_deg: ArrayLike, lon_deg: ArrayLike, alt_m: ArrayLike = 0.0) -> NDArray[np.float64]:
         """Geodetic (deg, deg, m) -> east, north, up (m), stacked last."""
         d = geodetic_to_ecef(lat_deg, lon_deg, alt_m) - self._origin
@@ -112,13 +130,7 @@ class LocalFrame:
 
     def to_geodetic(self, east_m: ArrayLike, north_m: ArrayLike, up_m: ArrayLike = 0.0) -> NDArray[np.float64]:
         """East, north, up (m) -> latitude, longitude (deg), height (m), stacked last."""
-        if type(east_m) is float and type(north_m) is float and isinstance(up_m, float | int):  # one estimate
-            (ex, ey, ez), (nx, ny, nz), (ux, uy, uz), (ox, oy, oz) = self._rows
-            e, n, u = east_m, north_m, float(up_m)
-            return np.array(
-                _geodetic(
-                    e * ex + n * nx + u * ux + ox, e * ey + n * ny + u * uy + oy, e * ez + n * nz + u * uz + oz, _MATH
-                )
-            )
+        if _one_point(east_m, north_m, up_m):  # one estimate
+            return np.array(self.point_to_geodetic(east_m, north_m, up_m))  # type: ignore[arg-type]
         enu = np.stack(np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (east_m, north_m, up_m))), -1)
         return ecef_to_geodetic(enu @ self._rot + self._origin)

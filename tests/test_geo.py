@@ -167,3 +167,11 @@ def test_one_point_to_geodetic_equals_the_array_path():
     many = frame.to_geodetic(enu[:, 0], enu[:, 1], enu[:, 2])
     np.testing.assert_allclose(one[:, :2], many[:, :2], rtol=0, atol=1e-12)
     np.testing.assert_allclose(one[:, 2], many[:, 2], rtol=0, atol=1e-6)
+
+
+def test_point_to_geodetic_gives_to_geodetics_bits_for_floats_and_numpy_numbers() -> None:
+    frame = LocalFrame(48.137, 11.575, 519.0)
+    rng = np.random.default_rng(3)
+    for east, north, up in rng.normal(0.0, 5000.0, (50, 3)).tolist():
+        for args in ((east, north, up), (np.float64(east), np.float64(north), 0.0), (east, north, 2)):
+            assert frame.point_to_geodetic(*args) == tuple(frame.to_geodetic(*args).tolist())

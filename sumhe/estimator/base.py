@@ -359,14 +359,14 @@ def horizontal_sigma(spread: Spread | None) -> float | None:
 
 def to_estimate(state: StateEstimate, frame: LocalFrame, up_m: float = 0.0) -> Estimate:
     """A local-frame estimate as the sinks send it (with WGS84 latitude, longitude and height)."""
-    lat, lon, alt = frame.to_geodetic(state.east_m, state.north_m, up_m)
+    lat, lon, alt = frame.point_to_geodetic(state.east_m, state.north_m, up_m)
     return Estimate(
         t=state.t,
         east_m=state.east_m,
         north_m=state.north_m,
-        lat_deg=float(lat),
-        lon_deg=float(lon),
-        alt_m=float(alt),
+        lat_deg=lat,
+        lon_deg=lon,
+        alt_m=alt,
         track_rad=state.azimuth_rad % (2.0 * math.pi),
         speed_mps=state.speed_mps,
         yaw_rate_rps=state.yaw_rate_rps,

@@ -79,6 +79,7 @@ class WindowSolve:
         lo, hi = state_box(model, 1, settings)
         self.lo, self.hi = lo[0], hi[0]
         """The state box (11) of one step."""
+        self._q_power = np.array(model.q_power)[None, :]
 
     def capacity(self, size: int) -> int:
         """The bucket (solver capacity) of a window of ``size`` steps."""
@@ -120,7 +121,7 @@ class WindowSolve:
         where the step's motion comes from the CAN data (:mod:`.preintegration`), the smaller bound its errors
         leave; output bounds R (L x n): the steps' error allowances times ``out_factor`` (n; :mod:`.envelope`)."""
         md = self.model.n_dynamic
-        scale = (np.diff(win.t)[:, None] / period_s) ** np.array(self.model.q_power)[None, :]
+        scale = (np.diff(win.t)[:, None] / period_s) ** self._q_power
         caps = self.q_caps[None, :] * scale
         can = win.q_step[1:, :md]
         return np.where(np.isfinite(can), np.minimum(can, caps), caps), win.allow * out_factor[None, :]
@@ -131,10 +132,10 @@ class WindowSolve:
         """The window as a problem for a solver of ``capacity`` steps, bounds widened by ``widen``."""
         L, md, m, n = len(win), self.model.n_dynamic, self.model.n_states, self.model.n_outputs
         pad = capacity - L
-        offset = np.vstack([win.offset[1:, :md], np.zeros((pad, md))])
         if pad == 0:
-            x, h, y, avail = win.x, np.diff(win.t), win.y, win.avail
+            x, h, y, avail, offset = win.x, np.diff(win.t), win.y, win.avail, win.offset[1:, :md]
         else:
+            offset = np.vstack([win.offset[1:, :md], np.zeros((pad, md))])
             x = np.vstack([win.x, np.repeat(win.x[-1:], pad, axis=0)])
             h = np.concatenate([np.diff(win.t), np.full(pad, period_s)])
             y = np.vstack([win.y, np.zeros((pad, n))])
