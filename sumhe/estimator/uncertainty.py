@@ -277,9 +277,14 @@ class InnovationScale:
       95.6, 93.6 and 89.7 % (89.5 against 75.4 % in the realistic outages), the particle filter's 79.7, 84.4 and 82.9
       against 92.3, 83.9 and 77.5 % (it lags the real drive's fixes by 6-8 m and carries that lag through the gaps,
       which the old rule's growth scale, 7 to 70, had taken for growth; its error at the outage's start is then that
-      lag, more than the mean its scale at a fix holds). ``s`` is the maximum of the 2-D Gaussian likelihood of the
-      gaps' changes (forgetting in ``memory_s``, on a grid of ``ln s`` over [:data:`MIN_GROWTH_SCALE`,
-      :data:`MAX_GROWTH_SCALE`]) under a weak log-normal prior at :attr:`scale` (:data:`GROWTH_PRIOR_SD`), so the growth
+      lag, which ``scale tr P0`` describes only where its own trace is its recent mean: a ratio of sums, the scale
+      is the mean squared residual over the mean own trace, and the particle filter's trace swings 100-fold, 0.03 to
+      2.9 m^2 at the fixes before the outages, while its residuals stay metres; before 14 of the real drive's 19
+      10 s outages ``scale tr P0`` was under the recent mean squared residual, two thirds of it at the median; what
+      was tried against it and why it is not landed: README, error estimates). ``s`` is the maximum of the 2-D
+      Gaussian likelihood of the gaps' changes (forgetting in ``memory_s``, on a grid of ``ln s`` over
+      [:data:`MIN_GROWTH_SCALE`, :data:`MAX_GROWTH_SCALE`]) under a weak log-normal prior at :attr:`scale`
+      (:data:`GROWTH_PRIOR_SD`), so the growth
       through an outage is checked against what the fixes at its end say; until a gap has been seen it is :attr:`scale`
       (an estimator found overconfident at its fixes is taken as overconfident in its growth: the EKF's first outage of
       a drive came before any gap; 79.7 against 82.2 % of its errors in outages within ``eph``). Both ways: after a long
