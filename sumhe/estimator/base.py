@@ -189,7 +189,9 @@ class StreamEstimator(ABC):
 
     def _match(self, fix: FixMeasurement, used: StateEstimate, east_m: float, north_m: float, trace_p: float) -> None:
         """Feed the consistency scales one used fix (:class:`InnovationScale`): after a gap, the own prediction at
-        its time (``east_m``, ``north_m``, own trace ``trace_p``); else the estimate that used it (``used``)."""
+        its time (``east_m``, ``north_m``, own trace ``trace_p``); else the estimate that used it (``used``); and
+        its residual from ``used`` (a gap's growth is measured by the innovation's change since the residual before
+        it)."""
         t0, spread0 = self._at_fix
         periods = (fix.t - t0) / self.frontend.period_s if math.isfinite(t0) else 0.0
         trace_r = fix.sigma_east_m**2 + fix.sigma_north_m**2
@@ -199,8 +201,9 @@ class StreamEstimator(ABC):
             spread0 = used.spread
         trace0 = min(spread0.var_east_m2 + spread0.var_north_m2, trace_p) if spread0 is not None else trace_p
         nu = np.array([fix.east_m - east_m, fix.north_m - north_m])
+        residual = np.array([fix.east_m - used.east_m, fix.north_m - used.north_m])
         drift = self._drift_m2(fix.t, used) if periods > self.consistency.gap_periods else 0.0
-        self.consistency.add(fix.t, nu, trace_r, trace0, trace_p - trace0, periods, drift)
+        self.consistency.add(fix.t, nu, trace_r, trace0, trace_p - trace0, periods, drift, residual)
 
     def _drift_m2(self, t: float, estimate: StateEstimate) -> float:
         """What the CAN calibration's drift makes of the position's error (trace, m^2) at ``t`` since the newest fix
