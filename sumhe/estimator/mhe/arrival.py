@@ -16,6 +16,7 @@ of their ranges per square-root minute.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -53,39 +54,39 @@ def prior_arrival(x: FloatArray, half_widths: FloatArray, n_dynamic: int) -> Arr
 def measured_bounds(model: SuModel, win: Window, k: int, theta_range: FloatArray, out_factor: FloatArray) -> FloatArray:
     """What the outputs of step ``k`` bound directly: half-widths per dynamic state (inf if nothing); speed and
     yaw rate through the CAN states' whole range, the azimuth and the position through the installation states'
-    (a box must not rely on their estimates)."""
+    (a box must not rely on their estimates). In plain floats (numpy's operations in the same order: the same
+    bits), 9 -> 7 us a call."""
     md = model.n_dynamic
-    out = np.full(md, np.inf)
-    avail, allow, x = win.avail[k], win.allow[k] * out_factor, win.x[k]
+    out = [math.inf] * md
+    avail, allow, x = win.avail[k].tolist(), (win.allow[k] * out_factor).tolist(), win.x[k].tolist()
+    rng = [0.0] * md + theta_range.tolist()  # the CAN states' ranges by state index
     (j_e, j_n), (i_e, i_n) = model.j_position, model.position
     for j, i in ((j_e, i_e), (j_n, i_n), (model.j_azimuth, model.i_phi)):
         if avail[j]:
             out[i] = allow[j]
-    i_v, i_k, i_b = model.i_v, model.i_scale, model.i_bias
+    i_v, i_k, i_b, i_w = model.i_v, model.i_scale, model.i_bias, model.i_omega
     if avail[model.j_can_speed]:
-        k_range = theta_range[i_k - md] if i_k is not None else 0.0
+        k_range = rng[i_k] if i_k is not None else 0.0
         k_low = (x[i_k] - k_range) if i_k is not None else 1.0
         out[i_v] = (allow[model.j_can_speed] + abs(x[i_v]) * k_range) / max(k_low, 1e-3)
     j_sog = model.j_gps_speed
     if j_sog is not None and avail[j_sog]:
         out[i_v] = min(out[i_v], allow[j_sog])
     if avail[model.j_can_yaw_rate]:
-        out[model.i_omega] = allow[model.j_can_yaw_rate] + (2.0 * theta_range[i_b - md] if i_b is not None else 0.0)
+        out[i_w] = allow[model.j_can_yaw_rate] + (2.0 * rng[i_b] if i_b is not None else 0.0)
         if model.i_gain is not None:
-            g_range = theta_range[model.i_gain - md]
-            out[model.i_omega] = (out[model.i_omega] + abs(x[model.i_omega]) * g_range) / max(
-                x[model.i_gain] - g_range, 1e-3
-            )
+            g_range = rng[model.i_gain]
+            out[i_w] = (out[i_w] + abs(x[i_w]) * g_range) / max(x[model.i_gain] - g_range, 1e-3)
     if model.i_azimuth_offset is not None and avail[model.j_azimuth]:
-        out[model.i_phi] += 2.0 * theta_range[model.i_azimuth_offset - md]
+        out[model.i_phi] += 2.0 * rng[model.i_azimuth_offset]
     if model.i_lever is not None:
         # the antenna anywhere in its range: the position it measures, and the course of its motion in a turn
-        lever = abs(x[model.i_lever]) + 2.0 * theta_range[model.i_lever - md]
+        lever = abs(x[model.i_lever]) + 2.0 * rng[model.i_lever]
         out[i_e] += lever
         out[i_n] += lever
         if avail[model.j_azimuth]:
-            out[model.i_phi] += math.atan2(lever * abs(x[model.i_omega]), max(abs(x[i_v]), MIN_COURSE_SPEED_MPS))
-    return out
+            out[model.i_phi] += math.atan2(lever * abs(x[i_w]), max(abs(x[i_v]), MIN_COURSE_SPEED_MPS))
+    return np.array(out)
 
 
 def arrival_update(
@@ -137,16 +138,25 @@ def arrival_update(
     return Arrival(alpha, win.x[drop].copy(), prior, weight)
 
 
+@functools.cache
+def _eps_eye(n: int) -> FloatArray:
+    """``EPS * np.eye(n)``, made once per size (read-only): two of the few-microsecond numpy calls of
+    :func:`reduce` saved."""
+    eye = EPS * np.eye(n)
+    eye.flags.writeable = False
+    return eye
+
+
 def reduce(
     H: FloatArray, g: FloatArray, na: int, x_new: FloatArray, nt: int, drift: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
     """Eliminate the first ``na`` variables (the dropped states) from the quadratic ``d' H d + 2 g' d``: the
     arrival cost's centre and weight on the new first state (its dynamic states, then the ``nt`` CAN states), the
     CAN states' variance grown by ``drift``."""
-    K = linalg.solve(H[:na, :na] + EPS * np.eye(na), np.column_stack([H[:na, na:], g[:na]]))
+    K = linalg.solve(H[:na, :na] + _eps_eye(na), np.concatenate([H[:na, na:], g[:na, None]], axis=1))
     Hr = H[na:, na:] - H[na:, :na] @ K[:, :-1]
     gr = g[na:] - H[na:, :na] @ K[:, -1]
-    Hr = 0.5 * (Hr + Hr.T) + EPS * np.eye(len(gr))
+    Hr = 0.5 * (Hr + Hr.T) + _eps_eye(len(gr))
     prior = x_new - linalg.solve(Hr, gr)
     if nt == 0:
         return prior, Hr

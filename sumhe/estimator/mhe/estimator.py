@@ -397,10 +397,9 @@ class MovingHorizonEstimator(StreamEstimator):
         """The offset and CAN noise bound of the transition into step ``j`` from the CAN data between it and the
         step before, the yaw rate between the two steps' own CAN outputs (:mod:`.preintegration`; none across a gap
         in the CAN data)."""
-        win, model = self.window, self.model
-        rows = slice(j - 1, j + 1)
-        ends = np.full((2, 2), np.nan)
-        ends[:, 1] = np.where(win.avail[rows, model.j_can_yaw_rate], win.y[rows, model.j_can_yaw_rate], np.nan)
+        win, model, yaw = self.window, self.model, self.model.j_can_yaw_rate
+        # in plain floats: 0.8 us, where a numpy array of them took 4 us (two calls an epoch)
+        ends = [[math.nan, float(win.y[i, yaw]) if win.avail[i, yaw] else math.nan] for i in (j - 1, j)]
         motion = step_motion(
             model, self.frontend.can, float(win.t[j - 1]), float(win.t[j]), win.x[j - 1], win.x[j], self.settings, ends
         )

@@ -23,6 +23,7 @@ from __future__ import annotations
 import bisect
 import itertools
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -80,7 +81,7 @@ def step_motion(
     x0: FloatArray,
     x1: FloatArray,
     settings: EstimationSettings,
-    ends: FloatArray | None = None,
+    ends: FloatArray | Sequence[Sequence[float]] | None = None,
 ) -> tuple[FloatArray, FloatArray] | None:
     """The offset (m states) and the CAN noise bound (dynamic states) of the transition from the step at ``t0``
     (state ``x0``) to the step at ``t1`` (state ``x1``, s): module docstring. The ends' CAN speed and yaw rate are

@@ -120,11 +120,11 @@ class WindowSolve:
         """State bounds Q (L-1 x m_dynamic): the q caps at the nominal period scaled with each step's length, or,
         where the step's motion comes from the CAN data (:mod:`.preintegration`), the smaller bound its errors
         leave; output bounds R (L x n): the steps' error allowances times ``out_factor`` (n; :mod:`.envelope`)."""
-        md = self.model.n_dynamic
         scale = (np.diff(win.t)[:, None] / period_s) ** self._q_power
-        caps = self.q_caps[None, :] * scale
-        can = win.q_step[1:, :md]
-        return np.where(np.isfinite(can), np.minimum(can, caps), caps), win.allow * out_factor[None, :]
+        # the CAN bounds are NaN where unknown, else finite and >= 0: fmin takes the caps there, the smaller one
+        # elsewhere (the where(isfinite, minimum, caps) it replaces, bit for bit, in one call instead of three)
+        Q = np.fmin(win.q_step[1:, : self.model.n_dynamic], self.q_caps[None, :] * scale)
+        return Q, win.allow * out_factor[None, :]
 
     def problem(
         self, win: Window, arrival: Arrival, capacity: int, Q: NDArray, R: NDArray, widen: float, period_s: float
@@ -142,14 +142,16 @@ class WindowSolve:
             avail = np.vstack([win.avail, np.zeros((pad, n), dtype=bool)])
             Q = np.vstack([Q, np.ones((pad, md))])
             R = np.vstack([R, np.ones((pad, n))])
+        if widen != 1.0:  # times 1.0 is every bound itself: the first attempt's arrays are used as they are
+            Q, R = Q * widen, R * widen
         return WindowProblem(
             n_steps=L,
             x=x,
             h=h,
             y=y,
             avail=avail,
-            out_bound=R * widen,
-            state_bound=Q * widen,
+            out_bound=R,
+            state_bound=Q,
             lo=self.lo,
             hi=self.hi,
             box_centre=arrival.box_centre,
