@@ -36,10 +36,12 @@ dynamic row gets Gaussian jitter of standard deviation ``K E M^(-1/d)``, ``E`` t
 particles in that row, ``M`` the particles, ``d`` the state's dimension (500 and 7: 0.082 E, about half the row's
 standard deviation). Without it the ~500 resamplings of a drive left duplicated particles: the cloud's position
 trace at the fixes swung 0.03-2.9 m^2, lower where the errors were larger, and the error estimate read from it
-could not follow the errors. With it, on the shared real drive, 94.0 / 92.5 / 80.7 % of the removed fixes within
-``eph`` (10 / 30 / 60 s outages; before 79.7 / 84.4 / 82.9 %), mean errors 3.50 / 4.83 / 7.51 m (before 6.17 /
-6.12 / 8.79); on the realistic drives 89.2 % with GPS (before 61.1 %) and 73.7 % in outages (before 81.8 %; with
-the filter's seed 1, 71.2 against 68.0 %)."""
+could not follow the errors, and its figures hung on the seed. With it, on the shared real drive (seeds 0 and 1),
+94.0 and 90.7 / 92.5 and 92.5 / 80.7 and 81.4 % of the removed fixes within ``eph`` (10 / 30 / 60 s outages;
+before 79.7 and 91.8 / 84.4 and 93.9 / 82.9 and 84.3 %), mean errors 3.50 and 3.72 / 4.83 and 4.79 / 7.51 and 7.56
+m (before 6.17 and 5.21 / 6.12 and 4.99 / 8.79 and 7.35); on the realistic drives 89.2 and 87.5 % with GPS (before
+61.1 and 51.6 %), 73.7 and 71.2 % in outages (before 81.8 and 68.0 %), mean errors with GPS 5.67 and 5.15 m
+(before 7.76 and 8.42), in outages 23.50 and 19.64 m (before 22.06 and 37.48)."""
 ROUGHENED_ROWS = (kin.E, kin.N, PHI)
 """The dynamic rows roughened: speed and yaw rate are set from the CAN inputs at every step, so jitter on them
 would be overwritten."""
