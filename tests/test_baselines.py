@@ -11,7 +11,7 @@ from sumhe.baseline import kinematics as kin
 from sumhe.baseline.ekf import Ekf, can_acceleration, lever_course_sigma, timed_speed_sigma
 from sumhe.baseline.imm import Imm, transition_matrix
 from sumhe.baseline.kinematics import Layout
-from sumhe.baseline.particle import ParticleFilter, systematic_resample
+from sumhe.baseline.particle import ROUGHENING_K, ParticleFilter, roughening_sigma, systematic_resample
 from sumhe.baseline.rts import Rts
 from sumhe.baseline.stream import Gate
 from sumhe.baseline.ukf import Ukf
@@ -308,6 +308,22 @@ def test_systematic_resampling_keeps_the_weights() -> None:
     assert sorted(idx.tolist()) == list(range(1000))
     with pytest.raises(ValueError, match="particles"):
         ParticleFilter(particles=3)
+
+
+def test_roughening_follows_gordon_salmond_smith() -> None:
+    np.testing.assert_allclose(roughening_sigma(np.array([6.0, 0.5]), 32, 5), ROUGHENING_K * np.array([3.0, 0.25]))
+
+
+def test_resampling_keeps_duplicated_particles_apart() -> None:
+    pf = ParticleFilter(particles=200, seed=3)
+    for s in linear_stream(2.0):
+        pf.push(s)
+    pf.w = np.zeros(pf.particles)
+    pf.w[:5] = 0.2
+    span = np.ptp(pf.X[:3, :5], axis=1)
+    pf._resample()
+    assert len(np.unique(pf.X[0])) == pf.particles and len(np.unique(pf.X[2])) == pf.particles
+    assert np.all(np.ptp(pf.X[:3], axis=1) < 2 * span)
 
 
 # ---- IMM --------------------------------------------------------------------------------------------------------

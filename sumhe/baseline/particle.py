@@ -6,7 +6,8 @@ Each particle is a full state of :mod:`.kinematics`. CAN speed and yaw rate driv
 azimuth, bias and scale with the densities of :class:`~sumhe.baseline.kinematics.NoiseSettings` (its speed, yaw-rate
 and CAN measurement noises are not used). GNSS position and course weight the particles with Gaussian
 likelihoods; systematic resampling when the effective sample size falls below half the particles, with
-Liu-West kernel shrinkage of the static bias and scale (without it their particles collapse onto a few values).
+Liu-West kernel shrinkage of the static bias and scale (without it their particles collapse onto a few values)
+and roughening of the position and azimuth (without it the cloud, and the error estimate read from it, collapses).
 The gate works on the particle cloud's mean and covariance; a re-acquisition shifts the cloud onto the fix.
 """
 
@@ -29,6 +30,27 @@ LIU_WEST_DISCOUNT = 0.98
 """Discount factor of the Liu-West kernel (Liu and West 2001) for the static rows at resampling: the resampled
 bias and scale of each particle are shrunk towards their mean by ``a = (3 d - 1) / (2 d)`` and jittered with
 variance ``(1 - a^2)`` times theirs, which keeps their mean and variance but keeps duplicated particles apart."""
+ROUGHENING_K = 0.2
+"""Tuning constant of roughening (Gordon, Salmond and Smith 1993, section 4.2, their value): after resampling each
+dynamic row gets Gaussian jitter of standard deviation ``K E M^(-1/d)``, ``E`` the span (max - min) of the resampled
+particles in that row, ``M`` the particles, ``d`` the state's dimension (500 and 7: 0.082 E, about half the row's
+standard deviation). Without it the ~500 resamplings of a drive left duplicated particles: the cloud's position
+trace at the fixes swung 0.03-2.9 m^2, lower where the errors were larger, and the error estimate read from it
+could not follow the errors, and its figures hung on the seed. With it, on the shared real drive (seeds 0 and 1),
+94.0 and 90.7 / 92.5 and 92.5 / 80.7 and 81.4 % of the removed fixes within ``eph`` (10 / 30 / 60 s outages;
+before 79.7 and 91.8 / 84.4 and 93.9 / 82.9 and 84.3 %), mean errors 3.50 and 3.72 / 4.83 and 4.79 / 7.51 and 7.56
+m (before 6.17 and 5.21 / 6.12 and 4.99 / 8.79 and 7.35); on the realistic drives 89.2 and 87.5 % with GPS (before
+61.1 and 51.6 %), 73.7 and 71.2 % in outages (before 81.8 and 68.0 %), mean errors with GPS 5.67 and 5.15 m
+(before 7.76 and 8.42), in outages 23.50 and 19.64 m (before 22.06 and 37.48)."""
+ROUGHENED_ROWS = (kin.E, kin.N, PHI)
+"""The dynamic rows roughened: speed and yaw rate are set from the CAN inputs at every step, so jitter on them
+would be overwritten."""
+
+
+def roughening_sigma(spread: FloatArray, particles: int, dim: int) -> FloatArray:
+    """Standard deviation of the roughening jitter per row, ``K E M^(-1/d)`` (Gordon et al. 1993), from the
+    particles' span ``spread`` (max - min) in each row."""
+    return ROUGHENING_K * spread * particles ** (-1.0 / dim)
 
 
 def systematic_resample(weights: FloatArray, rng: np.random.Generator) -> FloatArray:
@@ -126,7 +148,8 @@ class ParticleFilter(RecursiveEstimator):
         return Pending(nu, S, commit)
 
     def _resample(self) -> None:
-        """Systematic resampling; the static rows (bias, scale, gain) get Liu-West kernel shrinkage."""
+        """Systematic resampling; the static rows (bias, scale, gain) get Liu-West kernel shrinkage, the position and
+        azimuth roughening."""
         rows = list(self.layout.sensor_rows)
         mean = self.X[rows] @ self.w
         var = np.square(self.X[rows] - mean[:, None]) @ self.w
@@ -136,6 +159,15 @@ class ParticleFilter(RecursiveEstimator):
         jitter = np.sqrt((1.0 - a * a) * var)[:, None] * self.rng.standard_normal((len(rows), self.particles))
         self.X[rows] = a * self.X[rows] + (1.0 - a) * mean[:, None] + jitter
         self.w = np.full(self.particles, 1.0 / self.particles)
+        self._roughen()
+
+    def _roughen(self) -> None:
+        """Roughening of the resampled position and azimuth (spans about the mean, azimuth differences wrapped)."""
+        rows = list(ROUGHENED_ROWS)
+        d = kin.state_difference(self.X, kin.weighted_mean(self.X, self.w))[rows]
+        sigma = roughening_sigma(d.max(axis=1) - d.min(axis=1), self.particles, self.layout.n)
+        self.X[rows] += sigma[:, None] * self.rng.standard_normal((len(rows), self.particles))
+        kin.wrap_state(self.X)
 
     def _inflate(self, kind: str, nu: FloatArray, R: FloatArray) -> None:
         rows = list(kin.FIX_ROWS[kind])
