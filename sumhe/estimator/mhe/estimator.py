@@ -45,7 +45,7 @@ from sumhe.estimator.batch import model_for, nominal_parameters
 from sumhe.estimator.mhe.arrival import Arrival, arrival_update, prior_arrival
 from sumhe.estimator.mhe.envelope import OutputEnvelope
 from sumhe.estimator.mhe.gate import GATE_RESET_S, REACQUIRE_FIXES, FixGate
-from sumhe.estimator.mhe.newest import NewestError, half_widths
+from sumhe.estimator.mhe.newest import NewestError
 from sumhe.estimator.mhe.outputs import can_outputs, fix_outputs, step_outputs
 from sumhe.estimator.mhe.preintegration import step_motion
 from sumhe.estimator.mhe.problem import SolveResult, step_jacobians
@@ -423,21 +423,9 @@ class MovingHorizonEstimator(StreamEstimator):
         model, win = self.model, self.window
         h = t - float(win.t[-1])
         q = self.solve.q_caps * (max(h, 0.0) / self.period_s) ** self._q_power
-        alpha, P = self.newest.at(np.asarray(x), h, q)
-        bound_east, bound_north = half_widths(model, alpha)
+        (bound_east, bound_north), spread = self.newest.at(x, h, q)
         i_e, i_n = model.position
         return StateEstimate(
-            t=t,
-            east_m=float(x[i_e]),
-            north_m=float(x[i_n]),
-            azimuth_rad=float(x[model.i_phi]) % (2.0 * math.pi),
-            speed_mps=float(x[model.i_v]),
-            yaw_rate_rps=float(x[model.i_omega]),
-            gps=status,
-            mode=mode,
-            bound_east_m=bound_east,
-            bound_north_m=bound_north,
-            window=len(win),
-            solve_ms=self.elapsed_ms(),
-            spread=self.newest.spread(P),
-        )
+            t, float(x[i_e]), float(x[i_n]), float(x[model.i_phi]) % (2.0 * math.pi), float(x[model.i_v]),
+            float(x[model.i_omega]), status, mode, bound_east, bound_north, len(win), self.elapsed_ms(), spread
+        )  # fmt: skip
