@@ -103,7 +103,9 @@ class MovingHorizonEstimator(StreamEstimator):
         self._pending: tuple[float, GpsStatus, Future[tuple[NDArray[np.float64], str]]] | None = None
         self._unsolved = False
         self._step_jac = step_jacobians(model)
-        self._q_power = np.array(model.q_power)
+        self._q_power = np.array(model.q_power, dtype=float)
+        """The powers of the state bounds' growth with a step's length, as floats: an int array is cast at every
+        CAN-rate estimate's bounds (0.84 -> 0.62 us with floats; the same bits)."""
         md = model.n_dynamic
         self._theta_range = (self.solve.hi[md:] - self.solve.lo[md:]) / 2.0
         drift = np.square(self.policy.theta_drift * self._theta_range) / 60.0
@@ -160,7 +162,8 @@ class MovingHorizonEstimator(StreamEstimator):
         return self._epoch(epoch.t, epoch.fix)
 
     def on_can(self, tick: CanTick) -> StateEstimate | None:
-        self._collect(wait=False)
+        if self._pending is not None:
+            self._collect(wait=False)
         if not tick.output or not len(self.window):
             return None
         return self._estimate(self.propagation.to(tick.t, self.frontend.can), tick.t, self._status, "can")
