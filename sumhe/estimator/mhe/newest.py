@@ -61,7 +61,7 @@ Carry = Callable[[FloatArray, FloatArray, float, FloatArray, FloatArray, FloatAr
 """``(x_p, x_n, h, P, q_var, d_var) -> (A, P')``: see :func:`carry_function`."""
 
 
-def _carried(
+def _carry_expressions(
     model: SuModel, xp: ca.SX, xn: ca.SX, h: ca.SX, P: ca.SX, q_var: ca.SX, d_var: ca.SX
 ) -> tuple[ca.SX, ca.SX]:
     """The expressions of :func:`carry_function`: ``A`` and ``P'``."""
@@ -84,7 +84,7 @@ def carry_function(model: SuModel) -> Carry:
     m, md = model.n_states, model.n_dynamic
     xp, xn, h = ca.SX.sym("xp", m), ca.SX.sym("xn", m), ca.SX.sym("h")
     P, q_var, d_var = ca.SX.sym("P", m, m), ca.SX.sym("q_var", md), ca.SX.sym("d_var", m)
-    A, moved = _carried(model, xp, xn, h, P, q_var, d_var)
+    A, moved = _carry_expressions(model, xp, xn, h, P, q_var, d_var)
     f = NumpyFunction(
         ca.Function("carry", [xp, xn, h, P, q_var, d_var], [ca.vertcat(ca.vec(ca.densify(A)), ca.vec(moved))])
     )
@@ -108,7 +108,7 @@ def at_function(model: SuModel, scale: float) -> NumpyFunction:
     m, md = model.n_states, model.n_dynamic
     xp, xn, h = ca.SX.sym("xp", m), ca.SX.sym("xn", m), ca.SX.sym("h")
     P, q, drift = ca.SX.sym("P", m, m), ca.SX.sym("q", md), ca.SX.sym("drift", m)
-    A, moved = _carried(model, xp, xn, h, P, (scale * q) ** 2, drift * h)  # ** 2: x * x, as np.square
+    A, moved = _carry_expressions(model, xp, xn, h, P, (scale * q) ** 2, drift * h)  # ** 2: x * x, as np.square
     (e, n), v, phi = model.position, model.i_v, model.i_phi
     picked = [moved[e, e], moved[n, n], moved[e, n], moved[v, v], moved[phi, phi], 2 * q[e], 2 * q[n]]
     out = ca.vertcat(ca.vec(ca.densify(ca.fabs(A[:md, :md]))), *picked)
@@ -230,9 +230,11 @@ class NewestError:
             grown = (F @ self.alpha).tolist()
             lim_e, lim_n = self._limits_en
             east, north = grown[i_e] + q2_e, grown[i_n] + q2_n
+            # np.minimum's choice (a NaN kept), as grow_box's caller takes it
             box = (_known(lim_e if east > lim_e else east), _known(lim_n if north > lim_n else north))
         else:
             box = half_widths(self.model, np.minimum(grow_box(self.alpha, F, q), self.limits))
+        # Spread.from_covariance of the five entries, on plain floats
         spread = Spread(var_e, var_n, cov_en, math.sqrt(max(var_v, 0.0)), math.sqrt(max(var_phi, 0.0)))
         return box, spread
 
