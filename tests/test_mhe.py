@@ -18,10 +18,12 @@ from sumhe.estimator.bounds import noise_bounds
 from sumhe.estimator.grid import build_grid
 from sumhe.estimator.mhe import MovingHorizonEstimator
 from sumhe.estimator.mhe.gate import GATE_RESET_S, REACQUIRE_FIXES, FixGate
+from sumhe.estimator.mhe.newest import grow_box, half_widths
 from sumhe.estimator.mhe.nlp import NlpSolver
 from sumhe.estimator.mhe.problem import WindowProblem
 from sumhe.estimator.mhe.sqp import SqpSolver
 from sumhe.estimator.registry import make_estimator
+from sumhe.estimator.uncertainty import Spread
 from sumhe.frontend.fixes import LocalFix
 from sumhe.frontend.stream import FixMeasurement
 from sumhe.io.fixtime import stamp_fix
@@ -436,3 +438,25 @@ def test_merging_steps_in_a_long_outage_does_not_move_the_estimate() -> None:
     assert len(common) > 500
     gap = [math.hypot(runs[0][t].east_m - runs[1][t].east_m, runs[0][t].north_m - runs[1][t].north_m) for t in common]
     assert max(gap) < 0.2
+
+
+@pytest.mark.parametrize("unknown", [None, "i_omega", "i_v"])
+def test_can_rate_error_is_the_full_carry_to_the_bit(stream: list, unknown: str | None) -> None:
+    # NewestError.at (the compiled carry's few entries a CAN-rate estimate needs, the newest state set once an
+    # epoch) against the full carry and grow_box it replaces: with a known box and with a dynamic state unknown
+    est = MovingHorizonEstimator(SETTINGS)
+    for item in stream[: len(stream) // 2]:
+        est.push(item)
+    newest, model = est.newest, est.model
+    assert newest.alpha is not None and newest.P is not None and newest.x is not None
+    if unknown is not None:
+        newest.alpha[getattr(model, unknown)] = np.inf
+        newest._prepare()
+    x = est.propagation.x
+    for h in (0.013, 0.05, 0.09):
+        q = est.solve.q_caps * (h / est.period_s) ** np.array(model.q_power)
+        A, P = newest._carried(newest.x, np.asarray(x), h, q)
+        box, spread = newest.at(x, h, q)
+        assert box == half_widths(model, np.minimum(grow_box(newest.alpha, A, q), newest.limits))
+        assert spread == Spread.from_covariance(P, *model.position, model.i_v, model.i_phi)
+    assert newest.at(x, 0.0, q) == (half_widths(model, newest.alpha), newest.spread(newest.P))

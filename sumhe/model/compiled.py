@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import casadi as ca
 import numpy as np
@@ -39,6 +39,17 @@ class NumpyFunction:
                 dst[:] = src
         self._trigger()
         return self._res[0].copy()
+
+    def bind(self, i: int, value: NDArray[np.float64] | Sequence[float] | float) -> None:
+        """Set argument ``i`` for the calls of :meth:`run` (an argument the same over many calls is set once, not at
+        every call)."""
+        self._args[i][:] = value.ravel(order="F") if isinstance(value, np.ndarray) else value
+
+    def run(self) -> NDArray[np.float64]:
+        """The first output for the arguments set by :meth:`bind` (and the last call): the result buffer itself,
+        overwritten by the next call (no copy)."""
+        self._trigger()
+        return self._res[0]
 
 
 def _dense(f: ca.Function, n_rows: int) -> JacobianFunction:

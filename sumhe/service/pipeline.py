@@ -171,9 +171,9 @@ class Pipeline:
     def push(self, sample: Sample) -> list[Estimate]:
         """Feed one sample; returns the estimates it produced (possibly none)."""
         verdict = self.guard.check(sample)
-        if verdict == "drop":
-            return []
-        if verdict == "reset":
+        if verdict != "ok":
+            if verdict == "drop":
+                return []
             self.estimator.reset()
         item: LocalFix | CanSample
         if isinstance(sample, GnssFix):
@@ -184,7 +184,10 @@ class Pipeline:
         frame = self.converter.frame
         if frame is None:
             return []
-        out = [to_estimate(s, frame, self._up_m) for s in self.estimator.push(item)]
+        states = self.estimator.push(item)
+        if not states:  # two CAN samples in three (the yaw rate's) answer nothing
+            return []
+        out = [to_estimate(s, frame, self._up_m) for s in states]
         self._count(out)
         return out
 

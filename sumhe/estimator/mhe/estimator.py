@@ -45,7 +45,7 @@ from sumhe.estimator.batch import model_for, nominal_parameters
 from sumhe.estimator.mhe.arrival import Arrival, arrival_update, prior_arrival
 from sumhe.estimator.mhe.envelope import OutputEnvelope
 from sumhe.estimator.mhe.gate import GATE_RESET_S, REACQUIRE_FIXES, FixGate
-from sumhe.estimator.mhe.newest import NewestError, half_widths
+from sumhe.estimator.mhe.newest import NewestError
 from sumhe.estimator.mhe.outputs import can_outputs, fix_outputs, step_outputs
 from sumhe.estimator.mhe.preintegration import step_motion
 from sumhe.estimator.mhe.problem import SolveResult, step_jacobians
@@ -103,7 +103,9 @@ class MovingHorizonEstimator(StreamEstimator):
         self._pending: tuple[float, GpsStatus, Future[tuple[NDArray[np.float64], str]]] | None = None
         self._unsolved = False
         self._step_jac = step_jacobians(model)
-        self._q_power = np.array(model.q_power)
+        self._q_power = np.array(model.q_power, dtype=float)
+        """The powers of the state bounds' growth with a step's length, as floats: an int array is cast at every
+        CAN-rate estimate's bounds (0.84 -> 0.62 us with floats; the same bits)."""
         md = model.n_dynamic
         self._theta_range = (self.solve.hi[md:] - self.solve.lo[md:]) / 2.0
         drift = np.square(self.policy.theta_drift * self._theta_range) / 60.0
@@ -160,7 +162,8 @@ class MovingHorizonEstimator(StreamEstimator):
         return self._epoch(epoch.t, epoch.fix)
 
     def on_can(self, tick: CanTick) -> StateEstimate | None:
-        self._collect(wait=False)
+        if self._pending is not None:
+            self._collect(wait=False)
         if not tick.output or not len(self.window):
             return None
         return self._estimate(self.propagation.to(tick.t, self.frontend.can), tick.t, self._status, "can")
@@ -422,21 +425,9 @@ class MovingHorizonEstimator(StreamEstimator):
         model, win = self.model, self.window
         h = t - float(win.t[-1])
         q = self.solve.q_caps * (max(h, 0.0) / self.period_s) ** self._q_power
-        alpha, P = self.newest.at(np.asarray(x), h, q)
-        bound_east, bound_north = half_widths(model, alpha)
+        (bound_east, bound_north), spread = self.newest.at(x, h, q)
         i_e, i_n = model.position
         return StateEstimate(
-            t=t,
-            east_m=float(x[i_e]),
-            north_m=float(x[i_n]),
-            azimuth_rad=float(x[model.i_phi]) % (2.0 * math.pi),
-            speed_mps=float(x[model.i_v]),
-            yaw_rate_rps=float(x[model.i_omega]),
-            gps=status,
-            mode=mode,
-            bound_east_m=bound_east,
-            bound_north_m=bound_north,
-            window=len(win),
-            solve_ms=self.elapsed_ms(),
-            spread=self.newest.spread(P),
-        )
+            t, float(x[i_e]), float(x[i_n]), float(x[model.i_phi]) % (2.0 * math.pi), float(x[model.i_v]),
+            float(x[model.i_omega]), status, mode, bound_east, bound_north, len(win), self.elapsed_ms(), spread
+        )  # fmt: skip
