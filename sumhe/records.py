@@ -21,15 +21,17 @@ T = TypeVar("T")
 def quick_init(cls: type[T]) -> type[T]:
     """Give the frozen slotted dataclass ``cls`` (decorated with it on top of ``@dataclass``) an ``__init__`` of the
     same signature that sets its slots directly. ValueError for a class it does not fit: not a frozen slotted
-    dataclass, or with ``__post_init__``, init-only, ``init=False`` or default-factory fields."""
+    dataclass, or with ``__post_init__``, init-only or class-variable pseudo-fields, ``init=False``, keyword-only or
+    default-factory fields."""
     params = getattr(cls, "__dataclass_params__", None)
     if params is None or not params.frozen or "__slots__" not in cls.__dict__ or hasattr(cls, "__post_init__"):
         raise ValueError(f"quick_init: {cls.__name__} is not a frozen slotted dataclass without __post_init__")
     fields = dataclasses.fields(cls)
     if len(fields) != len(cls.__dataclass_fields__) or any(  # type: ignore[attr-defined]
-        not f.init or f.default_factory is not dataclasses.MISSING for f in fields
+        not f.init or getattr(f, "kw_only", False) is True or f.default_factory is not dataclasses.MISSING
+        for f in fields
     ):
-        raise ValueError(f"quick_init: {cls.__name__} has init-only, init=False or default-factory fields")
+        raise ValueError(f"quick_init: {cls.__name__} has fields its positional __init__ cannot take")
     names = [f.name for f in fields]
     scope = {f"_set_{n}": cls.__dict__[n].__set__ for n in names}
     scope.update({f"_default_{f.name}": f.default for f in fields if f.default is not dataclasses.MISSING})
@@ -38,6 +40,5 @@ def quick_init(cls: type[T]) -> type[T]:
     exec(f"def __init__(self, {', '.join(args)}) -> None:{body}", scope)  # as dataclasses does
     init = scope["__init__"]
     init.__qualname__ = f"{cls.__qualname__}.__init__"
-    init.__doc__ = cls.__init__.__doc__
-    cls.__init__ = init  # type: ignore[misc]
+    cls.__init__ = init  # type: ignore[method-assign]
     return cls

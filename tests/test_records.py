@@ -66,6 +66,10 @@ def test_refuses_what_it_does_not_fit() -> None:
         def __post_init__(self) -> None:
             pass
 
-    for cls in (NoSlots, NotFrozen, Factory, Post):
+    @dataclasses.dataclass(frozen=True, slots=True, kw_only=True)
+    class KeywordOnly:
+        a: float
+
+    for cls in (NoSlots, NotFrozen, Factory, Post, KeywordOnly):
         with pytest.raises(ValueError):
             quick_init(cls)
