@@ -12,6 +12,8 @@ import datetime as dt
 from dataclasses import dataclass
 from typing import Literal
 
+from sumhe.records import quick_init
+
 CanQuantity = Literal[
     "speed",
     "yaw_rate",
@@ -39,6 +41,7 @@ GNSS_QUANTITIES: tuple[str, ...] = GnssQuantity.__args__  # type: ignore[attr-de
 GpsStatus = Literal["ok", "outage", "rejected"]
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class GnssFix:
     """One GNSS epoch: the sentences of one UTC time of fix assembled into one fix.
@@ -67,6 +70,7 @@ class GnssFix:
     antenna: int = 1
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class CanSample:
     """One decoded CAN quantity, in SI units, at the frame's timestamp ``t`` (s)."""
@@ -80,6 +84,7 @@ Sample = GnssFix | CanSample
 """What every source (serial, CAN bus, replay) yields, in time order per source."""
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class ErrorEstimate:
     """An estimate's error figures as gpsd defines them (95 % confidence): ``eph_m`` the radius (m) of the circle
@@ -100,6 +105,7 @@ class ErrorEstimate:
     sigma_north_m: float
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class Estimate:
     """One position estimate as the sinks send it.

@@ -42,9 +42,11 @@ from sumhe.frontend.fixes import LocalFix
 from sumhe.frontend.stream import CanTick, Epoch, FixMeasurement, FrontEnd, Tally
 from sumhe.geo import LocalFrame
 from sumhe.messages import CanSample, Estimate, GpsStatus
+from sumhe.records import quick_init
 from sumhe.settings import EstimationSettings
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class StateEstimate:
     """An estimator's answer in the local frame: east/north (m), azimuth (rad, clockwise from north),

@@ -23,6 +23,7 @@ import numpy as np
 
 from sumhe.floats import interp
 from sumhe.messages import ErrorEstimate
+from sumhe.records import quick_init
 
 CONFIDENCE = 0.95
 K1 = NormalDist().inv_cdf(0.5 + 0.5 * CONFIDENCE)
@@ -31,6 +32,7 @@ K2 = math.sqrt(-2.0 * math.log1p(-CONFIDENCE))
 """Sigmas of a 2-D circular 95 % radius: the square root of the chi-square (2 dof) 95 % quantile (2.45)."""
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class Spread:
     """1-sigma figures of an estimate: the position covariance (east variance, north variance, their covariance;
@@ -134,18 +136,11 @@ def gpsd_errors(spread: Spread) -> ErrorEstimate:
     """gpsd's error figures of a spread (module docstring)."""
     major, minor, orient = spread.ellipse()
     sigma_east, sigma_north = math.sqrt(max(spread.var_east_m2, 0.0)), math.sqrt(max(spread.var_north_m2, 0.0))
+    # positional (eph, epx, epy, eps, epd, major, minor, orient, sigma east, north): 0.39 against 0.65 us by keywords
     return ErrorEstimate(
-        eph_m=radius_95(major, minor),
-        epx_m=K1 * sigma_east,
-        epy_m=K1 * sigma_north,
-        eps_mps=K1 * spread.sigma_speed_mps,
-        epd_rad=min(K1 * spread.sigma_azimuth_rad, math.pi),
-        sigma_major_m=major,
-        sigma_minor_m=minor,
-        orient_rad=orient,
-        sigma_east_m=sigma_east,
-        sigma_north_m=sigma_north,
-    )
+        radius_95(major, minor), K1 * sigma_east, K1 * sigma_north, K1 * spread.sigma_speed_mps,
+        min(K1 * spread.sigma_azimuth_rad, math.pi), major, minor, orient, sigma_east, sigma_north
+    )  # fmt: skip
 
 
 INNOVATION_MEMORY_S = 300.0
