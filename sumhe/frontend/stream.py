@@ -132,6 +132,11 @@ def can_limits(settings: EstimationSettings) -> dict[str, float]:
     return {q: vehicle.max_speed_mps if q == "speed" else 2.0 * vehicle.max_yaw_rate_rps for q in CAN_USED}
 
 
+_new_tuple = tuple.__new__
+"""Makes a :class:`CanTick` from the tuple of its fields without the named tuple's own ``__new__`` (a Python
+function: 170 -> 80 ns a CAN sample)."""
+
+
 class FrontEnd:
     """Samples -> :class:`Epoch` and :class:`CanTick` events, for one estimator (see the module docstring).
 
@@ -187,7 +192,8 @@ class FrontEnd:
         """The events of a CAN sample (none for a quantity not in :data:`CAN_USED`). The front-end's hot path (31 502
         of the bundled drive's 33 603 samples): the quantity's limit looked up once (it says whether the quantity is
         used, too), the settings read once (:meth:`reset`), the missed epochs asked for only when one is due
-        (:meth:`EpochClock.missed_due`): 2.0 -> 1.4 us a sample."""
+        (:meth:`EpochClock.missed_due`): 1.18 -> 0.85 us a CAN sample (the learner off; median of 3 alternating
+        pairs, each the minimum of 9 passes over the drive)."""
         q, value, stamp = sample.quantity, sample.value, sample.t
         limit = self._limits.get(q)
         if limit is None:
@@ -212,7 +218,7 @@ class FrontEnd:
             self.aligner.add_can_speed(t, value)
         if not self.started:
             return []
-        tick = CanTick(t, stamp, q, value, q == OUTPUT_QUANTITY)
+        tick = _new_tuple(CanTick, (t, stamp, q, value, q == OUTPUT_QUANTITY))
         clock = self.clock
         t_fix_clock = t - clock.delay_s
         if not clock.missed_due(t_fix_clock):
