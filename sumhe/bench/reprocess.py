@@ -39,7 +39,7 @@ from sumhe.bench.outages import (
 from sumhe.errors import ConfigError
 from sumhe.estimator.base import Estimator
 from sumhe.geo import LocalFrame
-from sumhe.io.replay import RecordedDrive, read_ahead
+from sumhe.io.replay import RecordedDrive, chunks
 from sumhe.io.udp import json_line
 from sumhe.messages import Estimate
 from sumhe.service.histogram import Histogram
@@ -278,20 +278,22 @@ def replay_drive(
     first_t = last_t = math.nan
     next_report = -math.inf
     wall0, cpu0 = time.perf_counter(), time.process_time()
-    push, keep, write = pipeline.push, cut.keep, recorder.write
+    push, write = pipeline.push, recorder.write
+    keep = cut.keep if cut.windows else None  # no outage: no call a sample to be told so
     with _made_so_far_frozen():
         try:
-            for sample in read_ahead(drive.samples(), READ_AHEAD):
-                last_t = sample.t
-                if keep(sample):
-                    estimates = push(sample)
-                    if estimates:
-                        write(estimates, last_t)
-                if last_t >= next_report:  # the first sample, then once a minute of data
-                    first_t = last_t if math.isnan(first_t) else first_t
-                    next_report = last_t + PROGRESS_EVERY_S
-                    if progress is not None:
-                        progress(last_t - first_t)
+            for chunk in chunks(drive.samples(), READ_AHEAD):
+                for sample in chunk:
+                    last_t = sample.t
+                    if keep is None or keep(sample):
+                        estimates = push(sample)
+                        if estimates:
+                            write(estimates, last_t)
+                    if last_t >= next_report:  # the first sample, then once a minute of data
+                        first_t = last_t if math.isnan(first_t) else first_t
+                        next_report = last_t + PROGRESS_EVERY_S
+                        if progress is not None:
+                            progress(last_t - first_t)
             write(pipeline.finish(), math.inf)
         finally:
             recorder.flush()  # an interrupted replay keeps what it estimated, as before the batches

@@ -97,9 +97,9 @@ def speed_lag(
     tf, g = tf[ok], np.abs(g[ok])
     if len(g) < MIN_PAIRS:
         return None
-    can = np.abs(np.interp(tf[None, :] - lags[:, None], tc, c))
-    scale = np.einsum("ij,j->i", can, g) / np.maximum(np.einsum("ij,ij->i", can, can), 1e-12)
-    rss = np.sum(np.square(g[None, :] - scale[:, None] * can), axis=1)
+    can = np.interp(tf[None, :] - lags[:, None], tc, c)
+    np.abs(can, out=can)
+    rss = _grid_rss(can, g)
     lag, std = _refine(lags, rss, len(g), 2)
     i = int(np.argmin(rss))
     if math.isfinite(std):
@@ -109,6 +109,16 @@ def speed_lag(
     ahead, behind = (np.abs(np.interp(tf - lag + d, tc, c)) for d in (-SLOPE_S, SLOPE_S))
     std = max(std, _linear_std(rms, scale_lag * (ahead - behind) / (2.0 * SLOPE_S)))
     return LagFit(lag, std, scale_lag, 0.0, rms, len(g))
+
+
+def _grid_rss(can: NDArray[np.float64], g: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The residual sum of squares of ``g = scale * can[i]`` for each row ``i`` (its own least-squares scale), from
+    the products ``can.g`` and ``can.can``: ``g.g - scale (2 can.g - scale can.can)``, without the residuals' lags x
+    fixes array (the clock learner's 21 refits over the bundled drive 23 -> 14 ms; the sums differ from the
+    residuals' by 1e-10 of themselves there, the two smallest from each other by 7e-3 at least)."""
+    cg, cc = np.einsum("ij,j->i", can, g), np.einsum("ij,ij->i", can, can)
+    scale = cg / np.maximum(cc, 1e-12)
+    return float(g @ g) - scale * (2.0 * cg - scale * cc)  # type: ignore[no-any-return]
 
 
 def _speed_fit(

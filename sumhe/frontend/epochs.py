@@ -90,13 +90,18 @@ class EpochClock:
             self._delays.append(newest_can - t)
             self.delay_s = max(self._delays)
 
+    def missed_due(self, t_fix_clock: float) -> bool:
+        """Whether an epoch is missed by ``t_fix_clock`` (s): :meth:`missed` would give one."""
+        last = self.last_epoch
+        return (
+            last is not None and t_fix_clock - last > MISSED_AFTER_PERIODS * self.period_s and len(self._intervals) >= 2
+        )
+
     def missed(self, t_fix_clock: float) -> list[float]:
         """Times of the epochs GNSS missed up to ``t_fix_clock`` (s), each a period after the last; they become the
         last epoch."""
         out: list[float] = []
-        if len(self._intervals) < 2:
-            return out
-        while self.last_epoch is not None and t_fix_clock - self.last_epoch > MISSED_AFTER_PERIODS * self.period_s:
+        while self.missed_due(t_fix_clock) and self.last_epoch is not None:
             self.last_epoch += self.period_s
             out.append(self.last_epoch)
         return out

@@ -125,6 +125,18 @@ class CanTick(NamedTuple):
     output: bool
 
 
+def can_limits(settings: EstimationSettings) -> dict[str, float]:
+    """The largest magnitude taken of each CAN quantity of :data:`CAN_USED` (m/s, rad/s; the yaw rate's with a
+    margin of two)."""
+    vehicle = settings.vehicle
+    return {q: vehicle.max_speed_mps if q == "speed" else 2.0 * vehicle.max_yaw_rate_rps for q in CAN_USED}
+
+
+_new_tuple = tuple.__new__
+"""Makes a :class:`CanTick` from the tuple of its fields without the named tuple's own ``__new__`` (a Python
+function: 170 -> 80 ns a CAN sample)."""
+
+
 class FrontEnd:
     """Samples -> :class:`Epoch` and :class:`CanTick` events, for one estimator (see the module docstring).
 
@@ -137,6 +149,7 @@ class FrontEnd:
         self.uses_gps_speed = uses_gps_speed and settings.gnss.use_speed
         self.fills_missed = True
         """Whether fixes that come after their epoch was declared missed fill it (:meth:`_after_missed`)."""
+        self._limits = can_limits(settings)
         self.reset()
 
     def reset(self) -> None:
@@ -146,6 +159,7 @@ class FrontEnd:
         self.can = CanBuffer()
         self.clock = EpochClock(gnss.period_s)
         self.aligner = ClockLearner(gnss.time_offset_s) if gnss.learn_time_offset else None
+        self._delay_s = self.settings.can.delay_s
         self.time_offset_s = gnss.time_offset_s
         self.started = False
         self._t_last = -math.inf
@@ -162,7 +176,7 @@ class FrontEnd:
     def push(self, sample: object) -> list[Epoch | CanTick]:
         """One sample in (time-ordered), its events out."""
         if isinstance(sample, CanSample):
-            return self._can(sample) if sample.quantity in CAN_USED else []
+            return self._can(sample)
         if isinstance(sample, LocalFix):
             return self._fix(sample)
         self.tally.count("bad_samples", "not a LocalFix or CanSample: %s", type(sample).__name__)
@@ -175,30 +189,42 @@ class FrontEnd:
     # ---- CAN --------------------------------------------------------------------------------------------------
 
     def _can(self, sample: CanSample) -> list[Epoch | CanTick]:
+        """The events of a CAN sample (none for a quantity not in :data:`CAN_USED`). The front-end's hot path (31 502
+        of the bundled drive's 33 603 samples): the quantity's limit looked up once (it says whether the quantity is
+        used, too), the settings read once (:meth:`reset`), the missed epochs asked for only when one is due
+        (:meth:`EpochClock.missed_due`): 1.18 -> 0.85 us a CAN sample (the learner off; median of 3 alternating
+        pairs, each the minimum of 9 passes over the drive)."""
         q, value, stamp = sample.quantity, sample.value, sample.t
+        limit = self._limits.get(q)
+        if limit is None:
+            return []
         if not (isinstance(stamp, _NUMBER) and isinstance(value, _NUMBER) and math.isfinite(stamp)):
             self.tally.count("bad_samples", "CAN %s sample with a non-finite time or value", q)
             return []
-        settings = self.settings
-        t = stamp - settings.can.delay_s
+        t = stamp - self._delay_s
         store = self.can.samples[q]
-        if t < store.newest:
-            self.tally.count("dropped_backwards", "CAN %s sample %.3f s back in time dropped", q, store.newest - t)
+        newest = store.newest
+        if t < newest:
+            self.tally.count("dropped_backwards", "CAN %s sample %.3f s back in time dropped", q, newest - t)
             return []
-        speed = q == "speed"
-        limit = settings.vehicle.max_speed_mps if speed else 2.0 * settings.vehicle.max_yaw_rate_rps
         if not (math.isfinite(value) and abs(value) <= limit):
             self.tally.count("bad_samples", "CAN %s = %r beyond the vehicle limits dropped", q, value)
             return []
         self._check_gap(t)
         value = float(value)
         store.add(t, value)
+        speed = q == "speed"
         if speed and self.aligner is not None:
             self.aligner.add_can_speed(t, value)
         if not self.started:
             return []
-        events: list[Epoch | CanTick] = self._missed(t - self.clock.delay_s)
-        events.append(CanTick(t, stamp, q, value, q == OUTPUT_QUANTITY))
+        tick = _new_tuple(CanTick, (t, stamp, q, value, q == OUTPUT_QUANTITY))
+        clock = self.clock
+        t_fix_clock = t - clock.delay_s
+        if not clock.missed_due(t_fix_clock):
+            return [tick]
+        events: list[Epoch | CanTick] = self._missed(t_fix_clock)
+        events.append(tick)
         return events
 
     # ---- GNSS -------------------------------------------------------------------------------------------------
@@ -333,7 +359,10 @@ class FrontEnd:
         return [Epoch(t, None, missed=True) for t in times]
 
     def _check_gap(self, t: float) -> None:
+        """A restart after :data:`MAX_DATA_GAP_S` without data before ``t`` (s, finite: the newest time kept without
+        a ``max()`` call)."""
         if self.started and t - self._t_last > MAX_DATA_GAP_S:
             self.tally.count("restarts", "no data for %.1f s: restarting at the next fix", t - self._t_last)
             self.started = False
-        self._t_last = max(self._t_last, t)
+        if t > self._t_last:
+            self._t_last = t
