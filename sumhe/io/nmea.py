@@ -211,7 +211,7 @@ def _text(msg: pynmea2.TalkerSentence, name: str) -> str:
 def _tod(msg: pynmea2.TalkerSentence) -> dt.time | None:
     """The time of fix, parsed through a cache (the sentences of an epoch share it: 2 us a parse)."""
     text = _text(msg, "timestamp")
-    value = _time_of(text) if text else None
+    value = _converted(pynmea2.nmea_utils.timestamp, text) if text else None
     if value is None:
         return None
     if not isinstance(value, dt.time):
@@ -219,11 +219,12 @@ def _tod(msg: pynmea2.TalkerSentence) -> dt.time | None:
     return value
 
 
-@functools.lru_cache(maxsize=16)
-def _time_of(text: str) -> object:
-    """pynmea2's time of a field's text (the text itself where it is not a time, as pynmea2 gives it back)."""
+@functools.lru_cache(maxsize=32)
+def _converted(convert: Callable[[str], object], text: str) -> object:
+    """pynmea2's ``convert`` (``nmea_utils.timestamp`` or ``datestamp``) of a field's text, the text itself where
+    it fails (as pynmea2 gives it back); cached, as an epoch's sentences share the time and a day's fixes the date."""
     try:
-        return pynmea2.nmea_utils.timestamp(text)
+        return convert(text)
     except Exception:  # pynmea2 gives the field's text back for any failure
         return text
 
@@ -316,15 +317,7 @@ def _datestamp(msg: pynmea2.TalkerSentence) -> object:
     """``msg.datestamp`` (pynmea2's: None for an empty field, the text where it is not a date), through a cache
     (the date repeats for every fix of a day, and ``strptime`` was a tenth of the NMEA decoding)."""
     text = _text(msg, "datestamp")
-    return _date_of(text) if text else None
-
-
-@functools.lru_cache(maxsize=16)
-def _date_of(text: str) -> object:
-    try:
-        return pynmea2.nmea_utils.datestamp(text)
-    except Exception:  # pynmea2 gives the field's text back for any failure
-        return text
+    return _converted(pynmea2.nmea_utils.datestamp, text) if text else None
 
 
 def _gll(msg: pynmea2.TalkerSentence) -> _Part:
