@@ -16,7 +16,8 @@ ROOT = Path(sumhe.__file__).parent
 LAYERS: tuple[frozenset[str], ...] = tuple(
     frozenset(layer)
     for layer in (
-        {"sumhe", "sumhe.errors", "sumhe.messages", "sumhe.geo", "sumhe.floats", "sumhe.settings"},  # plain data, maths
+        # plain data, maths
+        {"sumhe", "sumhe.errors", "sumhe.messages", "sumhe.records", "sumhe.geo", "sumhe.floats", "sumhe.settings"},
         {"sumhe.config"},  # the only module reading configuration files or the environment
         {"sumhe.model", "sumhe.io"},  # vehicle models; parsers, sources and sinks
         {"sumhe.frontend", "sumhe.sim"},  # samples to measurements; the simulator (writes what io reads)
