@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from sumhe.baseline import kinematics as kin
-from sumhe.baseline.ekf import Ekf, can_acceleration, lever_course_sigma, timed_speed_sigma
+from sumhe.baseline.ekf import (
+    Ekf,
+    can_acceleration,
+    heading_offset_variance,
+    lever_course_sigma,
+    timed_speed_sigma,
+)
 from sumhe.baseline.imm import Imm, transition_matrix
 from sumhe.baseline.kinematics import Layout
 from sumhe.baseline.particle import ROUGHENING_K, ParticleFilter, roughening_sigma, systematic_resample
@@ -494,3 +500,56 @@ def test_a_course_of_an_antenna_ahead_bends_by_yaw_rate_times_lever_over_speed()
     assert lever_course_sigma(-0.3, -8.0, 2.0, 2.0) == pytest.approx(0.075)
     assert lever_course_sigma(0.3, 0.5, 2.0, 2.0) == pytest.approx(0.3)
     assert lever_course_sigma(0.0, 8.0, 2.0, 2.0) == 0.0
+
+
+def north_with_azimuths(heading: bool, seconds: float = 30.0, outage_from: float = 20.0) -> list[LocalFix | CanSample]:
+    """10 m/s north, straight: CAN 50/100 Hz, fixes at 10 Hz with a heading (or a course) until ``outage_from``."""
+    rng = np.random.default_rng(4)
+    t0, h = 50.0, 0.01
+    samples: list[LocalFix | CanSample] = []
+    for k in range(int(seconds / h)):
+        t = k * h
+        if k % 2 == 0:
+            samples.append(CanSample(t0 + t, "speed", 10.0 + rng.normal(0, 0.02)))
+        samples.append(CanSample(t0 + t + 0.001, "yaw_rate", rng.normal(0, 0.002)))
+        if k % 10 == 5 and t < outage_from:
+            azimuth = rng.normal(0, 0.005) % (2 * math.pi)
+            samples.append(
+                LocalFix(
+                    t=t0 + t + 0.002,
+                    valid=True,
+                    east_m=rng.normal(0, 0.3),
+                    north_m=10.0 * t + rng.normal(0, 0.3),
+                    gst_sigma_east_m=0.3,
+                    gst_sigma_north_m=0.3,
+                    speed_mps=10.0,
+                    heading_rad=azimuth if heading else None,
+                    course_rad=None if heading else azimuth,
+                )
+            )
+    return samples
+
+
+def test_ekf_considers_a_headings_offset_in_its_covariance_not_in_its_estimate() -> None:
+    """The offset of a heading from the azimuth of the velocity (bounded by ``gnss.azimuth_offset_max_rad``, read
+    as ``r_cap_sigmas`` sigmas: 0.43 deg) is a considered parameter: the estimates are those of the filter without
+    it, and through 10 s of outage at 10 m/s the sigma across the track it adds grows by ``10 s x 10 m/s x
+    sigma`` (the offset is the same all along: sigmas, not variances, add); a course over ground has no offset."""
+    settings = EstimationSettings()
+    sigma = math.sqrt(heading_offset_variance(settings))
+    assert sigma == pytest.approx(0.03 / 4.0)
+    without = with_changes(settings, {"estimator.azimuth_offset": False})
+    assert heading_offset_variance(without) == 0.0
+    for heading in (True, False):
+        on, off = Ekf(settings), Ekf(without)
+        stream = north_with_azimuths(heading)
+        added = []
+        for part in ([s for s in stream if s.t < 70.0], [s for s in stream if s.t >= 70.0]):
+            a = as_array([e for s in part for e in on.push(s)])
+            b = as_array([e for s in part for e in off.push(s)])
+            np.testing.assert_allclose(a, b, atol=1e-9)
+            added.append(math.sqrt(max(on._covariance()[kin.E, kin.E] - off._covariance()[kin.E, kin.E], 0.0)))
+        if heading:
+            assert added[1] - added[0] == pytest.approx(10.0 * 10.0 * sigma, rel=0.1)
+        else:
+            assert added == pytest.approx([0.0, 0.0], abs=1e-4)

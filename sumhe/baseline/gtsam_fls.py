@@ -260,15 +260,14 @@ def gaussian(cov: FloatArray) -> Any:
 
 @dataclass(slots=True)
 class Node:
-    """The newest node: index, time (s), its estimate (east, north, theta; b, k) and, once asked for, its marginal
-    covariances (pose in the world frame east, north, theta; calibration)."""
+    """The newest node: index, time (s), its estimate (east, north, theta; b, k) and, once asked for, the joint
+    marginal covariance of its pose and calibration (east, north, theta in the world frame; b, k)."""
 
     index: int
     t: float
     pose: FloatArray
     calib: FloatArray
-    pose_cov: FloatArray | None = None
-    calib_cov: FloatArray | None = None
+    cov: FloatArray | None = None
 
 
 @dataclass(slots=True)
@@ -281,6 +280,21 @@ class Opened:
     factors: list[tuple[ErrorFunction, FloatArray, str]] = field(default_factory=list)
     widen: FloatArray = field(default_factory=lambda: np.zeros((5, 5)))
     priors: tuple[FloatArray, FloatArray] | None = None
+
+
+def joint_marginal(smoother: Any, node: Node) -> FloatArray:
+    """The joint marginal covariance of ``node``'s pose (east, north, theta in the world frame) and calibration
+    (b, k) in iSAM2's Bayes tree.
+
+    Joint, not the two marginals apart: the fixes see the calibration only through the poses, so after a fix the
+    pose's error and the calibration's are correlated (a heading pulled by the bias, a position along the track
+    pulled by the speed scale), and the prediction from the node carries both through the odometry's Jacobian
+    ``J_c``; the two marginals apart dropped the cross term ``2 J_x Sigma_xc J_c'``."""
+    X, C = gtsam.symbol("x", node.index), gtsam.symbol("c", node.index)
+    full = np.asarray(smoother.getISAM2().jointMarginalCovariance([X, C]).fullMatrix())
+    T = np.eye(5)
+    T[:2, :2] = _rot(node.pose[2])  # the pose's body tangent -> world
+    return T @ full @ T.T
 
 
 class GtsamFls(RecursiveEstimator):
@@ -409,26 +423,20 @@ class GtsamFls(RecursiveEstimator):
 
     def _predict_node(self, node: Node, odo: Odometry) -> tuple[FloatArray, FloatArray]:
         """The pose (east, north, theta) at the end of ``odo`` from ``node``, and the covariance of
-        (east, north, theta, b, k) there (the node's marginals carried by the odometry)."""
-        if node.pose_cov is None or node.calib_cov is None:
-            X, C = gtsam.symbol("x", node.index), gtsam.symbol("c", node.index)
-            T = np.eye(3)
-            T[:2, :2] = _rot(node.pose[2])
-            node.pose_cov = T @ self._smoother.marginalCovariance(X) @ T.T  # body tangent -> world
-            node.calib_cov = np.asarray(self._smoother.marginalCovariance(C))
+        (east, north, theta, b, k) there: the node's joint marginal (:func:`joint_marginal`) carried by the
+        odometry, ``J Sigma J' + odo`` with ``J = [d pose / d node pose, d pose / d calibration; 0, I]``."""
+        if node.cov is None:
+            node.cov = joint_marginal(self._smoother, node)
         R = _rot(node.pose[2])
         d = np.array([odo.dx, odo.dy])
         pose = np.array([*(node.pose[:2] + R @ d), node.pose[2] + odo.dth])
-        Jx = np.eye(3)
-        Jx[:2, 2] = _rot(node.pose[2] + 0.5 * math.pi) @ d  # d(R d)/dtheta
-        Jc = np.vstack([R @ odo.J[:2], odo.J[2:]])
+        J = np.eye(5)
+        J[:2, 2] = _rot(node.pose[2] + 0.5 * math.pi) @ d  # d(R d)/dtheta
+        J[:3, 3:] = np.vstack([R @ odo.J[:2], odo.J[2:]])
         Rb = np.eye(3)
         Rb[:2, :2] = R
-        P = np.zeros((5, 5))
-        P[:3, :3] = Jx @ node.pose_cov @ Jx.T + Jc @ node.calib_cov @ Jc.T + Rb @ odo.cov[:3, :3] @ Rb.T
-        P[:3, 3:] = Jc @ node.calib_cov
-        P[3:, :3] = P[:3, 3:].T
-        P[3:, 3:] = node.calib_cov
+        P = J @ node.cov @ J.T
+        P[:3, :3] += Rb @ odo.cov[:3, :3] @ Rb.T
         return pose, P
 
     # ---- the RecursiveEstimator's hooks ---------------------------------------------------------------------
