@@ -88,6 +88,11 @@ def _finite(value: float | None) -> bool:
     return value is not None and math.isfinite(value)
 
 
+def _scalar(value: Any) -> bool:
+    """Whether ``value`` is a number or None (not an array: the functions' plain-float paths)."""
+    return value is None or isinstance(value, float | int)
+
+
 def azimuth_measurement(
     course_rad: float | None, heading_rad: float | None, speed_mps: float | None, gnss: GnssModel
 ) -> tuple[float, float, bool] | None:
@@ -102,7 +107,14 @@ def azimuth_measurement(
 
 def gps_speed(speed_mps: Any, can_speed_mps: Any, gnss: GnssModel) -> Any:
     """The speed (m/s) a fix's speed over ground measures, with the sign of the CAN speed (reversing): None (NaN in
-    arrays) without a speed or below ``course_min_speed_mps`` (at walking pace Doppler speeds are biased upwards)."""
+    arrays) without a speed or below ``course_min_speed_mps`` (at walking pace Doppler speeds are biased upwards).
+    Numbers (or None) take a plain-float path, the same comparisons and negation without numpy's set-up: 8.6 ->
+    0.5 us a fix."""
+    if _scalar(speed_mps) and _scalar(can_speed_mps):
+        if speed_mps is None or not speed_mps >= gnss.course_min_speed_mps:  # NaN fails the test too
+            return None
+        value = -float(speed_mps) if can_speed_mps is not None and can_speed_mps < 0.0 else float(speed_mps)
+        return value if math.isfinite(value) else None
     speed = np.asarray(np.nan if speed_mps is None else speed_mps, dtype=float)
     can = np.asarray(np.nan if can_speed_mps is None else can_speed_mps, dtype=float)
     with np.errstate(invalid="ignore"):
