@@ -10,8 +10,8 @@ import pickle
 import pytest
 
 from sumhe.estimator.base import StateEstimate
-from sumhe.messages import CanSample, Estimate
 from sumhe.frontend.fixes import LocalFix
+from sumhe.messages import CanSample, Estimate
 from sumhe.records import quick_init, replace
 
 
