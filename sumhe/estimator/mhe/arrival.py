@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 from sumhe.estimator import linalg
 from sumhe.estimator.mhe.window import Window
 from sumhe.model.su import MIN_COURSE_SPEED_MPS, SuModel
+from sumhe.records import quick_init
 
 EPS = 1e-9
 """Regularisation of the arrival cost's eliminations (directions without information)."""
@@ -35,7 +36,8 @@ StepJacobians = Callable[..., tuple[FloatArray, ...]]
 """``(xp, xn, h, y) -> (w, dw/dxp, dw/dxn, e(xp), de/dxp)``: :func:`~sumhe.estimator.mhe.problem.step_jacobians`."""
 
 
-@dataclass(frozen=True)
+@quick_init
+@dataclass(frozen=True, slots=True)
 class Arrival:
     """The arrival box (half-widths ``alpha`` of the dynamic states, ``inf``: none; centre ``box_centre``, m states)
     and the arrival cost (centre ``prior``, weight ``weight``, m x m) on the window's first state."""
