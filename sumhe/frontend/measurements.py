@@ -109,7 +109,7 @@ def gps_speed(speed_mps: Any, can_speed_mps: Any, gnss: GnssModel) -> Any:
     """The speed (m/s) a fix's speed over ground measures, with the sign of the CAN speed (reversing): None (NaN in
     arrays) without a speed or below ``course_min_speed_mps`` (at walking pace Doppler speeds are biased upwards).
     Numbers (or None) take a plain-float path, the same comparisons and negation without numpy's set-up: 8.6 ->
-    0.5 us a fix."""
+    0.3 us a fix."""
     if _scalar(speed_mps) and _scalar(can_speed_mps):
         if speed_mps is None or not speed_mps >= gnss.course_min_speed_mps:  # NaN fails the test too
             return None
