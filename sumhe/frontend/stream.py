@@ -29,7 +29,6 @@ samples make an estimate is :data:`OUTPUT_QUANTITY`; a fix arriving after newer 
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 from collections import Counter, deque
@@ -42,6 +41,7 @@ from sumhe.frontend.epochs import EpochClock, bad_epoch_time
 from sumhe.frontend.fixes import LocalFix
 from sumhe.frontend.measurements import azimuth_measurement, gps_speed, gps_speed_sigma
 from sumhe.messages import CanSample
+from sumhe.records import quick_init, replace
 from sumhe.settings import EstimationSettings
 
 MAX_DATA_GAP_S = 10.0
@@ -79,6 +79,7 @@ class Tally:
             self.log.log(level, "%s: " + msg + " (%d so far)", self.name, *args, n)
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class FixMeasurement:
     """What one usable fix measures at ``t`` (s, the measurement time on the CAN clock), with its 1-sigma errors:
@@ -98,6 +99,7 @@ class FixMeasurement:
     fix: LocalFix
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class Epoch:
     """A GNSS epoch at ``t`` (s, measurement time): with a usable fix, or without (``fix`` None: the receiver said
@@ -309,7 +311,7 @@ class FrontEnd:
 
     def _moved(self, fix: LocalFix) -> LocalFix:
         """The fix at its stamped time plus the GNSS time offset applied now."""
-        return dataclasses.replace(fix, t=fix.t + self.time_offset_s) if self.time_offset_s else fix
+        return replace(fix, t=fix.t + self.time_offset_s) if self.time_offset_s else fix
 
     def _on_can_clock(self, fix: LocalFix) -> LocalFix:
         """The fix at its time on the CAN clock: its stamped time plus the GNSS time offset (module docstring)."""

@@ -13,12 +13,12 @@ offset with them, and the outage error was 6 % above that of the same drive repl
 
 from __future__ import annotations
 
-import dataclasses
 import statistics
 from collections import deque
 
 from sumhe.config import GpsSettings
 from sumhe.messages import GnssFix
+from sumhe.records import replace
 
 OFFSET_FIXES = 64
 """Fixes whose receive-minus-UTC offsets make the learned clock offset (6.4 s at 10 Hz)."""
@@ -36,7 +36,7 @@ def fix_time(fix: GnssFix, gps: GpsSettings) -> float:
 
 def stamp_fix(fix: GnssFix, gps: GpsSettings) -> GnssFix:
     """The fix with ``t`` moved from its receive time to its measurement time (done once, where fixes enter)."""
-    return dataclasses.replace(fix, t=fix_time(fix, gps))
+    return replace(fix, t=fix_time(fix, gps))
 
 
 class FixClock:
@@ -63,9 +63,9 @@ class FixClock:
         utc = fix.time_utc.timestamp()
         offset = fix.t - utc
         if abs(offset) <= gps.max_clock_offset_s:
-            return dataclasses.replace(fix, t=utc)
+            return replace(fix, t=utc)
         learned = self.offset_s
         if learned is not None and abs(offset - learned) > gps.max_clock_offset_s:
             self._offsets.clear()
         self._offsets.append(offset)
-        return dataclasses.replace(fix, t=utc + statistics.median(self._offsets) - gps.latency_s)
+        return replace(fix, t=utc + statistics.median(self._offsets) - gps.latency_s)

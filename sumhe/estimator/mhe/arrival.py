@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 from sumhe.estimator import linalg
 from sumhe.estimator.mhe.window import Window
 from sumhe.model.su import MIN_COURSE_SPEED_MPS, SuModel
+from sumhe.records import quick_init
 
 EPS = 1e-9
 """Regularisation of the arrival cost's eliminations (directions without information)."""
@@ -35,7 +36,8 @@ StepJacobians = Callable[..., tuple[FloatArray, ...]]
 """``(xp, xn, h, y) -> (w, dw/dxp, dw/dxn, e(xp), de/dxp)``: :func:`~sumhe.estimator.mhe.problem.step_jacobians`."""
 
 
-@dataclass(frozen=True)
+@quick_init
+@dataclass(frozen=True, slots=True)
 class Arrival:
     """The arrival box (half-widths ``alpha`` of the dynamic states, ``inf``: none; centre ``box_centre``, m states)
     and the arrival cost (centre ``prior``, weight ``weight``, m x m) on the window's first state."""
@@ -113,16 +115,17 @@ def arrival_update(
     H[:md, :md], H[:md, nx:], H[nx:, :md], H[nx:, nx:] = W[:md, :md], W[:md, md:], W[md:, :md], W[md:, md:]
     g[:md], g[nx:] = pull[:md], pull[md:]
     alpha = old.alpha
+    x, t, y, offset, avail, allow = win.x, win.t, win.y, win.offset, win.avail, win.allow  # the views, made once
     for k in range(drop):
         q = Q[k] if k < len(Q) else q_caps
-        w, dwp, dwn, e, dep = step_jac(win.x[k], win.x[k + 1], float(win.t[k + 1] - win.t[k]), win.y[k])
-        w = w - win.offset[k + 1, :md]
+        w, dwp, dwn, e, dep = step_jac(x[k], x[k + 1], float(t[k + 1] - t[k]), y[k])
+        w = w - offset[k + 1, :md]
         # the rows divided by their bounds: the state noise's by q, the present outputs' by their allowances
         Jp, J = dwp / q[:, None], np.zeros((md, nx + nt))
         J[:, k * md : (k + 1) * md], J[:, nx:] = Jp[:, :md], Jp[:, md:]
         J[:, (k + 1) * md : (k + 2) * md] = dwn[:, :md] / q[:, None]
-        ok = win.avail[k]
-        r = (win.allow[k] * out_factor)[ok]
+        ok = avail[k]
+        r = (allow[k] * out_factor)[ok]
         Jo, Je = dep[ok] / r[:, None], np.zeros((len(r), nx + nt))
         Je[:, k * md : (k + 1) * md], Je[:, nx:] = Jo[:, :md], Jo[:, md:]
         H += J.T @ J + Je.T @ Je
@@ -130,12 +133,15 @@ def arrival_update(
         alpha = np.minimum(alpha, measured_bounds(model, win, k, theta_range, out_factor))
         # x_{k+1} = T(x_k, x_{k+1}) + w: dx_{k+1}/dx_k = (dw/dx_{k+1})^-1 (-dw/dx_k)
         F = np.abs(linalg.solve(dwn[:, :md], -dwp[:, :md]))
+        if np.isfinite(alpha).all():  # a known box (nearly always): the general form's values, four calls fewer
+            alpha = F @ alpha + 2.0 * q
+            continue
         unknown = ~np.isfinite(alpha)
         grown = F @ np.where(unknown, 0.0, alpha) + 2.0 * q
         alpha = np.where((F[:, unknown] > 0).any(axis=1), np.inf, grown)
-    drift = np.square(theta_drift * theta_range) * float(win.t[drop] - win.t[0]) / 60.0
-    prior, weight = reduce(H, g, drop * md, win.x[drop], nt, drift)
-    return Arrival(alpha, win.x[drop].copy(), prior, weight)
+    drift = np.square(theta_drift * theta_range) * float(t[drop] - t[0]) / 60.0
+    prior, weight = reduce(H, g, drop * md, x[drop], nt, drift)
+    return Arrival(alpha, x[drop].copy(), prior, weight)
 
 
 @functools.cache

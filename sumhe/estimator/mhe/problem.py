@@ -36,9 +36,11 @@ from numpy.typing import NDArray
 
 from sumhe.model.compiled import NumpyFunction
 from sumhe.model.su import SuModel, output_noise, state_noise
+from sumhe.records import quick_init
 
 
-@dataclass(frozen=True)
+@quick_init
+@dataclass(frozen=True, slots=True)
 class WindowProblem:
     """One window on a solver of capacity ``C``: ``n_steps`` real steps, rows beyond them are padding.
 
@@ -76,7 +78,8 @@ class WindowProblem:
         )
 
 
-@dataclass(frozen=True)
+@quick_init
+@dataclass(frozen=True, slots=True)
 class SolveResult:
     """A solver's answer: the trajectory ``x`` (C x m), whether it is usable, the solver's status (``"banded"``
     when the banded solve was the answer), its iterations (OSQP's ADMM iterations summed over the QPs, or the NLP
