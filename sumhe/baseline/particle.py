@@ -20,11 +20,10 @@ import math
 import numpy as np
 
 from sumhe.baseline import kinematics as kin
-from sumhe.baseline.ekf import lever_course_sigma
+from sumhe.baseline.ekf import LeverCourse
 from sumhe.baseline.kinematics import OMEGA, PHI, FloatArray, V
-from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
+from sumhe.baseline.stream import Inputs, Pending
 from sumhe.config import Config
-from sumhe.frontend.stream import FixMeasurement
 from sumhe.model.su import can_motion, wrap_angle
 from sumhe.settings import EstimationSettings, NoiseSettings
 
@@ -86,7 +85,7 @@ def systematic_resample(weights: FloatArray, rng: np.random.Generator) -> FloatA
     return np.searchsorted(cumulative, positions)
 
 
-class ParticleFilter(RecursiveEstimator):
+class ParticleFilter(LeverCourse):
     """Bootstrap particle filter with ``particles`` particles; the same ``seed`` gives the same estimates."""
 
     name = "pf"
@@ -207,24 +206,6 @@ class ParticleFilter(RecursiveEstimator):
         spread = np.linalg.cholesky(R) @ self.rng.standard_normal((len(rows), self.particles))
         self.X[rows] += nu[:, None] + spread
         kin.wrap_state(self.X)
-
-    def _fix_angle(self, fix: FixMeasurement) -> tuple[float, float] | None:
-        """A course's sigma with the lever arm's error added, as the Kalman peers do
-        (:meth:`~sumhe.baseline.ekf.GaussianFilter._fix_angle`, :func:`~sumhe.baseline.ekf.lever_course_sigma` at
-        the cloud's mean yaw rate and speed): the model has no antenna offset, and a course bent by it in a turn
-        pulled the particles' azimuth off by 10-16 deg with a spread of 0.1-0.2 deg at the starts of outages on the
-        realistic drives. With it, seeds 0 and 1, mean / p95 errors in outages 18.9 / 64.8 and 11.1 / 43.9 m
-        (before 23.5 / 104.6 and 19.6 / 68.8), with GPS 5.19 / 11.5 and 4.40 / 9.5 m (before 5.67 / 12.0 and 5.15 /
-        11.9); 81.9 and 91.3 % of the errors in outages within ``eph`` (before 73.7 and 71.2 %), 87.3 and 94.4 %
-        with GPS (before 89.2 and 87.5 %). The shared real drive's figures did not change."""
-        angle = super()._fix_angle(fix)
-        if angle is None or fix.heading:
-            return angle
-        vehicle = self.settings.vehicle
-        lever = math.hypot(vehicle.antenna_forward_m, vehicle.antenna_forward_range_m)
-        floor = self.settings.gnss.course_min_speed_mps
-        mean = self._mean()
-        return angle[0], math.hypot(angle[1], lever_course_sigma(mean[OMEGA], mean[V], lever, floor))
 
     def _init_heading(self, phi: float, sigma: float) -> None:
         self.X[PHI] = wrap_angle(phi + sigma * self.rng.standard_normal(self.particles))
