@@ -362,7 +362,13 @@ def state_residuals(model: SuModel, x: Any, h: Any) -> Any:
 
 def output_residuals(model: SuModel, x: Any, y: Any) -> Any:
     """:func:`output_noise` of a trajectory ``x`` (N x m, numpy) against outputs ``y`` (N x n) at every step
-    (mask the missing ones): (N x n)."""
+    (mask the missing ones): (N x n).
+
+    One step (the MHE's step leaving the window, at nearly every epoch) on its numpy scalars rather than one-element
+    rows: the same ufunc loops for the functions and IEEE arithmetic for the rest (the same bits), at a tenth of a
+    microsecond an operation instead of most of one (15.5 -> 6 us a call)."""
+    if len(x) == 1:
+        return np.array(output_noise(model, x[0], y[0]))[None, :]
     return np.array(output_noise(model, x.T, y.T)).T
 
 
