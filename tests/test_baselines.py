@@ -18,7 +18,13 @@ from sumhe.baseline.ekf import (
 )
 from sumhe.baseline.imm import Imm, transition_matrix
 from sumhe.baseline.kinematics import Layout
-from sumhe.baseline.particle import ROUGHENING_K, ParticleFilter, roughening_sigma, systematic_resample
+from sumhe.baseline.particle import (
+    ROUGHENING_K,
+    ParticleFilter,
+    considered_heading_offset,
+    roughening_sigma,
+    systematic_resample,
+)
 from sumhe.baseline.rts import Rts
 from sumhe.baseline.stream import Gate
 from sumhe.baseline.ukf import Ukf
@@ -566,18 +572,31 @@ def north_with_azimuths(heading: bool, seconds: float = 30.0, outage_from: float
     return samples
 
 
-def test_ekf_considers_a_headings_offset_in_its_covariance_not_in_its_estimate() -> None:
+def test_a_considered_heading_offset_moves_the_position_across_the_way_moved() -> None:
+    """An azimuth error ``d`` after moving 100 m east puts the dead-reckoned position ``100 d`` south (azimuth
+    clockwise from north): the offset's variance times 100^2 north, none east, correlated negatively with the
+    azimuth."""
+    P = considered_heading_offset(kin.Layout().n, np.array([100.0, 0.0]), 1e-4)
+    assert P[kin.N, kin.N] == pytest.approx(1.0)
+    assert P[kin.E, kin.E] == 0.0
+    assert P[kin.N, kin.PHI] == pytest.approx(-1e-2)
+    assert P[kin.PHI, kin.PHI] == pytest.approx(1e-4)
+
+
+@pytest.mark.parametrize("filter_class", [Ekf, ParticleFilter])
+def test_a_headings_offset_is_considered_in_the_covariance_not_in_the_estimate(filter_class: type) -> None:
     """The offset of a heading from the azimuth of the velocity (bounded by ``gnss.azimuth_offset_max_rad``, read
-    as ``r_cap_sigmas`` sigmas: 0.43 deg) is a considered parameter: the estimates are those of the filter without
-    it, and through 10 s of outage at 10 m/s the sigma across the track it adds grows by ``10 s x 10 m/s x
-    sigma`` (the offset is the same all along: sigmas, not variances, add); a course over ground has no offset."""
+    as ``r_cap_sigmas`` sigmas: 0.43 deg) is a considered parameter of the EKF and the particle filter: the
+    estimates are those of the filter without it, and through 10 s of outage at 10 m/s the sigma across the track
+    it adds grows by ``10 s x 10 m/s x sigma`` (the offset is the same all along: sigmas, not variances, add); a
+    course over ground has no offset."""
     settings = EstimationSettings()
     sigma = math.sqrt(heading_offset_variance(settings))
     assert sigma == pytest.approx(0.03 / 4.0)
     without = with_changes(settings, {"estimator.azimuth_offset": False})
     assert heading_offset_variance(without) == 0.0
     for heading in (True, False):
-        on, off = Ekf(settings), Ekf(without)
+        on, off = filter_class(settings), filter_class(without)
         stream = north_with_azimuths(heading)
         added = []
         for part in ([s for s in stream if s.t < 70.0], [s for s in stream if s.t >= 70.0]):

@@ -182,7 +182,14 @@ def lever_course_sigma(yaw_rate_rps: float, speed_mps: float, lever_m: float, mi
 
 class LeverCourse(RecursiveEstimator):
     """A recursive estimator whose model has no antenna offset and that weighs a GNSS course with the lever arm's
-    error at its own mean yaw rate and speed (the Kalman family and the particle filter)."""
+    error at its own mean yaw rate and speed (the Kalman family and the particle filter). ``_heading``: the newest
+    azimuth it measured was a receiver's heading (not a course over ground)."""
+
+    _heading: bool = False
+
+    def _angle_update(self, fix: FixMeasurement, lag: float) -> None:
+        self._heading = fix.heading
+        super()._angle_update(fix, lag)
 
     def _fix_angle(self, fix: FixMeasurement) -> tuple[float, float] | None:
         """A course's sigma with the lever arm's error added (:func:`lever_course_sigma`, the lever the antenna's
@@ -294,7 +301,6 @@ class Ekf(GaussianFilter):
     def __init__(self, settings: EstimationSettings | None = None, noise: NoiseSettings | None = None) -> None:
         super().__init__(settings, noise)
         self._offset_var = heading_offset_variance(self.settings)
-        self._heading = False
 
     def _reset_filter(self) -> None:
         super()._reset_filter()
@@ -320,10 +326,6 @@ class Ekf(GaussianFilter):
         measured = can_measurement(self.x, inputs, self.noise, self.layout)
         if measured is not None:
             self._update(*measured, sensitivity=0.0)
-
-    def _angle_update(self, fix: FixMeasurement, lag: float) -> None:
-        self._heading = fix.heading
-        super()._angle_update(fix, lag)
 
     def _innovation(self, kind: str, z: FloatArray, R: FloatArray, lag: float) -> Pending:
         nu, S, H = ekf_innovation(self.x, self.P, kind, z, R, lag)
