@@ -333,6 +333,26 @@ def test_a_gap_too_short_to_grow_does_not_move_the_growth_scale() -> None:
     assert scale.growth_scale == pytest.approx((400.0 - 25.0) / 200.0, rel=0.1)
 
 
+def test_the_change_of_the_fixes_slow_error_over_a_short_gap_is_not_taken_for_growth() -> None:
+    # fixes whose error is a slow offset (2.25 m^2 per axis) and little white error (the residuals' changes from one
+    # fix to the next: 0.01 m^2 per axis); after three fixes missed the offset has moved by 1.5 m, which the
+    # estimator, whose own growth in 0.3 s was 0.0004 m^2, cannot have followed. Taken for growth (the change's
+    # expected square only the white errors), it made the growth scale thousands (gtsam-fls 3049 eight seconds into a
+    # realistic drive, its eph over the 55 s outage that followed 47 times its error); the offset's change lies
+    # between nothing and the two fixes' slow errors independent, and explains it
+    scale = InnovationScale()
+    rng = np.random.default_rng(3)
+    for k in range(100):
+        nu = 0.1 * rng.standard_normal(2)
+        scale.add(0.1 * k, nu, 4.5, 1.0, 0.0, 1.0, residual=nu)
+    assert scale.white_m2(4.5) == pytest.approx(0.02, rel=0.3)
+    scale.add(10.2, np.array([1.4, 0.5]), 4.5, 1.0, 4e-4, 3.0, residual=np.array([0.1, 0.0]))
+    assert scale.growth_scale < 3.0
+    # a change far beyond what the slow error allows is growth, as before: (|nu|^2 less the slow error) / growth
+    scale.add(40.0, np.array([20.0, 0.0]), 4.5, 1.0, 200.0, 300.0, residual=np.array([0.1, 0.0]))
+    assert scale.growth_scale == pytest.approx((400.0 - 4.5) / 200.0, rel=0.1)
+
+
 def test_gaps_that_say_nothing_of_the_growth_leave_what_the_others_said() -> None:
     # ten 30 s gaps find the growth 4 times too small; then a burst of fixes missed one at a time, each innovation
     # all the fix's and the estimate's own error: the old rule dragged the scale down by their negative excess
