@@ -18,7 +18,9 @@ from sumhe.io.can import (
     REFERENCE_SIGNALS,
     CanDecoder,
     LogStats,
+    _decoding,
     _in_use,
+    _whole,
     load_dbc,
     read_log,
     si_factor,
@@ -345,6 +347,32 @@ def test_a_message_with_only_the_signals_in_use_decodes_them_as_the_whole_messag
     assert checked > 1000 and kept > 0
     with pytest.raises(cantools.database.errors.DecodeError):  # a message kept whole: no decode at all
         toyota_db().get_message_by_name("PCS_HUD").decode(bytes(8))
+
+
+def _outcome(decode, data):
+    """What a decode gives: its values (with their types, as text) or its error's type and words."""
+    try:
+        return [(k, type(v).__name__, repr(v)) for k, v in decode(data).items()]
+    except Exception as e:
+        return (type(e).__name__, str(e))
+
+
+def test_the_decoding_without_cantools_layers_is_cantools_decode_to_the_bit(extra_db):
+    """``_decoding`` gives what ``Message.decode(data, decode_choices=False)`` gives (the same values of the same
+    types in the same order, or the same error) for every message of the DBCs at hand, whole and with the signals
+    of a field alone, on random payloads of its length, shorter and longer."""
+    rng = random.Random(17)
+    fast = 0
+    for db in _dbcs(extra_db):
+        for message in db.messages:
+            names = [s.name for s in message.signals]
+            for part in {id(m): m for m in (message, _in_use(message, rng.sample(names, min(2, len(names)))))}.values():
+                decode, whole = _decoding(part), _whole(part)
+                fast += not message.is_multiplexed()
+                for n in (part.length, part.length, part.length, max(part.length - 1, 0), part.length + 1):
+                    data = bytes(rng.getrandbits(8) for _ in range(n))
+                    assert _outcome(decode, data) == _outcome(whole, data), (message.name, data.hex())
+    assert fast > 40
 
 
 # --- the acceptance case: a public production-car DBC by config alone -----------------------------------------
