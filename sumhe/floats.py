@@ -16,28 +16,7 @@ def interp(x: float, xp: Sequence[float], fp: Sequence[float]) -> float:
         return fp[0]
     if math.isnan(x):
         return x
-    return _interp_at(x, bisect.bisect_right(xp, x) - 1, xp, fp)
-
-
-def interp_sorted(xs: Sequence[float], xp: Sequence[float], fp: Sequence[float]) -> list[float]:
-    """``[interp(x, xp, fp) for x in xs]`` for increasing ``xs`` (NaN among them allowed): each ``x``'s interval
-    found by walking on from the previous one's rather than by a bisection each (a grid of ten times within a
-    few samples, twice an epoch: 7.7 -> 4 us)."""
-    if len(xp) == 1:
-        return [fp[0]] * len(xs)
-    out, j, last = [], -1, len(xp) - 1
-    for x in xs:
-        if math.isnan(x):
-            out.append(x)
-            continue
-        while j < last and xp[j + 1] <= x:  # j: the last knot at or before x, as bisect_right(xp, x) - 1
-            j += 1
-        out.append(_interp_at(x, j, xp, fp))
-    return out
-
-
-def _interp_at(x: float, j: int, xp: Sequence[float], fp: Sequence[float]) -> float:
-    """:func:`interp` of a number ``x`` whose last knot at or before it is ``j`` (-1: none)."""
+    j = bisect.bisect_right(xp, x) - 1
     if j < 0:
         return fp[0]
     if j >= len(xp) - 1 or xp[j] == x:
