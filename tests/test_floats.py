@@ -22,6 +22,21 @@ def test_interp_gives_numpys_bits_inside_beyond_at_knots_and_for_nan() -> None:
             assert _same(interp(float(x), xp.tolist(), fp.tolist()), float(np.interp(x, xp, fp))), (x, xp, fp)
 
 
+def test_numpys_interp_of_a_grid_is_interp_at_each_point() -> None:
+    # the MHE's step motion interpolates a grid at once with numpy (sumhe.estimator.mhe.preintegration)
+    rng = np.random.default_rng(9)
+    for trial in range(300):
+        k = int(rng.integers(1, 10))
+        xp = np.sort(np.round(rng.uniform(0.0, 1.0, k), 2)).tolist()  # repeated knots too
+        fp = rng.normal(size=k)
+        if trial % 5 == 0:
+            fp[rng.integers(0, k)] = np.inf
+        grid = sorted([*rng.uniform(-0.2, 1.2, int(rng.integers(1, 12))).tolist(), *xp[: trial % 4]])
+        got = np.interp(grid, xp, fp.tolist()).tolist()
+        expected = [interp(x, xp, fp.tolist()) for x in grid]
+        assert all(_same(a, b) for a, b in zip(got, expected, strict=True)), (grid, xp, fp)
+
+
 def test_odometry_end_is_the_last_point_of_integrate_odometry_to_the_bit() -> None:
     rng = np.random.default_rng(8)
     for trial in range(300):

@@ -21,8 +21,8 @@ and ``r_cap_sigmas`` sigmas of the samples' mean, integrated over the step.
 from __future__ import annotations
 
 import bisect
-import itertools
 import math
+import operator
 from collections.abc import Sequence
 
 import numpy as np
@@ -35,6 +35,8 @@ from sumhe.model.su import SuModel, can_motion, odometry_end
 from sumhe.settings import EstimationSettings
 
 FloatArray = NDArray[np.float64]
+NUMPY_GRID = 8
+"""A step's grid of at least this many times is interpolated by numpy at once, a shorter one point by point."""
 
 
 def _samples(can: CanBuffer, quantity: str, t0: float, t1: float, max_gap: float) -> tuple[list[float], list[float]]:
@@ -52,7 +54,8 @@ def _samples(can: CanBuffer, quantity: str, t0: float, t1: float, max_gap: float
 
 def _widest_gap(t0: float, times: list[float], t1: float) -> float:
     """The longest time (s) between consecutive ones of ``t0``, ``times``, ``t1``."""
-    return max(b - a for a, b in itertools.pairwise([t0, *times, t1]))
+    points = [t0, *times, t1]
+    return max(map(operator.sub, points[1:], points))
 
 
 def can_step_bound(
@@ -95,18 +98,22 @@ def step_motion(
     tw, w = _samples(can, "yaw_rate", t0, t1, gap)
     if not tv or not tw or _widest_gap(t0, tv, t1) > 2.0 * gap or _widest_gap(t0, tw, t1) > 2.0 * gap:
         return None
-    # in plain floats (numpy's formulas in numpy's order: the same bits), a few samples twice an epoch
     inner = tw[bisect.bisect_right(tw, t0) : bisect.bisect_left(tw, t1)]
     grid = [t0, *inner, t1]
-    raw_speed, raw_yaw = [interp(g, tv, v) for g in grid], [interp(g, tw, w) for g in grid]
+    # the grid's CAN values: a long grid by numpy's interpolation, elementwise (the same bits as sumhe.floats.interp
+    # point by point: 4x faster at the hundred points of a 1 Hz receiver's step), a short one point by point in plain
+    # floats (numpy's set-up would cost more: a 10 Hz step often has no CAN sample within it)
+    if len(grid) >= NUMPY_GRID:
+        raw_speed, raw_yaw = np.interp(grid, tv, v), np.interp(grid, tw, w)
+    else:
+        raw_speed, raw_yaw = np.array([interp(g, tv, v) for g in grid]), np.array([interp(g, tw, w) for g in grid])
     if ends is not None:
         for k, end in ((0, ends[0]), (-1, ends[1])):
             raw_speed[k] = float(end[0]) if math.isfinite(end[0]) else raw_speed[k]
             raw_yaw[k] = float(end[1]) if math.isfinite(end[1]) else raw_yaw[k]
     x_start = x0.tolist()
-    theta = (model.i_bias, model.i_scale, model.i_gain)
-    moving = [can_motion(rv, rw, x_start, *theta) for rv, rw in zip(raw_speed, raw_yaw, strict=True)]
-    speed, yaw_rate = [m[0] for m in moving], [m[1] for m in moving]
+    moving = can_motion(raw_speed, raw_yaw, x_start, model.i_bias, model.i_scale, model.i_gain)
+    speed, yaw_rate = moving[0].tolist(), moving[1].tolist()
     i_e, i_n = model.position
     east, north, phi = odometry_end(grid, speed, yaw_rate, x_start[i_e], x_start[i_n], x_start[model.i_phi])
     start, end = list(x_start), x1.tolist()
@@ -117,7 +124,8 @@ def step_motion(
     offset[i_e], offset[i_n] = east - pred[i_e], north - pred[i_n]
     offset[model.i_phi] = phi - pred[model.i_phi]
     n_speed = bisect.bisect_right(tv, t1) - bisect.bisect_right(tv, t0)
-    bound = can_step_bound(model, t1 - t0, n_speed, len(inner) + 1, float(np.abs(speed).sum()) / len(speed), settings)
+    mean_speed = float(np.abs(moving[0]).sum()) / len(speed)
+    bound = can_step_bound(model, t1 - t0, n_speed, len(inner) + 1, mean_speed, settings)
     if not math.isfinite(float(offset[model.i_phi])):
         return None
     return offset, bound

@@ -80,6 +80,8 @@ class WindowSolve:
         self.lo, self.hi = lo[0], hi[0]
         """The state box (11) of one step."""
         self._q_power = np.array(model.q_power)[None, :]
+        self._no_box = np.full(model.n_states - model.n_dynamic, np.inf)
+        """The arrival box's half-widths of the CAN states: none."""
 
     def capacity(self, size: int) -> int:
         """The bucket (solver capacity) of a window of ``size`` steps."""
@@ -120,7 +122,8 @@ class WindowSolve:
         """State bounds Q (L-1 x m_dynamic): the q caps at the nominal period scaled with each step's length, or,
         where the step's motion comes from the CAN data (:mod:`.preintegration`), the smaller bound its errors
         leave; output bounds R (L x n): the steps' error allowances times ``out_factor`` (n; :mod:`.envelope`)."""
-        scale = (np.diff(win.t)[:, None] / period_s) ** self._q_power
+        t = win.t
+        scale = ((t[1:] - t[:-1])[:, None] / period_s) ** self._q_power  # np.diff's values, without its set-up
         # the CAN bounds are NaN where unknown, else finite and >= 0: fmin takes the caps there, the smaller one
         # elsewhere (the where(isfinite, minimum, caps) it replaces, bit for bit, in one call instead of three)
         Q = np.fmin(win.q_step[1:, : self.model.n_dynamic], self.q_caps[None, :] * scale)
@@ -130,14 +133,16 @@ class WindowSolve:
         self, win: Window, arrival: Arrival, capacity: int, Q: NDArray, R: NDArray, widen: float, period_s: float
     ) -> WindowProblem:
         """The window as a problem for a solver of ``capacity`` steps, bounds widened by ``widen``."""
-        L, md, m, n = len(win), self.model.n_dynamic, self.model.n_states, self.model.n_outputs
+        L, md, n = len(win), self.model.n_dynamic, self.model.n_outputs
         pad = capacity - L
+        t = win.t
+        h = t[1:] - t[:-1]  # np.diff's values, without its set-up
         if pad == 0:
-            x, h, y, avail, offset = win.x, np.diff(win.t), win.y, win.avail, win.offset[1:, :md]
+            x, y, avail, offset = win.x, win.y, win.avail, win.offset[1:, :md]
         else:
             offset = np.vstack([win.offset[1:, :md], np.zeros((pad, md))])
             x = np.vstack([win.x, np.repeat(win.x[-1:], pad, axis=0)])
-            h = np.concatenate([np.diff(win.t), np.full(pad, period_s)])
+            h = np.concatenate([h, np.full(pad, period_s)])
             y = np.vstack([win.y, np.zeros((pad, n))])
             avail = np.vstack([win.avail, np.zeros((pad, n), dtype=bool)])
             Q = np.vstack([Q, np.ones((pad, md))])
@@ -155,7 +160,7 @@ class WindowSolve:
             lo=self.lo,
             hi=self.hi,
             box_centre=arrival.box_centre,
-            box_half=np.concatenate([arrival.alpha * widen, np.full(m - md, np.inf)]),
+            box_half=np.concatenate([arrival.alpha * widen, self._no_box]),
             prior=arrival.prior,
             weight=arrival.weight,
             offset=offset,

@@ -402,7 +402,7 @@ class SqpSolver:
     def _turned(self, dz: NDArray[np.float64], L: int) -> float:
         """The largest change of an azimuth state over the first ``L`` steps (rad)."""
         angles = dz[self._angles[: L * len(self.model.angle_states)]]
-        return float(np.abs(angles).max(initial=0.0))
+        return float(np.maximum.reduce(np.abs(angles), initial=0.0))  # ndarray.max's reduction, without its wrapper
 
     def _apply(self, x: NDArray[np.float64], dz: NDArray[np.float64], L: int) -> None:
         md = self.md

@@ -46,9 +46,9 @@ class Plan:
 def outage_anchor(gps: NDArray[np.bool_], policy: MheSettings) -> int | None:
     """Index of the oldest step the newest outage needs kept (its N_B-th GNSS epoch before it; 0 if fewer are
     left), or None when there is no outage in the window or GNSS has been back for N_A epochs."""
-    missing = np.flatnonzero(~gps)
-    if len(missing) == 0:
+    if gps.all():  # no outage (nearly every epoch): one call, not the two of the general form
         return None
+    missing = np.flatnonzero(~gps)
     end = int(missing[-1])
     if len(gps) - 1 - end >= policy.steps_after:
         return None
