@@ -207,8 +207,12 @@ class LeverCourse(RecursiveEstimator):
         vehicle = self.settings.vehicle
         lever = math.hypot(vehicle.antenna_forward_m, vehicle.antenna_forward_range_m)
         floor = self.settings.gnss.course_min_speed_mps
+        return angle[0], math.hypot(angle[1], lever_course_sigma(*self._turning(), lever, floor))
+
+    def _turning(self) -> tuple[float, float]:
+        """The yaw rate (rad/s) and speed (m/s) a course's lever error is taken at: its mean's."""
         mean = self._mean()
-        return angle[0], math.hypot(angle[1], lever_course_sigma(mean[OMEGA], mean[V], lever, floor))
+        return float(mean[OMEGA]), float(mean[V])
 
 
 class GaussianFilter(LeverCourse):
