@@ -275,6 +275,8 @@ class _Route:
     alone (the same values, without decoding the others: an IMU message carries a dozen); else the message."""
     unpack: Decode
     """``used`` decoding a payload (:func:`_decoding`)."""
+    whole: Decode
+    """``message`` decoding a payload, every signal (:func:`_decoding`; :meth:`CanDecoder.decode_signals`)."""
     last_counter: int | None = None
 
 
@@ -399,6 +401,7 @@ class CanDecoder:
             gnss,
             used,
             _decoding(used),
+            _decoding(message),
         )
 
     def can_filters(self) -> list[dict[str, int | bool]]:
@@ -482,7 +485,7 @@ class CanDecoder:
         if route.mux is not None and self._mux_values(route, data).get(route.top) not in route.mux_ids:
             self.stats.other_mux += 1
             return None
-        values = self._decode(_whole(route.message), route.name, data)
+        values = self._decode(route.whole, route.name, data)
         if values is None:
             return None
         self.stats.decoded += 1
