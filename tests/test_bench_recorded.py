@@ -121,8 +121,11 @@ def test_the_command_reports_every_estimator_and_both_floors(drive_dir, tmp_path
         c = ekf["calibration"]
         assert c["n"] == ekf["fixes"]["n"] and 0.0 <= c["eph_coverage"] <= 1.0 and c["median_eph_m"] > 0.0
         assert c["box_n"] == 0 and c["box_coverage"] is None
+        # its interval resamples the outages (a group each), and holds the share itself
+        assert 1 < c["groups"] <= len(length["outages"])
+        assert c["eph_coverage_low"] <= c["eph_coverage"] <= c["eph_coverage_high"]
     assert "| floor: calibrated dead reckoning |" in printed and "vs truth" in printed
-    assert "| removed fix within eph |" in printed and "| `ekf` |" in printed
+    assert "| removed fix within eph [90 % interval over outages] |" in printed and "| `ekf` |" in printed
     assert (out / "recorded.md").read_text().startswith(f"## {drive_dir.name}")
 
 

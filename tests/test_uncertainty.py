@@ -12,7 +12,7 @@ import pynmea2
 import pytest
 
 from sumhe.baseline.ekf import Ekf
-from sumhe.bench import metrics
+from sumhe.bench import metrics, report
 from sumhe.bench.mhe import drive_stream
 from sumhe.bench.report import calibration_cells
 from sumhe.commands.candump import reference_config
@@ -174,6 +174,32 @@ def test_calibration_counts_errors_within_eph_and_inside_the_box() -> None:
     assert "(missed)" in cells[0] and "(met)" in cells[1] and "(< 99 %)" in cells[2]
     no_box = metrics.calibration(metrics.calibration_columns([1.0], [1.0], [3.0], [np.nan], [np.nan]))
     assert no_box["box_n"] == 0 and calibration_cells(no_box)[2] == "no box"
+
+
+def test_the_coverage_interval_resamples_groups_not_estimates() -> None:
+    # 10 outages of 10 estimates: 9 wholly within eph, one wholly out -> 90 %, and an outage-level spread
+    inside = np.repeat([True] * 9 + [False], 10)
+    low, high = metrics.coverage_interval(inside, np.repeat(np.arange(10), 10))
+    assert low < 0.9 < high and low <= 0.75 and high == 1.0
+    assert metrics.coverage_interval(inside, np.repeat(np.arange(10), 10)) == (low, high)  # seeded
+    # the same estimates as 100 independent groups: a far narrower interval around 90 %
+    low_each, high_each = metrics.coverage_interval(inside, np.arange(100))
+    assert low < low_each < 0.9 < high_each < high
+    # every group alike: no spread at all
+    assert metrics.coverage_interval(np.tile([True, False], 5), np.repeat(np.arange(5), 2)) == (0.5, 0.5)
+    assert all(math.isnan(v) for v in metrics.coverage_interval([], []))
+
+
+def test_the_runs_groups_stay_apart_when_their_columns_are_stacked() -> None:
+    # two runs whose outages are both numbered 0 and 1: four groups, not two
+    run = metrics.calibration_columns(
+        [1.0, 1.0, 9.0, 9.0], [0.0] * 4, [2.0] * 4, [np.nan] * 4, [np.nan] * 4, [0, 0, 1, 1]
+    )
+    stacked = report._rows([run, run])
+    assert list(stacked[:, -1]) == [0, 0, 1, 1, 2, 2, 3, 3]
+    c = metrics.calibration(stacked)
+    assert c["groups"] == 4 and c["eph_coverage"] == 0.5 and c["eph_coverage_low"] < 0.5 < c["eph_coverage_high"]
+    assert "% (missed) [" in calibration_cells(c)[0]
 
 
 @pytest.fixture(scope="module")

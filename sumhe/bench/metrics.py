@@ -37,37 +37,70 @@ def horizontal_errors(t: ArrayLike, east: ArrayLike, north: ArrayLike, truth: Tr
     return np.asarray(np.hypot(np.asarray(east, dtype=float) - at.east, np.asarray(north, dtype=float) - at.north))
 
 
-CALIBRATION_COLUMNS = ("error_m", "eph_m", "box_ratio", "box_half_m")
+CALIBRATION_COLUMNS = ("error_m", "eph_m", "box_ratio", "box_half_m", "group")
 """Per estimate: its horizontal error, its ``eph``, how far the truth lies out in its bound box (the larger of
-``|error east| / bound_east`` and ``|error north| / bound_north``: inside when <= 1) and the box's larger
-half-width; NaN where the estimate has no ``eph`` or no box."""
+``|error east| / bound_east`` and ``|error north| / bound_north``: inside when <= 1), the box's larger half-width
+(NaN where the estimate has no ``eph`` or no box), and the group it belongs to (an outage, a drive): estimates of one
+group share their errors' slow parts, so a group, not an estimate, is what an interval resamples."""
+COVERAGE_INTERVAL = (5.0, 95.0)
+"""The percentiles of the bootstrap's coverages :func:`calibration` reports: a 90 % interval."""
+BOOTSTRAP_DRAWS = 2000
+"""Resamples of the groups behind :func:`calibration`'s interval (its percentiles to a few tenths of a point)."""
 
 
 def calibration_columns(
-    d_east: ArrayLike, d_north: ArrayLike, eph: ArrayLike, bound_east: ArrayLike, bound_north: ArrayLike
+    d_east: ArrayLike,
+    d_north: ArrayLike,
+    eph: ArrayLike,
+    bound_east: ArrayLike,
+    bound_north: ArrayLike,
+    group: ArrayLike = 0,
 ) -> FloatArray:
-    """The :data:`CALIBRATION_COLUMNS` (N x 4) of estimates whose errors are ``d_east``/``d_north`` (m: estimate
-    minus truth, or minus a removed fix) with error estimates ``eph`` and bound half-widths (m; NaN: none)."""
+    """The :data:`CALIBRATION_COLUMNS` (N x 5) of estimates whose errors are ``d_east``/``d_north`` (m: estimate
+    minus truth, or minus a removed fix) with error estimates ``eph``, bound half-widths (m; NaN: none) and groups
+    (integers; one group for all by default)."""
     de, dn = np.asarray(d_east, dtype=float), np.asarray(d_north, dtype=float)
     be, bn = np.asarray(bound_east, dtype=float), np.asarray(bound_north, dtype=float)
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.maximum(np.abs(de) / be, np.abs(dn) / bn)
-    return np.column_stack([np.hypot(de, dn), np.asarray(eph, dtype=float), ratio, np.maximum(be, bn)])
+    groups = np.broadcast_to(np.asarray(group, dtype=float), de.shape)
+    return np.column_stack([np.hypot(de, dn), np.asarray(eph, dtype=float), ratio, np.maximum(be, bn), groups])
+
+
+def coverage_interval(inside: ArrayLike, group: ArrayLike, seed: int = 0) -> tuple[float, float]:
+    """The :data:`COVERAGE_INTERVAL` of the share of ``inside`` (booleans) over :data:`BOOTSTRAP_DRAWS` resamples
+    of the groups with replacement (a cluster bootstrap: the spread a drive of as many such groups would show);
+    NaN, NaN when empty. Seeded: the same figures every run."""
+    hit = np.asarray(inside, dtype=bool)
+    if hit.size == 0:
+        return math.nan, math.nan
+    _, index = np.unique(np.asarray(group, dtype=float), return_inverse=True)
+    size, hits = np.bincount(index), np.bincount(index, weights=hit)
+    draws = np.random.default_rng(seed).multinomial(len(size), np.full(len(size), 1.0 / len(size)), BOOTSTRAP_DRAWS)
+    shares = (draws @ hits) / (draws @ size)
+    low, high = np.percentile(shares, COVERAGE_INTERVAL)
+    return float(low), float(high)
 
 
 def calibration(columns: ArrayLike) -> dict[str, float | int]:
     """How well error estimates and bound boxes describe the errors (rows of :func:`calibration_columns`): the
-    share of estimates whose error lies within their ``eph`` (of those with one) and inside their box (of those
-    with one), the median ``eph``, the median error and their ratio, the median box half-width."""
+    share of estimates whose error lies within their ``eph`` (of those with one) and its interval over the groups
+    (:func:`coverage_interval`), and inside their box (of those with one), the median ``eph``, the median error and
+    their ratio, the median box half-width."""
     c = np.asarray(columns, dtype=float).reshape(-1, len(CALIBRATION_COLUMNS))
-    err, eph, ratio, half = c.T
+    err, eph, ratio, half, group = c.T
     with_eph = np.isfinite(eph) & np.isfinite(err)
     with_box = np.isfinite(ratio) & np.isfinite(half)
     median_eph = float(np.median(eph[with_eph])) if with_eph.any() else math.nan
     median_err = float(np.median(err[with_eph])) if with_eph.any() else math.nan
+    within = err[with_eph] <= eph[with_eph]
+    low, high = coverage_interval(within, group[with_eph])
     return {
         "n": int(with_eph.sum()),
-        "eph_coverage": float(np.mean(err[with_eph] <= eph[with_eph])) if with_eph.any() else math.nan,
+        "groups": int(np.unique(group[with_eph]).size),
+        "eph_coverage": float(np.mean(within)) if with_eph.any() else math.nan,
+        "eph_coverage_low": low,
+        "eph_coverage_high": high,
         "median_eph_m": median_eph,
         "median_error_m": median_err,
         "eph_over_error": median_eph / median_err if median_err > 0 else math.nan,

@@ -172,21 +172,22 @@ def _calibration(
     spans: list[tuple[float, float]],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """The calibration columns (:func:`~sumhe.bench.metrics.calibration_columns`) of the finite estimates against
-    the truth: with GPS (after the warm-up) and inside the outages."""
+    the truth: with GPS (after the warm-up; one group) and inside the outages (a group each)."""
     kept = [e for e, ok in zip(estimates, finite, strict=True) if ok]
 
     def column(get: Callable[[Estimate], float | None]) -> NDArray[np.float64]:
         return np.array([math.nan if (v := get(e)) is None else v for e in kept], dtype=float)
 
     at = drive.truth.at(t)
+    index = metrics.interval_index(t, spans)
     cols = metrics.calibration_columns(
         east - at.east,
         north - at.north,
         column(lambda e: e.error.eph_m if e.error is not None else None),
         column(lambda e: e.bound_east_m),
         column(lambda e: e.bound_north_m),
+        index,
     )
-    index = metrics.interval_index(t, spans)
     return cols[(index < 0) & (t >= drive.scored_from)], cols[index >= 0]
 
 

@@ -216,8 +216,8 @@ def run_estimator(name: str, rec: Recording, windows: Sequence[tuple[float, floa
     t_fix, d_east, d_north, (eph, bound_east, bound_north) = outages.residuals_at_fixes(
         shifted, est[:, 0], est[:, 1], est[:, 2], (est[:, 3], est[:, 4], est[:, 5])
     )
-    inside_fix = interval_index(t_fix, moved) >= 0 if t_fix.size else np.zeros(0, dtype=bool)
-    calib = calibration(calibration_columns(d_east, d_north, eph, bound_east, bound_north)[inside_fix])
+    outage = interval_index(t_fix, moved) if t_fix.size else np.zeros(0, dtype=np.intp)
+    calib = calibration(calibration_columns(d_east, d_north, eph, bound_east, bound_north, outage)[outage >= 0])
     truth_errors = np.zeros(0)
     if rec.truth is not None and len(est):
         inside = interval_index(est[:, 0], windows) >= 0
@@ -391,7 +391,7 @@ def calibration_lines(rows: dict[str, Any]) -> list[str]:
     """The estimators' error estimates and bound boxes against the removed fixes (Markdown)."""
     head = [
         "estimator",
-        "removed fix within eph",
+        "removed fix within eph [90 % interval over outages]",
         "median eph / median error (m)",
         "removed fix in bound box",
         "median box half-width (m)",

@@ -28,7 +28,17 @@ def _errors(values: Sequence[NDArray[np.float64]], unit: str = "m", scale: float
 
 
 def _rows(parts: Sequence[NDArray[np.float64]]) -> NDArray[np.float64]:
-    return np.vstack(parts) if parts else np.zeros((0, len(metrics.CALIBRATION_COLUMNS)))
+    """The runs' calibration columns stacked, each run's groups (its outages, or its drive) apart from the others'."""
+    if not parts:
+        return np.zeros((0, len(metrics.CALIBRATION_COLUMNS)))
+    rows, first = np.vstack(parts), 0
+    groups = []
+    for part in parts:
+        index = np.unique(part[:, -1], return_inverse=True)[1]
+        groups.append(index + first)
+        first += int(index.max()) + 1 if index.size else 0
+    rows[:, -1] = np.concatenate(groups)
+    return rows
 
 
 def _length_key(length_s: float) -> str:
@@ -270,7 +280,7 @@ def calibration_table(summary: Mapping[str, Any], profile: str) -> list[str]:
     head = ["estimator"]
     for where in ("with GPS", "outages"):
         head += [
-            f"{where}: error within eph",
+            f"{where}: error within eph [90 % interval over {'drives' if where == 'with GPS' else 'outages'}]",
             f"{where}: median eph / median error (m)",
             f"{where}: truth in bound box",
             f"{where}: median box half-width (m)",
@@ -285,7 +295,8 @@ def calibration_table(summary: Mapping[str, Any], profile: str) -> list[str]:
 
 
 def calibration_cells(c: Mapping[str, Any]) -> list[str]:
-    """Four cells of one :func:`~sumhe.bench.metrics.calibration`: eph coverage (with the target met or not),
+    """Four cells of one :func:`~sumhe.bench.metrics.calibration`: eph coverage (with the target met or not, and
+    its interval over the groups: :func:`~sumhe.bench.metrics.coverage_interval`),
     median eph / median error (ratio), box coverage, median box half-width."""
     if not c or not c.get("n"):
         return ["–", "–", *_box_cells(c)]
@@ -293,11 +304,19 @@ def calibration_cells(c: Mapping[str, Any]) -> list[str]:
     met = cover is not None and EPH_TARGET[0] <= cover <= EPH_TARGET[1]
     ratio_met = ratio is not None and ratio <= EPH_OVER_ERROR_MAX
     return [
-        f"{_num(100 * cover if cover is not None else None, 1)} % {'(met)' if met else '(missed)'}",
+        f"{_num(100 * cover if cover is not None else None, 1)} % {'(met)' if met else '(missed)'}{_interval(c)}",
         f"{_num(c.get('median_eph_m'))} / {_num(c.get('median_error_m'))} = {_num(ratio)}"
         f" {'(met)' if ratio_met else '(missed)'}",
         *_box_cells(c),
     ]
+
+
+def _interval(c: Mapping[str, Any]) -> str:
+    """`` [low-high]``: the coverage's bootstrap interval over the groups, in %, where it has one."""
+    low, high = c.get("eph_coverage_low"), c.get("eph_coverage_high")
+    if low is None or high is None or not (math.isfinite(low) and math.isfinite(high)):
+        return ""
+    return f" [{100 * low:.1f}-{100 * high:.1f}]"
 
 
 def _box_cells(c: Mapping[str, Any]) -> list[str]:
