@@ -4,6 +4,7 @@ every streaming estimator reads."""
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ from sumhe.baseline.ekf import Ekf
 from sumhe.config import DatumSettings
 from sumhe.estimator.grid import _fix_sigmas
 from sumhe.estimator.mhe import MovingHorizonEstimator
+from sumhe.frontend.alignment import UNLEARNED_TIME_OFFSET_SD_S
 from sumhe.frontend.can import CanBuffer
 from sumhe.frontend.epochs import EpochClock, nominal_period
 from sumhe.frontend.fixes import FixConverter, LocalFix
@@ -216,25 +218,49 @@ def test_a_configured_time_offset_moves_every_fix_onto_the_can_clock() -> None:
     assert fe.time_offset_s == -0.3
 
 
-def test_the_learned_time_offset_is_applied_gradually_and_keeps_epochs_in_order() -> None:
-    """A receiver whose fixes are true 0.3 s before their stamp (speed over ground behind the CAN speed): the
-    front-end learns it from the speeds and moves the fixes, by at most a fifth of a period per fix."""
-    fe = _frontend(**{"can.delay_s": 0.0})
+def _lagging_receiver(fe: FrontEnd) -> Iterator[list[Epoch | CanTick]]:
+    """Feed ``fe`` 300 s of a 1 Hz receiver whose fixes are true 0.3 s before their stamp (speed over ground behind
+    the CAN speed, 5 Hz) and yield the events of each fix."""
 
     def speed(t: float) -> float:
         return 12.0 + 5.0 * math.sin(t / 6.0)
 
-    times = []
     for k in range(1, 3000):
         t = 0.1 * k
         if k % 2 == 0:
             fe.push(CanSample(t, "speed", speed(t)))
         if k % 10 == 0:
-            fix = LocalFix(t=t, valid=True, east_m=1.0, north_m=2.0, hdop=1.0, speed_mps=speed(t - 0.3))
-            times += [e.t for e in fe.push(fix) if isinstance(e, Epoch)]
+            yield fe.push(LocalFix(t=t, valid=True, east_m=1.0, north_m=2.0, hdop=1.0, speed_mps=speed(t - 0.3)))
+
+
+def test_the_learned_time_offset_is_applied_gradually_and_keeps_epochs_in_order() -> None:
+    """A receiver whose fixes are true 0.3 s before their stamp (speed over ground behind the CAN speed): the
+    front-end learns it from the speeds and moves the fixes, by at most a fifth of a period per fix."""
+    fe = _frontend(**{"can.delay_s": 0.0})
+    times = [e.t for events in _lagging_receiver(fe) for e in events if isinstance(e, Epoch)]
     assert fe.time_offset_s == pytest.approx(-0.3, abs=0.02)
     assert all(np.diff(times) > 0.5)  # 1 Hz epochs, each moved by at most 0.2 s more than the one before
     assert times[-1] == pytest.approx(299.0 + fe.time_offset_s)
+
+
+def test_the_applied_time_offsets_error_is_the_prior_then_the_fit_and_what_the_slew_has_not_applied() -> None:
+    """The same receiver (fixes true 0.3 s before their stamp): until the learner's first fit the applied offset's
+    error is the prior it starts from; then the fit's standard error and the part the slew has not applied yet
+    (root sum of squares); once applied, the fit's alone. A configured offset is a calibration: none."""
+    fe = _frontend(**{"can.delay_s": 0.0})
+    assert fe.time_offset_sigma_s == UNLEARNED_TIME_OFFSET_SD_S and fe.aligner is not None
+    learner = fe.aligner
+    seen = [
+        (fe.time_offset_sigma_s, learner.sigma_s, learner.offset_s - fe.time_offset_s) for _ in _lagging_receiver(fe)
+    ]
+    first = next(i for i, (_, fit, _) in enumerate(seen) if fit < UNLEARNED_TIME_OFFSET_SD_S)
+    assert first > 0 and all(sigma == UNLEARNED_TIME_OFFSET_SD_S for sigma, _, _ in seen[:first])
+    sigma, fit, unapplied = seen[first]
+    assert abs(unapplied) > 0.05 and sigma == pytest.approx(math.hypot(fit, unapplied))
+    sigma, fit, unapplied = seen[-1]
+    assert abs(unapplied) < 1e-9 and sigma == pytest.approx(fit) and fit < 0.03
+    configured = _frontend(**{"gnss.time_offset_s": -0.3, "gnss.learn_time_offset": False})
+    assert configured.time_offset_sigma_s == 0.0
 
 
 def test_missed_epochs_wait_for_the_period() -> None:

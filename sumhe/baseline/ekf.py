@@ -151,10 +151,6 @@ def gaussian_loglik(nu: FloatArray, S: FloatArray) -> float:
     return -0.5 * float(nu @ np.linalg.solve(S, nu) + logdet + len(nu) * math.log(2.0 * math.pi))
 
 
-UNLEARNED_TIME_OFFSET_SD_S = 0.3
-"""The standard deviation (s) of a fix's time on the CAN clock while the front-end has not learned the GNSS time
-offset (:class:`~sumhe.frontend.alignment.ClockLearner`): real recordings show -0.4 to +0.2 s, the realistic
-profile draws -0.3 to +0.3 s (docs/simulator.md)."""
 ACCELERATION_SPAN_S = 0.5
 """The CAN speed's acceleration at a fix is its change over the last this many seconds."""
 
@@ -248,8 +244,10 @@ class GaussianFilter(LeverCourse):
 
     def _speed_sigma(self, fix: FixMeasurement) -> float:
         """The speed over ground's sigma with the error of its uncertain time (:func:`timed_speed_sigma`): the
-        standard error of the GNSS time offset the front-end learned, :data:`UNLEARNED_TIME_OFFSET_SD_S` until it
-        has (none where it does not learn it: the configured offset is a calibration).
+        standard error of the GNSS time offset the front-end learned,
+        :data:`~sumhe.frontend.alignment.UNLEARNED_TIME_OFFSET_SD_S` until it has
+        (:attr:`~sumhe.frontend.alignment.ClockLearner.sigma_s`; none where it does not learn it: the configured
+        offset is a calibration).
 
         Without it, the speed scale state took the speed over ground of the first acceleration from standstill,
         0.25 s off the CAN speed, for a scale error of up to 13 % with a sigma of 0.3 %, and kept it for minutes
@@ -258,9 +256,8 @@ class GaussianFilter(LeverCourse):
         learner = self.frontend.aligner
         if learner is None:
             return fix.speed_sigma_mps
-        time_sd = learner.std_s if math.isfinite(learner.std_s) else UNLEARNED_TIME_OFFSET_SD_S
         acceleration = can_acceleration(self.frontend.can["speed"], fix.t, self.settings.can.max_gap_s)
-        return timed_speed_sigma(fix.speed_sigma_mps, acceleration, time_sd)
+        return timed_speed_sigma(fix.speed_sigma_mps, acceleration, learner.sigma_s)
 
     def _init_heading(self, phi: float, sigma: float) -> None:
         self.x, self.P = set_heading(self.x, self.P, phi, sigma)

@@ -229,13 +229,15 @@ class StreamEstimator(ABC):
 
     def stats(self) -> Mapping[str, float | int | str]:
         """The estimator's name, the nominal GNSS period, the GNSS time offset applied (s: a fix's stamped time plus
-        it is its time on the CAN clock), the consistency scales of its error estimates (:class:`InnovationScale`:
-        ``eph_scale`` at a fix, ``eph_growth_scale`` of the growth since) and every counter (front-end and
-        estimator)."""
+        it is its time on the CAN clock) and its root mean square error (s, ``gps_time_offset_sigma_s``:
+        :attr:`~sumhe.frontend.stream.FrontEnd.time_offset_sigma_s`), the consistency scales of its error
+        estimates (:class:`InnovationScale`: ``eph_scale`` at a fix, ``eph_growth_scale`` of the growth since) and
+        every counter (front-end and estimator)."""
         out: dict[str, float | int | str] = {
             "estimator": self.name,
             "period_s": self.frontend.period_s,
             "gps_time_offset_s": self.frontend.time_offset_s,
+            "gps_time_offset_sigma_s": self.frontend.time_offset_sigma_s,
             "eph_scale": self.consistency.scale,
             "eph_growth_scale": self.consistency.growth_scale,
         }

@@ -40,6 +40,9 @@ SLOPE_S = 0.5
 """Half the interval (s) over which the model's derivative with respect to the lag is taken (smooths sensor noise)."""
 LAG_TOLERANCE_S = 1e-4
 """The speed lag is searched to this (s) between the grid's neighbours of its minimum (:func:`speed_lag`)."""
+UNLEARNED_TIME_OFFSET_SD_S = 0.3
+"""The standard deviation (s) of the GNSS time offset before :class:`ClockLearner` has fitted it: real recordings
+show -0.4 to +0.2 s, the realistic profile draws -0.3 to +0.3 s (docs/simulator.md)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -281,7 +284,7 @@ class ClockLearner:
     """The GNSS time offset learned on line from the receiver's speed over ground and the CAN speed
     (:func:`speed_lag` over the last ``window_s`` s, refitted every ``refit_s`` s). ``offset_s`` is the offset
     to add to a fix's stamped time: ``initial_s`` until a fit's standard error is below ``max_std_s``, then the
-    newest such fit's ``-lag``."""
+    newest such fit's ``-lag``; :attr:`sigma_s` its standard deviation."""
 
     def __init__(
         self, initial_s: float = 0.0, window_s: float = 300.0, refit_s: float = 10.0, max_std_s: float = 0.03
@@ -293,6 +296,12 @@ class ClockLearner:
         self._fixes: deque[tuple[float, float]] = deque()
         self._can = _Series()
         self._next_fit = -math.inf
+
+    @property
+    def sigma_s(self) -> float:
+        """The standard deviation (s) of :attr:`offset_s`: the newest fit's standard error,
+        :data:`UNLEARNED_TIME_OFFSET_SD_S` before any."""
+        return self.std_s if math.isfinite(self.std_s) else UNLEARNED_TIME_OFFSET_SD_S
 
     def add_can_speed(self, t: float, speed_mps: float) -> None:
         """A CAN speed sample (s, m/s) on the CAN clock."""

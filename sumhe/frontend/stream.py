@@ -175,6 +175,16 @@ class FrontEnd:
         """The nominal GNSS period (s)."""
         return self.clock.period_s
 
+    @property
+    def time_offset_sigma_s(self) -> float:
+        """The root mean square error (s) of the GNSS time offset applied (:attr:`time_offset_s`) where it is
+        learned: the learner's standard deviation (:attr:`~sumhe.frontend.alignment.ClockLearner.sigma_s`) and the
+        part of its offset the slew has not applied yet; 0 for a configured offset (a calibration)."""
+        learner = self.aligner
+        if learner is None:
+            return 0.0
+        return math.hypot(learner.sigma_s, learner.offset_s - self.time_offset_s)
+
     def push(self, sample: object) -> list[Epoch | CanTick]:
         """One sample in (time-ordered), its events out."""
         if isinstance(sample, CanSample):
