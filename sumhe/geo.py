@@ -21,21 +21,8 @@ WGS84_B = WGS84_A * (1.0 - WGS84_F)
 WGS84_EP2 = (WGS84_A**2 - WGS84_B**2) / WGS84_B**2
 
 
-def geodetic_to_ecef(lat_deg: ArrayLike, lon_deg: ArrayLike, alt_m: ArrayLike) -> NDArray[np.float64]:
-    """WGS84 latitude, longitude (deg) and ellipsoidal height (m) -> ECEF x, y, z (m), stacked last."""
-    lat = np.radians(np.asarray(lat_deg, dtype=float))
-    lon = np.radians(np.asarray(lon_deg, dtype=float))
-    h = np.asarray(alt_m, dtype=float)
-    sl, cl = np.sin(lat), np.cos(lat)
-    n = WGS84_A / np.sqrt(1.0 - WGS84_E2 * sl * sl)
-    x = (n + h) * cl * np.cos(lon)
-    y = (n + h) * cl * np.sin(lon)
-    z = (n * (1.0 - WGS84_E2) + h) * sl
-    return np.stack(np.broadcast_arrays(x, y, z), axis=-1)
-
-
 class _Maths(NamedTuple):
-    """The functions the geodetic conversion needs, from numpy (arrays) or math (floats: ~10x faster one by one)."""
+    """The functions the geodetic conversions need, from numpy (arrays) or math (floats: ~10x faster one by one)."""
 
     atan2: Callable[..., Any]
     hypot: Callable[..., Any]
@@ -43,10 +30,28 @@ class _Maths(NamedTuple):
     cos: Callable[..., Any]
     sqrt: Callable[..., Any]
     degrees: Callable[..., Any]
+    radians: Callable[..., Any]
 
 
-_NUMPY = _Maths(np.arctan2, np.hypot, np.sin, np.cos, np.sqrt, np.degrees)
-_MATH = _Maths(math.atan2, math.hypot, math.sin, math.cos, math.sqrt, math.degrees)
+_NUMPY = _Maths(np.arctan2, np.hypot, np.sin, np.cos, np.sqrt, np.degrees, np.radians)
+_MATH = _Maths(math.atan2, math.hypot, math.sin, math.cos, math.sqrt, math.degrees, math.radians)
+
+
+def geodetic_to_ecef(lat_deg: ArrayLike, lon_deg: ArrayLike, alt_m: ArrayLike) -> NDArray[np.float64]:
+    """WGS84 latitude, longitude (deg) and ellipsoidal height (m) -> ECEF x, y, z (m), stacked last."""
+    lat, lon, h = (np.asarray(v, dtype=float) for v in (lat_deg, lon_deg, alt_m))
+    return np.stack(np.broadcast_arrays(*_ecef(lat, lon, h, _NUMPY)), axis=-1)
+
+
+def _ecef(lat_deg: Any, lon_deg: Any, h: Any, m: _Maths) -> tuple[Any, Any, Any]:
+    """:func:`geodetic_to_ecef` on arrays (``m`` = numpy) or floats (``m`` = math): ECEF x, y, z (m)."""
+    lat, lon = m.radians(lat_deg), m.radians(lon_deg)
+    sl, cl = m.sin(lat), m.cos(lat)
+    n = WGS84_A / m.sqrt(1.0 - WGS84_E2 * sl * sl)
+    x = (n + h) * cl * m.cos(lon)
+    y = (n + h) * cl * m.sin(lon)
+    z = (n * (1.0 - WGS84_E2) + h) * sl
+    return x, y, z
 
 
 def ecef_to_geodetic(xyz: ArrayLike) -> NDArray[np.float64]:
@@ -81,9 +86,10 @@ def _height(p: Any, z: Any, lat: Any, m: _Maths) -> Any:
     return p * cl + z * sl - WGS84_A * m.sqrt(1.0 - WGS84_E2 * sl * sl)
 
 
-def _one_point(east_m: object, north_m: object, up_m: object) -> bool:
-    """Whether :meth:`LocalFrame.to_geodetic` takes its plain-float path for these arguments."""
-    return type(east_m) is float and type(north_m) is float and isinstance(up_m, float | int)
+def _one_point(a: object, b: object, c: object) -> bool:
+    """Whether :meth:`LocalFrame.to_geodetic` (``a, b, c`` = east, north, up) and :meth:`LocalFrame.to_enu`
+    (latitude, longitude, height) take their plain-float path for these arguments."""
+    return type(a) is float and type(b) is float and isinstance(c, float | int)
 
 
 @dataclass(frozen=True)
@@ -124,9 +130,13 @@ class LocalFrame:
         return lat, lon, alt
 
     def to_enu(self, lat_deg: ArrayLike, lon_deg: ArrayLike, alt_m: ArrayLike = 0.0) -> NDArray[np.float64]:
-        """Geodetic (deg, deg, m) -> east, north, up (m), stacked last."""
-        d = geodetic_to_ecef(lat_deg, lon_deg, alt_m) - self._origin
-        return d @ self._rot.T
+        """Geodetic (deg, deg, m) -> east, north, up (m), stacked last. One point of plain floats (every fix) is
+        carried to ECEF in floats, the same bits (numpy's set-up on 0-d arrays: 10.4 -> 1.8 us a fix)."""
+        if _one_point(lat_deg, lon_deg, alt_m):
+            ecef = np.array(_ecef(lat_deg, lon_deg, alt_m, _MATH))
+        else:
+            ecef = geodetic_to_ecef(lat_deg, lon_deg, alt_m)
+        return (ecef - self._origin) @ self._rot.T
 
     def to_geodetic(self, east_m: ArrayLike, north_m: ArrayLike, up_m: ArrayLike = 0.0) -> NDArray[np.float64]:
         """East, north, up (m) -> latitude, longitude (deg), height (m), stacked last."""

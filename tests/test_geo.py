@@ -175,3 +175,16 @@ def test_point_to_geodetic_gives_to_geodetics_bits_for_floats_and_numpy_numbers(
     for east, north, up in rng.normal(0.0, 5000.0, (50, 3)).tolist():
         for args in ((east, north, up), (np.float64(east), np.float64(north), 0.0), (east, north, 2)):
             assert frame.point_to_geodetic(*args) == tuple(frame.to_geodetic(*args).tolist())
+
+
+def test_to_enu_of_one_point_of_floats_gives_the_array_paths_bits() -> None:
+    """The float path of one fix (math) carries the numpy path's operations in its order: the same bits."""
+    rng = np.random.default_rng(7)
+    for lat0, lon0, alt0 in ((48.137, 11.575, 519.0), (-33.68, 151.29, 50.0), (89.9, -179.9, 0.0)):
+        frame = LocalFrame(lat0, lon0, alt0)
+        lats = np.clip(lat0 + rng.normal(0.0, 0.3, 300), -90.0, 90.0).tolist()
+        lons = (lon0 + rng.normal(0.0, 0.3, 300)).tolist()
+        for lat, lon, h in zip(lats, lons, rng.uniform(-1e2, 3e3, 300), strict=True):
+            numpy_path = frame.to_enu(np.float64(lat), lon, h)  # a numpy number: the array path
+            assert frame.to_enu(lat, lon, float(h)).tolist() == numpy_path.tolist()
+            assert frame.to_enu(lat, lon, round(h)).tolist() == frame.to_enu(np.float64(lat), lon, round(h)).tolist()
