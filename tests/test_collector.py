@@ -14,7 +14,7 @@ import weakref
 import pytest
 
 from sumhe.bench.live import _run_queue, gc_line
-from sumhe.service.collector import GcWatch, settle
+from sumhe.service.collector import YOUNG_THRESHOLD, GcWatch, settle, young_collections_every
 from sumhe.service.latency import SendLatency, slow_with_gc
 
 
@@ -131,3 +131,19 @@ def test_send_latencies_before_any_send_are_empty():
     figures = SendLatency(window=10).figures()
     assert math.isnan(figures["latency_ms_p50"]) and figures["latency_slow"] == {"slow": 0}
     assert figures["latency_run"]["sends"] == 0
+
+
+def test_young_collections_every_raises_the_threshold_only_and_restores_it_even_on_an_error() -> None:
+    before = gc.get_threshold()
+    try:
+        gc.set_threshold(700, *before[1:])
+        with young_collections_every():
+            assert gc.get_threshold() == (YOUNG_THRESHOLD, *before[1:])
+        assert gc.get_threshold() == (700, *before[1:])
+        gc.set_threshold(50_000, *before[1:])
+        with pytest.raises(KeyError), young_collections_every():
+            assert gc.get_threshold()[0] == 50_000  # never more often than it already is
+            raise KeyError
+        assert gc.get_threshold() == (50_000, *before[1:])
+    finally:
+        gc.set_threshold(*before)

@@ -42,6 +42,7 @@ from sumhe.geo import LocalFrame
 from sumhe.io.replay import RecordedDrive, chunks
 from sumhe.io.udp import json_line
 from sumhe.messages import Estimate
+from sumhe.service.collector import young_collections_every
 from sumhe.service.histogram import Histogram
 from sumhe.service.pipeline import MonotonicOutput, Pipeline
 
@@ -332,30 +333,21 @@ def replay_drive(
     )
 
 
-LOOP_GC_THRESHOLD = 20_000
-"""The young generation's collection threshold during the replay's loop (Python's default: 700 net new tracked
-objects). Its collections in the loop found nothing to free (bundled drive: 76 of the young generation and 6 of the
-middle one, 0 objects collected, 11-12 ms of the 2.0 s loop); at 20 000 it makes none there. A pass it does make
-traverses at most that many young objects, and a reference cycle waits at most that long to be freed."""
-
-
 @contextlib.contextmanager
 def _made_so_far_frozen() -> Iterator[None]:
     """The objects made before the replay's loop (the imports', the DBCs', the estimator's: 110 000 for the bundled
     drive) kept out of the garbage collector's passes while it runs, and handed back after (nothing stays
     uncollectable): a full pass traversed them all, 66 ms of the bundled drive's loop. The young generation
-    collected less often meanwhile (:data:`LOOP_GC_THRESHOLD`), its threshold restored after. Left alone where some
+    collected less often meanwhile (:func:`~sumhe.service.collector.young_collections_every`). Left alone where some
     are frozen already (the caller's to manage)."""
     if gc.get_freeze_count():
         yield
         return
     gc.freeze()
-    thresholds = gc.get_threshold()
-    gc.set_threshold(max(thresholds[0], LOOP_GC_THRESHOLD), *thresholds[1:])
     try:
-        yield
+        with young_collections_every():
+            yield
     finally:
-        gc.set_threshold(*thresholds)
         gc.unfreeze()
 
 
