@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from sumhe.frontend.alignment import ClockLearner, _Series, course_lag, speed_lag
+from sumhe.frontend.alignment import UNLEARNED_TIME_OFFSET_SD_S, ClockLearner, _Series, course_lag, speed_lag
 from sumhe.sim import SimSettings, simulate
 
 RNG = np.random.default_rng(7)
@@ -83,6 +83,40 @@ def test_too_little_data_or_no_excitation_determines_no_lag():
     steady = speed_lag(t_fix, 10.0 + RNG.normal(0, 0.1, len(t_fix)), t_can, np.full(len(t_can), 10.0))
     assert steady is None or not steady.std_s < 0.03  # a constant speed says nothing about the lag
     assert course_lag(t_fix, np.full(len(t_fix), np.nan), np.full(len(t_fix), 10.0), t_can, t_can * 0) is None
+
+
+def correlated_noise(n, rho, sd, rng):
+    """Stationary first-order autoregressive noise: standard deviation ``sd``, lag-1 correlation ``rho``."""
+    x = np.empty(n)
+    x[0] = rng.normal(0, sd)
+    for i, e in enumerate(rng.normal(0, sd * math.sqrt(1 - rho**2), n - 1), start=1):
+        x[i] = rho * x[i - 1] + e
+    return x
+
+
+def test_a_short_fits_standard_error_covers_its_error_with_correlated_residuals():
+    # a receiver's velocity smoothed over epochs: 30 s windows at 10 Hz, errors correlated 0.9 from epoch to epoch
+    rng, lag = np.random.default_rng(11), 0.2
+    z = []
+    for start in np.arange(0.0, 1200.0, 30.0):
+        t_can = np.arange(start - 2.0, start + 32.0, 0.02)
+        can = true_speed(t_can) + rng.normal(0, 0.02, len(t_can))
+        t_fix = np.arange(start, start + 30.0, 0.1)
+        gnss = true_speed(t_fix - lag) + correlated_noise(len(t_fix), 0.9, 0.15, rng)
+        fit = speed_lag(t_fix, gnss, t_can, can)
+        assert fit is not None
+        z.append((fit.lag_s - lag) / fit.std_s)
+    assert 0.6 < math.sqrt(np.mean(np.square(z))) < 1.4  # as white: 3.9
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_the_can_speeds_noise_is_no_speed_change(seed):
+    # the estimator contract's drive: a constant 10 m/s, the CAN speed's noise alone moves (50 Hz, 0.02 m/s)
+    rng = np.random.default_rng(seed)
+    t_can = np.arange(0.0, 20.0, 0.02)
+    t_fix = np.arange(1.05, 19.0, 0.1)
+    fit = speed_lag(t_fix, np.full(len(t_fix), 10.0), t_can, 10.0 + rng.normal(0, 0.02, len(t_can)))
+    assert fit is not None and not fit.std_s < UNLEARNED_TIME_OFFSET_SD_S  # as white: 0.05 s, for errors up to 0.94 s
 
 
 def test_learner_starts_at_its_initial_value_and_converges_to_the_offset():
