@@ -119,6 +119,16 @@ def test_the_can_speeds_noise_is_no_speed_change(seed):
     assert fit is not None and not fit.std_s < UNLEARNED_TIME_OFFSET_SD_S  # as white: 0.05 s, for errors up to 0.94 s
 
 
+def test_early_fits_on_a_steady_drive_leave_the_offset_alone():
+    learner = ClockLearner(initial_s=0.0)
+    rng = np.random.default_rng(3)
+    for k, t in enumerate(np.arange(0.0, 60.0, 0.02)):
+        learner.add_can_speed(float(t), 10.0 + float(rng.normal(0, 0.02)))
+        if k % 5 == 2:
+            learner.add_fix(float(t), 10.0)
+    assert learner.offset_s == pytest.approx(0.0, abs=1e-3)
+
+
 def test_learner_starts_at_its_initial_value_and_converges_to_the_offset():
     lag = 0.3
     learner = ClockLearner(initial_s=0.05, window_s=120.0, refit_s=5.0)
@@ -134,6 +144,20 @@ def test_learner_starts_at_its_initial_value_and_converges_to_the_offset():
         learner.add_fix(float(t), float(true_speed(t - lag) + RNG.normal(0, 0.05)))
     assert learner.fits > 0
     assert learner.offset_s == pytest.approx(-lag, abs=0.02)
+
+
+def test_before_a_sure_fit_the_learner_weighs_each_fit_against_its_prior():
+    # no fit passes the gate: each moves the offset from the initial value by the weight of its precision
+    lag, initial = 0.3, 0.05
+    learner = ClockLearner(initial_s=initial, window_s=120.0, refit_s=5.0, max_std_s=1e-9)
+    t_can = np.arange(0.0, 120.0, 0.02)
+    for t, v in zip(t_can, true_speed(t_can), strict=True):
+        learner.add_can_speed(float(t), float(v))
+    for t in np.arange(1.0, 120.0, 1.0):
+        learner.add_fix(float(t), float(true_speed(t - lag) + RNG.normal(0, 0.05)))
+    assert learner.fits == 0  # not learned: the gate's fits alone count
+    assert abs(learner.offset_s + lag) < 0.1 * abs(initial + lag)  # near the fit, not the prior
+    assert 0.0 < learner.sigma_s < UNLEARNED_TIME_OFFSET_SD_S
 
 
 def test_learner_ignores_fixes_without_speed_and_bad_values():
