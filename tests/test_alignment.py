@@ -127,6 +127,7 @@ def test_early_fits_on_a_steady_drive_leave_the_offset_alone():
         if k % 5 == 2:
             learner.add_fix(float(t), 10.0)
     assert learner.offset_s == pytest.approx(0.0, abs=1e-3)
+    assert learner.sigma_s == UNLEARNED_TIME_OFFSET_SD_S and math.isinf(learner.std_s)  # the fits said nothing
 
 
 def test_learner_starts_at_its_initial_value_and_converges_to_the_offset():

@@ -374,7 +374,7 @@ class ClockLearner:
         if fit.std_s <= self.max_std_s:
             self.offset_s, self.std_s = -fit.lag_s, fit.std_s
             self.fits += 1
-        elif self.fits == 0:
+        elif self.fits == 0 and math.isfinite(fit.std_s):
             self.offset_s, self.std_s = _weighed(self.initial_s, UNLEARNED_TIME_OFFSET_SD_S, -fit.lag_s, fit.std_s)
 
 
