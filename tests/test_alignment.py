@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from sumhe.frontend.alignment import ClockLearner, _Series, course_lag, speed_lag
+from sumhe.frontend.alignment import UNLEARNED_TIME_OFFSET_SD_S, ClockLearner, _Series, course_lag, speed_lag
 from sumhe.sim import SimSettings, simulate
 
 RNG = np.random.default_rng(7)
@@ -85,6 +85,51 @@ def test_too_little_data_or_no_excitation_determines_no_lag():
     assert course_lag(t_fix, np.full(len(t_fix), np.nan), np.full(len(t_fix), 10.0), t_can, t_can * 0) is None
 
 
+def correlated_noise(n, rho, sd, rng):
+    """Stationary first-order autoregressive noise: standard deviation ``sd``, lag-1 correlation ``rho``."""
+    x = np.empty(n)
+    x[0] = rng.normal(0, sd)
+    for i, e in enumerate(rng.normal(0, sd * math.sqrt(1 - rho**2), n - 1), start=1):
+        x[i] = rho * x[i - 1] + e
+    return x
+
+
+def test_a_short_fits_standard_error_covers_its_error_with_correlated_residuals():
+    # a receiver's velocity smoothed over epochs: 30 s windows at 10 Hz, errors correlated 0.9 from epoch to epoch
+    rng, lag = np.random.default_rng(11), 0.2
+    z = []
+    for start in np.arange(0.0, 1200.0, 30.0):
+        t_can = np.arange(start - 2.0, start + 32.0, 0.02)
+        can = true_speed(t_can) + rng.normal(0, 0.02, len(t_can))
+        t_fix = np.arange(start, start + 30.0, 0.1)
+        gnss = true_speed(t_fix - lag) + correlated_noise(len(t_fix), 0.9, 0.15, rng)
+        fit = speed_lag(t_fix, gnss, t_can, can)
+        assert fit is not None
+        z.append((fit.lag_s - lag) / fit.std_s)
+    assert 0.6 < math.sqrt(np.mean(np.square(z))) < 1.4  # as white: 3.9
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_the_can_speeds_noise_is_no_speed_change(seed):
+    # the estimator contract's drive: a constant 10 m/s, the CAN speed's noise alone moves (50 Hz, 0.02 m/s)
+    rng = np.random.default_rng(seed)
+    t_can = np.arange(0.0, 20.0, 0.02)
+    t_fix = np.arange(1.05, 19.0, 0.1)
+    fit = speed_lag(t_fix, np.full(len(t_fix), 10.0), t_can, 10.0 + rng.normal(0, 0.02, len(t_can)))
+    assert fit is not None and not fit.std_s < UNLEARNED_TIME_OFFSET_SD_S  # as white: 0.05 s, for errors up to 0.94 s
+
+
+def test_early_fits_on_a_steady_drive_leave_the_offset_alone():
+    learner = ClockLearner(initial_s=0.0)
+    rng = np.random.default_rng(3)
+    for k, t in enumerate(np.arange(0.0, 60.0, 0.02)):
+        learner.add_can_speed(float(t), 10.0 + float(rng.normal(0, 0.02)))
+        if k % 5 == 2:
+            learner.add_fix(float(t), 10.0)
+    assert learner.offset_s == pytest.approx(0.0, abs=1e-3)
+    assert learner.sigma_s == UNLEARNED_TIME_OFFSET_SD_S and math.isinf(learner.std_s)  # the fits said nothing
+
+
 def test_learner_starts_at_its_initial_value_and_converges_to_the_offset():
     lag = 0.3
     learner = ClockLearner(initial_s=0.05, window_s=120.0, refit_s=5.0)
@@ -100,6 +145,20 @@ def test_learner_starts_at_its_initial_value_and_converges_to_the_offset():
         learner.add_fix(float(t), float(true_speed(t - lag) + RNG.normal(0, 0.05)))
     assert learner.fits > 0
     assert learner.offset_s == pytest.approx(-lag, abs=0.02)
+
+
+def test_before_a_sure_fit_the_learner_weighs_each_fit_against_its_prior():
+    # no fit passes the gate: each moves the offset from the initial value by the weight of its precision
+    lag, initial = 0.3, 0.05
+    learner = ClockLearner(initial_s=initial, window_s=120.0, refit_s=5.0, max_std_s=1e-9)
+    t_can = np.arange(0.0, 120.0, 0.02)
+    for t, v in zip(t_can, true_speed(t_can), strict=True):
+        learner.add_can_speed(float(t), float(v))
+    for t in np.arange(1.0, 120.0, 1.0):
+        learner.add_fix(float(t), float(true_speed(t - lag) + RNG.normal(0, 0.05)))
+    assert learner.fits == 0  # not learned: the gate's fits alone count
+    assert abs(learner.offset_s + lag) < 0.1 * abs(initial + lag)  # near the fit, not the prior
+    assert 0.0 < learner.sigma_s < UNLEARNED_TIME_OFFSET_SD_S
 
 
 def test_learner_ignores_fixes_without_speed_and_bad_values():
