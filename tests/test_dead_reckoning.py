@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from sumhe.baseline import kinematics as kin
-from sumhe.baseline.dead_reckoning import DeadReckoning
+from sumhe.baseline.dead_reckoning import DeadReckoning, raw_input_errors
 from sumhe.frontend.fixes import LocalFix
 from sumhe.messages import CanSample
-from sumhe.settings import EstimationSettings
+from sumhe.settings import EstimationSettings, NoiseSettings
 
 SPEED_MPS = 10.0
 OUTAGE_FROM_S = 20.0
@@ -62,3 +62,27 @@ def test_the_uncorrected_bias_and_scale_grow_the_error_as_constants_do() -> None
         assert grown[kin.PHI, kin.PHI] == pytest.approx((sigma_b * t) ** 2, rel=0.05)
         assert grown[kin.N, kin.N] == pytest.approx((sigma_k * SPEED_MPS * t) ** 2, rel=0.05)
         assert grown[kin.E, kin.E] == pytest.approx((sigma_b * SPEED_MPS * t * t / 2.0) ** 2, rel=0.05)
+
+
+@pytest.mark.parametrize("turning", [True, False])
+def test_the_raw_yaw_rate_is_off_by_the_bias_and_the_gain_times_itself(turning: bool) -> None:
+    """At 0.5 rad/s the CAN yaw rate's error is the bias's plus 0.5 times the gain's (CAN yaw rate = g omega + b),
+    plus the noise; at 12 m/s the speed's 12 times the scale's; both correlated with those rows, which they leave
+    as they were. At standstill no turning is integrated: the bias's and the gain's parts are nil."""
+    layout, noise = kin.Layout(), NoiseSettings()
+    b, k, g = layout.b, layout.k, layout.g
+    assert b is not None and k is not None and g is not None
+    P = np.eye(layout.n)
+    P[b, b], P[k, k], P[g, g] = 1e-4, 6.25e-4, 5.6e-3
+    x = np.zeros(layout.n)
+    x[kin.V], x[kin.OMEGA] = 12.0, 0.5 if turning else 0.0
+    out = raw_input_errors(P, x, turning, layout, noise)
+    expected = 1e-4 + 0.25 * 5.6e-3 if turning else 0.0
+    assert out[kin.OMEGA, kin.OMEGA] == pytest.approx(expected + noise.can_yaw_rate_rps**2)
+    assert out[kin.OMEGA, b] == pytest.approx(-1e-4 if turning else 0.0)
+    assert out[kin.OMEGA, g] == pytest.approx(-0.5 * 5.6e-3 if turning else 0.0)
+    assert out[kin.V, kin.V] == pytest.approx(144.0 * 6.25e-4 + noise.can_speed_mps**2)
+    assert out[kin.V, k] == pytest.approx(-12.0 * 6.25e-4)
+    assert out[kin.V, kin.OMEGA] == 0.0
+    rows = [kin.E, kin.N, kin.PHI, b, k, g]
+    np.testing.assert_array_equal(out[np.ix_(rows, rows)], P[np.ix_(rows, rows)])
