@@ -12,20 +12,21 @@ from sumhe.baseline import kinematics as kin
 from sumhe.baseline.ekf import (
     Ekf,
     can_acceleration,
-    heading_offset_variance,
     lever_course_sigma,
     timed_speed_sigma,
 )
+from sumhe.baseline.heading_offset import considered_heading_offset, heading_offset_variance
 from sumhe.baseline.imm import Imm, transition_matrix
 from sumhe.baseline.kinematics import Layout
+from sumhe.baseline.mskf_em import MskfEm
 from sumhe.baseline.particle import (
     ROUGHENING_K,
     ParticleFilter,
-    considered_heading_offset,
     roughening_sigma,
     systematic_resample,
 )
 from sumhe.baseline.rts import Rts
+from sumhe.baseline.sr_upf import SrUpf
 from sumhe.baseline.stream import Gate
 from sumhe.baseline.ukf import Ukf
 from sumhe.bench import tune
@@ -583,10 +584,10 @@ def test_a_considered_heading_offset_moves_the_position_across_the_way_moved() -
     assert P[kin.PHI, kin.PHI] == pytest.approx(1e-4)
 
 
-@pytest.mark.parametrize("filter_class", [Ekf, ParticleFilter])
+@pytest.mark.parametrize("filter_class", [Ekf, ParticleFilter, Ukf, Imm, MskfEm, SrUpf])
 def test_a_headings_offset_is_considered_in_the_covariance_not_in_the_estimate(filter_class: type) -> None:
     """The offset of a heading from the azimuth of the velocity (bounded by ``gnss.azimuth_offset_max_rad``, read
-    as ``r_cap_sigmas`` sigmas: 0.43 deg) is a considered parameter of the EKF and the particle filter: the
+    as ``r_cap_sigmas`` sigmas: 0.43 deg) is a considered parameter of every filter that follows headings: the
     estimates are those of the filter without it, and through 10 s of outage at 10 m/s the sigma across the track
     it adds grows by ``10 s x 10 m/s x sigma`` (the offset is the same all along: sigmas, not variances, add); a
     course over ground has no offset."""

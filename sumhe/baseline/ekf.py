@@ -14,8 +14,9 @@ import math
 import numpy as np
 
 from sumhe.baseline import kinematics as kin
+from sumhe.baseline.heading_offset import FollowsHeadings, heading_offset_variance
 from sumhe.baseline.kinematics import AZIMUTH, OMEGA, PHI, FloatArray, V
-from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
+from sumhe.baseline.stream import Inputs, Pending
 from sumhe.config import Config
 from sumhe.frontend.can import Samples
 from sumhe.frontend.stream import FixMeasurement
@@ -176,16 +177,9 @@ def lever_course_sigma(yaw_rate_rps: float, speed_mps: float, lever_m: float, mi
     return abs(yaw_rate_rps) * lever_m / max(abs(speed_mps), min_speed_mps)
 
 
-class LeverCourse(RecursiveEstimator):
+class LeverCourse(FollowsHeadings):
     """A recursive estimator whose model has no antenna offset and that weighs a GNSS course with the lever arm's
-    error at its own mean yaw rate and speed (the Kalman family and the particle filter). ``_heading``: the newest
-    azimuth it measured was a receiver's heading (not a course over ground)."""
-
-    _heading: bool = False
-
-    def _angle_update(self, fix: FixMeasurement, lag: float) -> None:
-        self._heading = fix.heading
-        super()._angle_update(fix, lag)
+    error at its own mean yaw rate and speed (the Kalman family and the particle filter)."""
 
     def _fix_angle(self, fix: FixMeasurement) -> tuple[float, float] | None:
         """A course's sigma with the lever arm's error added (:func:`lever_course_sigma`, the lever the antenna's
@@ -269,31 +263,22 @@ class GaussianFilter(LeverCourse):
         return self.P
 
 
-def heading_offset_variance(settings: EstimationSettings) -> float:
-    """The variance (rad^2) of the offset of a receiver's heading from the vehicle's azimuth (mounting, sideslip)
-    the filter considers (:class:`Ekf`): its bound ``gnss.azimuth_offset_max_rad`` read as ``estimator.r_cap_sigmas``
-    sigmas, as the MHE reads every bound (0.03 rad and 4: 0.43 deg), none where the config has no offset
-    (``estimator.azimuth_offset``)."""
-    e = settings.estimator
-    return (settings.gnss.azimuth_offset_max_rad / e.r_cap_sigmas) ** 2 if e.azimuth_offset else 0.0
-
-
 class Ekf(GaussianFilter):
     """Extended Kalman filter (``ekf``): the shared model linearised at the estimate.
 
     Its error estimate is the covariance ``Pt`` of its own estimate with the offset of a receiver's heading
-    considered (Schmidt's consider covariance: a parameter carried in the covariance, never estimated; the gains
-    are ``P``'s, so the estimates are the filter's as tuned, and the RTS smoother's, which inherits it). A heading
-    (the receiver's body axis) is off the azimuth of the velocity the model moves along by the mounting's and the
-    sideslip's offset, constant over minutes (:func:`heading_offset_variance`); a filter that follows the headings
-    carries it into an outage, where it makes an error across the track that grows linearly from the start. On the
-    shared real drive (the logger's GNSS/IMU heading, 1 Hz) the heading less the course over ground on the
-    straights drifts from -0.1 to -0.5 deg over the drive; in its 60 s outages the error across the track grew
-    from 3.1 to 15.6 m rms, linearly (0.25 m/s), while ``P`` said 0.3 deg of azimuth at the outage's start and
-    grew as the bias's ``t^3``: 82.8 % of the removed fixes within ``eph`` (1.61x the median error). With the
-    offset considered: 93.2 % (2.01x); the 10 and 30 s outages 98.9 and 97.4 % (2.10, 2.35x; were 97.8 and 94.1
-    %, 1.78, 1.84x). A course over ground is the velocity's azimuth: no offset (the realistic profile's fixes
-    have courses; its figures do not change)."""
+    considered (Schmidt's consider covariance: a parameter carried in the covariance, never estimated; the gains are
+    ``P``'s, so the estimates are the filter's as tuned, and the RTS smoother's, which inherits it). A heading (the
+    receiver's body axis) is off the azimuth of the velocity the model moves along by the mounting's and the
+    sideslip's offset, constant over minutes (:func:`~.heading_offset.heading_offset_variance`); a filter that
+    follows the headings carries it into an outage, where it makes an error across the track that grows linearly
+    from the start. On the shared real drive (the logger's GNSS/IMU heading, 1 Hz) the heading less the course over
+    ground on the straights drifts from -0.1 to -0.5 deg over the drive; in its 60 s outages the error across the
+    track grew from 3.1 to 15.6 m rms, linearly (0.25 m/s), while ``P`` said 0.3 deg of azimuth at the outage's
+    start and grew as the bias's ``t^3``: 82.8 % of the removed fixes within ``eph`` (1.61x the median error). With
+    the offset considered: 93.2 % (2.01x); the 10 and 30 s outages 98.9 and 97.4 % (2.10, 2.35x; were 97.8 and 94.1
+    %, 1.78, 1.84x). A course over ground is the velocity's azimuth: no offset (the realistic profile's fixes have
+    courses; its figures do not change)."""
 
     name = "ekf"
     Pt: FloatArray

@@ -37,8 +37,8 @@ course or heading gives an azimuth there is no graph: the estimate is the newest
 
 Error estimate: the newest node's joint marginal carried by the odometry (:meth:`GtsamFls._covariance`), with the
 offset of a receiver's heading considered as the EKF and the particle filter consider it
-(:func:`~sumhe.baseline.particle.considered_heading_offset`, the bound read as sigmas:
-:func:`~sumhe.baseline.ekf.heading_offset_variance`, 0.43 deg; the estimates do not change). The azimuth factor
+(:class:`~sumhe.baseline.heading_offset.ConsideredHeadingOffset`, the bound read as sigmas, 0.43 deg; the estimates
+do not change). The azimuth factor
 takes a heading for the velocity's azimuth, so the smoother carries the heading's offset (mounting, sideslip) into an
 outage, where it makes an error across the track that grows with the way moved. On the shared real drive (the
 logger's GNSS/IMU heading) the error across the track in the 60 s outages grew linearly with the distance in most of
@@ -60,9 +60,9 @@ import gtsam  # the optional extra sumhe[peers]: the registry says so when it is
 import numpy as np
 
 from sumhe.baseline import kinematics as kin
-from sumhe.baseline.ekf import LeverCourse, heading_offset_variance
+from sumhe.baseline.ekf import LeverCourse
+from sumhe.baseline.heading_offset import ConsideredHeadingOffset
 from sumhe.baseline.kinematics import AZIMUTH, GPS_SPEED, OMEGA, PHI, POSITION, E, FloatArray, N, V
-from sumhe.baseline.particle import considered_heading_offset
 from sumhe.baseline.stream import Inputs, Pending
 from sumhe.config import Config
 from sumhe.estimator.base import StateEstimate
@@ -316,7 +316,7 @@ def joint_marginal(smoother: Any, node: Node) -> FloatArray:
     return T @ full @ T.T
 
 
-class GtsamFls(LeverCourse):
+class GtsamFls(ConsideredHeadingOffset, LeverCourse):
     """GTSAM's iSAM2 fixed-lag smoother over the CAN odometry and GNSS (``gtsam-fls``; the module docstring)."""
 
     name = "gtsam-fls"
@@ -325,7 +325,6 @@ class GtsamFls(LeverCourse):
         settings = settings or EstimationSettings()
         self.table = table or settings.estimator.gtsam_fls
         super().__init__(settings, self.table.noise)
-        self._offset_var = heading_offset_variance(self.settings)
 
     @classmethod
     def from_config(cls, config: Config) -> GtsamFls:
@@ -568,7 +567,7 @@ class GtsamFls(LeverCourse):
     def _covariance(self) -> FloatArray:
         """The newest node's marginal covariance (iSAM2's) carried by the odometry since to the state's time, with a
         heading's offset considered where the newest azimuth was one (the way moved since the newest position fix:
-        :func:`~sumhe.baseline.particle.considered_heading_offset`); the newest fix's sigmas before the graph opens;
+        :meth:`_position_anchor`); the newest fix's sigmas before the graph opens;
         speed and yaw rate the CAN sensors' noise."""
         P = np.diag(np.square([self.noise.can_speed_mps, self.noise.can_yaw_rate_rps]))
         out = np.eye(self.layout.n)
@@ -582,9 +581,12 @@ class GtsamFls(LeverCourse):
         rows = [E, N, PHI]
         out[np.ix_(rows, rows)] = pose_cov[:3, :3]
         out[PHI, [E, N]] = out[[E, N], PHI] = -pose_cov[:2, 2]  # phi = pi/2 - theta
-        if self._heading:
-            out += considered_heading_offset(self.layout.n, pose[:2] - self._fix_pos, self._offset_var)
-        return out
+        return self._considered(out, pose[:2])
+
+    def _position_anchor(self, z: FloatArray) -> FloatArray:
+        """The position fix itself (the smoother's newest fix): the mean at the fix would flush the node the fix
+        opened before its azimuth and speed factors are in."""
+        return z
 
     def _mean(self) -> FloatArray:
         if self._opened is not None and self._smoother is not None and self._opened.t <= self._t_state:

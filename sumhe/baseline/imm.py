@@ -17,7 +17,9 @@ Model probabilities follow Bayes' rule (eq. 21) after the interaction (mixing) o
 two-state Markov chain, ``Pi[i, j] = P(model j after dt | model i before)``, with mean sojourn times whose 1 s
 transition matrix is paper 002's, trained on real driving data (its Sigma = [[0.9168, 0.0832], [0.2328,
 0.7672]] per 1 s GPS epoch: 11.5 s straight, 3.8 s manoeuvring). Measurement noise, gate and priors come from the
-straight model's :class:`~sumhe.settings.NoiseSettings`; the output is the probability-weighted mean.
+straight model's :class:`~sumhe.settings.NoiseSettings`; the output is the probability-weighted mean. Its error
+estimate is the mixture's covariance with the offset of a receiver's heading considered where it follows headings
+(:class:`~.heading_offset.ConsideredHeadingOffset`, the EKF's bound and reading; the estimates do not change).
 """
 
 from __future__ import annotations
@@ -37,8 +39,9 @@ from sumhe.baseline.ekf import (
     kf_update,
     set_heading,
 )
-from sumhe.baseline.kinematics import OMEGA, FloatArray
-from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
+from sumhe.baseline.heading_offset import ConsideredHeadingOffset
+from sumhe.baseline.kinematics import OMEGA, E, FloatArray, N
+from sumhe.baseline.stream import Inputs, Pending
 from sumhe.config import Config
 from sumhe.settings import EstimationSettings, NoiseSettings
 
@@ -82,11 +85,11 @@ def mix(
     return out_x, out_P, c
 
 
-class Imm(RecursiveEstimator):
+class Imm(ConsideredHeadingOffset):
     """IMM of a straight and a curved EKF cell (``imm``)."""
 
     name = "imm"
-    snapshot_attrs = ("xs", "Ps", "mu")
+    snapshot_attrs = ("xs", "Ps", "mu", "_anchor")
 
     def __init__(
         self,
@@ -175,6 +178,10 @@ class Imm(RecursiveEstimator):
         return kin.weighted_mean(np.column_stack(self.xs), self.mu)
 
     def _covariance(self) -> FloatArray:
-        """The mixture's covariance: the cells' covariances and the spread of their means, weighted."""
-        spread = kin.weighted_covariance(np.column_stack(self.xs), self.mu, self._mean())
-        return np.asarray(sum(m * P for m, P in zip(self.mu, self.Ps, strict=True)) + spread)
+        """The mixture's covariance: the cells' covariances and the spread of their means, weighted; a heading's
+        offset considered (:meth:`~.heading_offset.ConsideredHeadingOffset._considered`)."""
+        mean = self._mean()
+        spread = kin.weighted_covariance(np.column_stack(self.xs), self.mu, mean)
+        return self._considered(
+            np.asarray(sum(m * P for m, P in zip(self.mu, self.Ps, strict=True)) + spread), mean[[E, N]]
+        )

@@ -48,6 +48,10 @@ Where it deviates from 002 and why:
   matrices (002 saw its IMM degrade for too many covariance parameters), and the CAN, bias and scale noises stay
   as tuned;
 * no CAN yaw-rate gain state, as ``gtsam-fls`` (``gain0`` is ignored).
+
+Its error estimate is the stages' covariances with the offset of a receiver's heading considered where it follows
+headings (:class:`~.heading_offset.ConsideredHeadingOffset`, the EKF's bound and reading; the estimates do not
+change): the combination takes a heading for the azimuth the position stage moves along.
 """
 
 from __future__ import annotations
@@ -60,8 +64,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sumhe.baseline import kinematics as kin
+from sumhe.baseline.heading_offset import ConsideredHeadingOffset
 from sumhe.baseline.kinematics import OMEGA, PHI, E, FloatArray, N, V
-from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
+from sumhe.baseline.stream import Inputs, Pending
 from sumhe.config import Config
 from sumhe.frontend.stream import FixMeasurement
 from sumhe.messages import GpsStatus
@@ -225,11 +230,11 @@ class LinearStage:
         self.x, self.P = kf_update(self.x, self.P, H, z, r * R if scaled else R, bool(self.wrap_rows))
 
 
-class MskfEm(RecursiveEstimator):
+class MskfEm(ConsideredHeadingOffset):
     """Multi-stage Kalman filter with on-line block EM of the noise scales (``mskf-em``)."""
 
     name = "mskf-em"
-    snapshot_attrs = ("r", "_r_blocks", "_u", "_omega", "_t_block")
+    snapshot_attrs = ("r", "_r_blocks", "_u", "_omega", "_t_block", "_anchor")
     """... and the two stages (:meth:`LinearStage.snapshot`)."""
 
     def __init__(self, settings: EstimationSettings | None = None, table: MskfSettings | None = None) -> None:
@@ -375,7 +380,8 @@ class MskfEm(RecursiveEstimator):
 
     def _covariance(self) -> FloatArray:
         """The two stages' covariances in the shared layout (the stages are independent: no cross terms between
-        them; the speed's from the scale's, times the CAN speed)."""
+        them; the speed's from the scale's, times the CAN speed), a heading's offset considered
+        (:meth:`~.heading_offset.ConsideredHeadingOffset._considered`)."""
         P = np.zeros((self.layout.n, self.layout.n))
         pos, head = self.position.P, self.heading.P
         P[np.ix_([E, N], [E, N])] = pos[:2, :2]
@@ -386,7 +392,7 @@ class MskfEm(RecursiveEstimator):
             b = self.layout.b
             P[b, b] = head[1, 1]
             P[PHI, b] = P[b, PHI] = head[0, 1]
-        return P
+        return self._considered(P, self.position.x[:2])
 
     # ---- EM on the block that ended ------------------------------------------------------------------------------
 

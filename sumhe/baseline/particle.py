@@ -13,8 +13,8 @@ within the config's range. The gate works on the particle cloud's mean and covar
 the cloud onto the fix.
 
 Its error estimate is the particles' spread, with the offset of a receiver's heading from the azimuth of the
-motion considered where it follows headings (:func:`considered_heading_offset`, the EKF's bound and reading:
-:func:`~sumhe.baseline.ekf.heading_offset_variance`); the estimates do not change. On the shared real drive
+motion considered where it follows headings (:class:`~.heading_offset.ConsideredHeadingOffset`, the EKF's bound and
+reading); the estimates do not change. On the shared real drive
 (headings, 1 Hz), seeds 0, 1 and 2: 97.3, 94.5 and 90.7 / 93.2, 94.9 and 96.5 / 91.8, 95.0 and 95.8 % of the
 removed fixes within ``eph`` in the 10 / 30 / 60 s outages (before 95.6, 92.9 and 90.1 / 90.8, 92.1 and 94.3 /
 86.3, 90.9 and 91.7 %), median ``eph`` 1.78-1.87 / 2.01-2.49 / 1.84-2.78 times the median error; the realistic
@@ -29,8 +29,9 @@ import math
 import numpy as np
 
 from sumhe.baseline import kinematics as kin
-from sumhe.baseline.ekf import LeverCourse, heading_offset_variance
-from sumhe.baseline.kinematics import OMEGA, PHI, POSITION, E, FloatArray, N, V
+from sumhe.baseline.ekf import LeverCourse
+from sumhe.baseline.heading_offset import ConsideredHeadingOffset
+from sumhe.baseline.kinematics import OMEGA, PHI, E, FloatArray, N, V
 from sumhe.baseline.stream import Inputs, Pending
 from sumhe.config import Config
 from sumhe.model.su import can_motion, wrap_angle
@@ -85,20 +86,6 @@ def roughening_sigma(spread: FloatArray, particles: int, dim: int) -> FloatArray
     return ROUGHENING_K * spread * particles ** (-1.0 / dim)
 
 
-def considered_heading_offset(n: int, moved: FloatArray, variance: float) -> FloatArray:
-    """The covariance (n x n, the layout of :mod:`.kinematics`) a receiver's heading offset of ``variance``
-    (rad^2) adds to a filter that follows the headings and has moved by ``moved`` (east, north; m) since its
-    newest position fix: the offset is in its azimuth, and an azimuth error ``d`` moves the dead-reckoned position
-    by ``d (north, -east)`` of the way moved (to first order, through turns too).
-
-    The particle filter weighs headings as the azimuth of its motion, as the EKF does, and carries their offset
-    (mounting, sideslip: :func:`~sumhe.baseline.ekf.heading_offset_variance`) into an outage, where it makes an
-    error across the track that grows linearly with the distance; its particles' spread has no such term."""
-    r = np.zeros(n)
-    r[E], r[N], r[PHI] = moved[1], -moved[0], 1.0
-    return variance * np.outer(r, r)
-
-
 def systematic_resample(weights: FloatArray, rng: np.random.Generator) -> FloatArray:
     """Indices of the particles kept by systematic resampling (one uniform draw; weights sum to 1)."""
     m = len(weights)
@@ -108,7 +95,7 @@ def systematic_resample(weights: FloatArray, rng: np.random.Generator) -> FloatA
     return np.searchsorted(cumulative, positions)
 
 
-class ParticleFilter(LeverCourse):
+class ParticleFilter(ConsideredHeadingOffset, LeverCourse):
     """Bootstrap particle filter with ``particles`` particles; the same ``seed`` gives the same estimates."""
 
     name = "pf"
@@ -132,7 +119,6 @@ class ParticleFilter(LeverCourse):
         self.particles = particles
         self.seed = table.seed if seed is None else seed
         super().__init__(settings, noise or table.noise)
-        self._offset_var = heading_offset_variance(self.settings)
 
     @classmethod
     def from_config(cls, config: Config) -> ParticleFilter:
@@ -142,7 +128,6 @@ class ParticleFilter(LeverCourse):
         self.rng = np.random.default_rng(self.seed)
         self.X = np.zeros((self.layout.n, self.particles))
         self.w = np.full(self.particles, 1.0 / self.particles)
-        self._anchor = np.zeros(2)
         n = self.layout.n
         dens = np.zeros(n)
         dens[[kin.E, kin.N]] = self.noise.pos_rw
@@ -160,7 +145,6 @@ class ParticleFilter(LeverCourse):
         if not self._heading_known:
             self.X[PHI] = self.rng.uniform(-math.pi, math.pi, self.particles)
         self.w = np.full(self.particles, 1.0 / self.particles)
-        self._anchor = x0[[E, N]].copy()
 
     def _set_inputs(self, inputs: Inputs) -> None:
         """Speed and yaw rate of every particle from the CAN inputs and its own scale and bias."""
@@ -193,8 +177,6 @@ class ParticleFilter(LeverCourse):
             self.w = w / w.sum()
             if 1.0 / float(self.w @ self.w) < RESAMPLE_ESS * self.particles:
                 self._resample()
-            if kind == POSITION:
-                self._anchor = self.X[[E, N]] @ self.w
 
         return Pending(nu, S, commit)
 
@@ -243,9 +225,6 @@ class ParticleFilter(LeverCourse):
 
     def _covariance(self) -> FloatArray:
         """The particles' weighted spread about their mean, with the offset of a receiver's heading considered
-        where the newest azimuth measured was one (:func:`considered_heading_offset`)."""
+        where the newest azimuth measured was one (:meth:`~.heading_offset.ConsideredHeadingOffset._considered`)."""
         mean = self._mean()
-        P = kin.weighted_covariance(self.X, self.w, mean)
-        if self._heading:
-            P += considered_heading_offset(self.layout.n, mean[[E, N]] - self._anchor, self._offset_var)
-        return P
+        return self._considered(kin.weighted_covariance(self.X, self.w, mean), mean[[E, N]])

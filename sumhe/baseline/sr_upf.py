@@ -32,6 +32,10 @@ Where it deviates from 004 and why:
 * ``particles`` = 100 (004: 1,000): each particle runs a UKF of 2n + 1 sigma points at CAN rate; with 100 the
   realistic bench ran at 4x real time on the shared machine, 1,000 would fall below real time;
 * the CAN yaw-rate gain is not a state (``gain0`` is ignored), as ``pf``.
+
+Its error estimate is the mixture's covariance with the offset of a receiver's heading considered where it follows
+headings (:class:`~.heading_offset.ConsideredHeadingOffset`, the EKF's bound and reading; the estimates do not
+change).
 """
 
 from __future__ import annotations
@@ -42,8 +46,9 @@ from collections import deque
 import numpy as np
 
 from sumhe.baseline import kinematics as kin
-from sumhe.baseline.kinematics import OMEGA, PHI, FloatArray, V
-from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
+from sumhe.baseline.heading_offset import ConsideredHeadingOffset
+from sumhe.baseline.kinematics import OMEGA, PHI, E, FloatArray, N, V
+from sumhe.baseline.stream import Inputs, Pending
 from sumhe.baseline.ukf import merwe_weights
 from sumhe.config import Config
 from sumhe.model.su import can_motion, wrap_angle
@@ -148,11 +153,11 @@ def deviations(Z: FloatArray, mean: FloatArray, rows: tuple[int, ...]) -> FloatA
     return D
 
 
-class SrUpf(RecursiveEstimator):
+class SrUpf(ConsideredHeadingOffset):
     """Square-root unscented particle filter with the SG-KDE GNSS noise (``sr-upf``); seeded."""
 
     name = "sr-upf"
-    snapshot_attrs = ("X", "S", "w", "rng", "_samples", "_since_fit", "_kde")
+    snapshot_attrs = ("X", "S", "w", "rng", "_samples", "_since_fit", "_kde", "_anchor")
 
     def __init__(self, settings: EstimationSettings | None = None, table: UpfSettings | None = None) -> None:
         settings = settings or EstimationSettings()
@@ -324,6 +329,7 @@ class SrUpf(RecursiveEstimator):
 
     def _covariance(self) -> FloatArray:
         """The mixture's covariance: the particles' weighted spread plus their own (square-root) covariances'
-        weighted mean."""
+        weighted mean; a heading's offset considered (:meth:`~.heading_offset.ConsideredHeadingOffset._considered`)."""
         own = np.einsum("m,mij,mkj->ik", self.w, self.S, self.S)
-        return kin.weighted_covariance(self.X, self.w, self._mean()) + own
+        mean = self._mean()
+        return self._considered(kin.weighted_covariance(self.X, self.w, mean) + own, mean[[E, N]])

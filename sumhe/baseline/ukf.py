@@ -6,6 +6,9 @@ the model of :mod:`.kinematics` takes all sigma points at once, and the filter i
 van der Merwe's scaled set with ``alpha = 1, beta = 2, kappa = 0``: the weights are all non-negative, so the
 covariance stays positive semi-definite; the azimuth is averaged on the circle and its differences wrapped.
 Every update (CAN rows, GNSS position, course) draws fresh sigma points from the current mean and covariance.
+
+Its error estimate is its covariance with the offset of a receiver's heading considered where it follows headings
+(:class:`~.heading_offset.ConsideredHeadingOffset`, the EKF's bound and reading; the estimates do not change).
 """
 
 from __future__ import annotations
@@ -16,7 +19,8 @@ import numpy as np
 
 from sumhe.baseline import kinematics as kin
 from sumhe.baseline.ekf import GaussianFilter, can_rows
-from sumhe.baseline.kinematics import FloatArray
+from sumhe.baseline.heading_offset import ConsideredHeadingOffset
+from sumhe.baseline.kinematics import E, FloatArray, N
 from sumhe.baseline.stream import Inputs, Pending
 from sumhe.settings import EstimationSettings, NoiseSettings
 
@@ -51,10 +55,11 @@ def unscented_transform(X: FloatArray, wm: FloatArray, wc: FloatArray) -> tuple[
     return mean, (D * wc) @ D.T, D
 
 
-class Ukf(GaussianFilter):
+class Ukf(ConsideredHeadingOffset, GaussianFilter):
     """Unscented Kalman filter (``ukf``)."""
 
     name = "ukf"
+    snapshot_attrs = ("x", "P", "_anchor")
 
     def __init__(self, settings: EstimationSettings | None = None, noise: NoiseSettings | None = None) -> None:
         super().__init__(settings, noise)
@@ -97,3 +102,6 @@ class Ukf(GaussianFilter):
             self.P = 0.5 * (P + P.T)
 
         return Pending(nu, S, commit)
+
+    def _covariance(self) -> FloatArray:
+        return self._considered(self.P, self.x[[E, N]])
