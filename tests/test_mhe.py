@@ -441,9 +441,11 @@ def test_merging_steps_in_a_long_outage_does_not_move_the_estimate() -> None:
 
 
 @pytest.mark.parametrize("unknown", [None, "i_omega", "i_v"])
-def test_can_rate_error_is_the_full_carry_to_the_bit(stream: list, unknown: str | None) -> None:
+def test_can_rate_error_is_the_full_carry_then_the_can_outputs(stream: list, unknown: str | None) -> None:
     # NewestError.at (the compiled carry's few entries a CAN-rate estimate needs, the newest state set once an
-    # epoch) against the full carry and grow_box it replaces: with a known box and with a dynamic state unknown
+    # epoch) against the full carry and grow_box it replaces (the box to the bit), the covariance then updated with
+    # the CAN speed and yaw rate at the estimate (a Kalman update of both at once): with a known box and with a
+    # dynamic state unknown
     est = MovingHorizonEstimator(SETTINGS)
     for item in stream[: len(stream) // 2]:
         est.push(item)
@@ -453,10 +455,52 @@ def test_can_rate_error_is_the_full_carry_to_the_bit(stream: list, unknown: str 
         newest.alpha[getattr(model, unknown)] = np.inf
         newest._prepare()
     x = est.propagation.x
+    can = [model.j_can_speed, model.j_can_yaw_rate]
+    r = np.array([0.05, 0.002])
     for h in (0.013, 0.05, 0.09):
         q = est.solve.q_caps * (h / est.period_s) ** np.array(model.q_power)
         A, P = newest._carried(newest.x, np.asarray(x), h, q)
-        box, spread = newest.at(x, h, q)
+        box, spread = newest.at(x, h, q, r)
         assert box == half_widths(model, np.minimum(grow_box(newest.alpha, A, q), newest.limits))
-        assert spread == Spread.from_covariance(P, *model.position, model.i_v, model.i_phi)
-    assert newest.at(x, 0.0, q) == (half_widths(model, newest.alpha), newest.spread(newest.P))
+        H = newest.step_jac(np.asarray(x), np.asarray(x), 0.0, np.zeros(model.n_outputs))[4][can]
+        K = P @ H.T @ np.linalg.inv(H @ P @ H.T + np.diag(np.square(newest.scale * r)))
+        want = Spread.from_covariance(P - K @ H @ P, *model.position, model.i_v, model.i_phi)
+        assert dataclasses.astuple(spread) == pytest.approx(dataclasses.astuple(want), rel=1e-9, abs=1e-12)
+        # unmeasured (a gap in the CAN data): the carry alone
+        carried = Spread.from_covariance(P, *model.position, model.i_v, model.i_phi)
+        assert newest.at(x, h, q, np.full(2, np.inf))[1] == carried
+    assert newest.at(x, 0.0, q, r) == (half_widths(model, newest.alpha), newest.spread(newest.P))
+
+
+def test_can_rate_error_grows_smoothly_between_epochs() -> None:
+    # the CAN-rate estimates' own covariance (issue 13) is the epochs' recursion continued over the part of a step:
+    # the CAN data's bounds over it, then the CAN speed and yaw rate measured at the estimate. With the vehicle's
+    # limits for the speed and yaw rate over that part and no update, at a 1 Hz receiver the own trace rose to 112
+    # times the epoch's within a second, by up to 19 % from one CAN sample to the next; now at most 1.54 times, by
+    # at most 1 %, never falling (the estimates after the first 10 s, with GPS throughout)
+    drive = simulate(SimSettings(scenario="highway", seed=5, duration_s=40.0, gps_rate_hz=1.0))
+    est = MovingHorizonEstimator(SETTINGS)
+    own: list[StateEstimate] = []
+    estimate = est._estimate
+
+    def keep(*args: object) -> StateEstimate:
+        own.append(estimate(*args))  # type: ignore[arg-type]
+        return own[-1]
+
+    est._estimate = keep  # type: ignore[method-assign]
+    for item in drive_stream(drive):
+        est.push(item)
+    epoch = previous = math.nan
+    ratios, steps = [], []
+    for e in own:
+        assert e.spread is not None
+        trace = e.spread.var_east_m2 + e.spread.var_north_m2
+        if e.mode != "can":
+            epoch = trace if e.gps == "ok" else math.nan
+        elif e.t - own[0].t > 10.0 and math.isfinite(epoch):
+            ratios.append(trace / epoch)
+            steps.append(trace / previous)
+        previous = trace
+    assert len(ratios) > 1000
+    assert min(ratios) >= 1.0 - 1e-9 and max(ratios) < 2.0
+    assert min(steps) >= 1.0 - 1e-9 and max(steps) < 1.05

@@ -47,11 +47,12 @@ from sumhe.estimator.mhe.envelope import OutputEnvelope
 from sumhe.estimator.mhe.gate import GATE_RESET_S, REACQUIRE_FIXES, FixGate
 from sumhe.estimator.mhe.newest import NewestError
 from sumhe.estimator.mhe.outputs import can_outputs, fix_outputs, step_outputs
-from sumhe.estimator.mhe.preintegration import step_motion
+from sumhe.estimator.mhe.preintegration import part_bound, step_motion
 from sumhe.estimator.mhe.problem import SolveResult, step_jacobians
 from sumhe.estimator.mhe.propagate import Propagation, advance
 from sumhe.estimator.mhe.solve import WindowSolve
 from sumhe.estimator.mhe.window import Window, plan_window
+from sumhe.frontend.measurements import can_allowance, unmodelled_can_errors
 from sumhe.frontend.stream import SAME_EPOCH, CanTick, Epoch, FixMeasurement
 from sumhe.messages import GpsStatus
 from sumhe.model.su import SuModel, output_residuals
@@ -110,6 +111,15 @@ class MovingHorizonEstimator(StreamEstimator):
         self._theta_range = (self.solve.hi[md:] - self.solve.lo[md:]) / 2.0
         drift = np.square(self.policy.theta_drift * self._theta_range) / 60.0
         self.newest = NewestError(model, self._step_jac, s.estimator.r_cap_sigmas, drift)
+        c, k_sig = s.can, s.estimator.r_cap_sigmas
+        extra = unmodelled_can_errors(1.0, c, model.i_scale is not None, model.i_bias is not None)
+        self._can_sample_allow = (
+            (can_allowance(c.speed_quantum_mps, c.speed_sigma_mps, k_sig), float(extra[0])),
+            can_allowance(c.yaw_rate_quantum_rps, c.yaw_rate_sigma_rps, k_sig) + extra[1],
+        )
+        """One CAN sample's allowances (:func:`~sumhe.estimator.mhe.outputs.can_outputs`'s): the speed's (m/s)
+        and what a model without the speed scale adds per m/s, the yaw rate's (rad/s, with the bias a model
+        without it adds): a CAN-rate estimate's outputs (:meth:`_part_bounds`)."""
         self.envelope = self._new_envelope()
         self.reset_state()
 
@@ -419,13 +429,31 @@ class MovingHorizonEstimator(StreamEstimator):
             pred = self.model.transition(win.x[j - 1], win.x[j], float(win.t[j] - win.t[j - 1]))
             win.offset[j, :md] = win.x[j, :md] - np.array(pred[:md])
 
+    def _part_bounds(self, x: list[float], t: float, h: float) -> tuple[NDArray[np.float64], list[float]]:
+        """The bounds a CAN-rate estimate ``x`` at ``t``, ``h`` s after the newest step, is carried with, as the
+        epoch's step is (:mod:`.newest`): the state bounds of that part of a step (the CAN data's where it bounds a
+        state, :func:`~sumhe.estimator.mhe.preintegration.part_bound`, else the vehicle's limits over ``h``), and
+        the bounds of the CAN speed and yaw rate (m/s, rad/s) measured at ``x`` (one sample's allowance, with what
+        a model without the speed scale or yaw-rate bias adds, times the envelope's factor, as the window's
+        outputs; ``inf``, none, across a gap in the CAN data)."""
+        model = self.model
+        caps = self.solve.q_caps * (h / self.period_s) ** self._q_power
+        speed = abs(x[model.i_v])
+        mean_speed = 0.5 * (abs(float(self.window.x[-1, model.i_v])) + speed)
+        bound = part_bound(model, self.frontend.can, float(self.window.t[-1]), t, mean_speed, self.settings)
+        if bound is None:
+            return caps, [math.inf, math.inf]
+        (speed_allow, per_mps), yaw_allow = self._can_sample_allow
+        factor = self.envelope.factor
+        speed_bound = (speed_allow + per_mps * speed) * float(factor[model.j_can_speed])
+        return np.fmin(bound, caps), [speed_bound, yaw_allow * float(factor[model.j_can_yaw_rate])]
+
     def _estimate(self, x: list[float], t: float, status: GpsStatus, mode: str) -> StateEstimate:
         """The estimate of the state ``x`` at ``t`` (the newest step's, or the newest solution moved on by CAN), with
         the newest state's bound box and covariance carried to it (:mod:`.newest`)."""
         model, win = self.model, self.window
         h = t - float(win.t[-1])
-        q = self.solve.q_caps * (max(h, 0.0) / self.period_s) ** self._q_power
-        (bound_east, bound_north), spread = self.newest.at(x, h, q)
+        (bound_east, bound_north), spread = self.newest.at(x, h, *self._part_bounds(x, t, max(h, 0.0)))
         i_e, i_n = model.position
         return StateEstimate(
             t, float(x[i_e]), float(x[i_n]), float(x[model.i_phi]) % (2.0 * math.pi), float(x[model.i_v]),

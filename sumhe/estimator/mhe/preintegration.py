@@ -129,3 +129,21 @@ def step_motion(
     if not math.isfinite(float(offset[model.i_phi])):
         return None
     return offset, bound
+
+
+def part_bound(
+    model: SuModel, can: CanBuffer, t0: float, t1: float, speed_mps: float, settings: EstimationSettings
+) -> FloatArray | None:
+    """The CAN noise bound (dynamic states; NaN for those it does not bound) of the part of a step from the step at
+    ``t0`` to ``t1`` (s) that a CAN-rate estimate is moved on by the CAN samples (:mod:`.propagate`), at
+    ``speed_mps``: :func:`can_step_bound` of the samples in (``t0``, ``t1``]; None where the newest speed or
+    yaw-rate sample at or before ``t1`` is more than ``sensors.can.max_gap_s`` old (the estimate then moves on
+    without them)."""
+    counts = []
+    for quantity in ("speed", "yaw_rate"):
+        ts = can[quantity].t
+        k = bisect.bisect_right(ts, t1)
+        if not k or t1 - ts[k - 1] > settings.can.max_gap_s:
+            return None
+        counts.append(k - bisect.bisect_right(ts, t0, 0, k))
+    return can_step_bound(model, t1 - t0, counts[0], counts[1], speed_mps, settings)
