@@ -27,7 +27,7 @@ from sumhe.baseline.particle import (
 )
 from sumhe.baseline.rts import Rts
 from sumhe.baseline.sr_upf import SrUpf
-from sumhe.baseline.stream import Gate
+from sumhe.baseline.stream import Gate, Inputs
 from sumhe.baseline.ukf import Ukf
 from sumhe.bench import tune
 from sumhe.cli import main as cli_main
@@ -384,6 +384,33 @@ def test_transition_matrix_is_stochastic_and_follows_sojourn_times() -> None:
     assert Pi[0, 1] == pytest.approx(1 - math.exp(-0.002)) and Pi[1, 0] == pytest.approx(1 - math.exp(-0.01))
     with pytest.raises(ValueError, match="sojourn_s"):
         Imm(sojourn_s=(1.0, 0.0))
+
+
+def test_imm_covariance_holds_the_turn_the_straight_cell_drops() -> None:
+    """A gentle curve (5 mrad/s for 20 s at 15 m/s) in a CAN yaw rate noisier (10 mrad/s) than the filter's sigma:
+    the straight cell keeps most of the probability and the mixture hardly turns; its covariance must cover the
+    azimuth and cross-track errors that leaves (the interaction alone kept them at 30 and 12 sigmas)."""
+    imm = Imm()
+    imm.reset_state()
+    n = imm.layout.n
+    x0 = np.zeros(n)
+    x0[kin.V] = 15.0
+    x0[imm.layout.k] = 1.0
+    imm._start(x0, np.diag([1.0, 1.0, 1e-6, 0.01, 1e-6] + [1e-8] * (n - 5)))
+    rng = np.random.default_rng(0)
+    dt, steps, yaw_rate = 0.02, 1000, 0.005
+    for _ in range(steps):
+        inputs = Inputs(15.0, yaw_rate + rng.normal(0.0, 0.01), False)
+        imm._predict(dt, inputs)
+        imm._can_update(inputs)
+    seconds = dt * steps
+    mean, P = imm._mean(), imm._covariance()
+    assert imm.mu[0] > 0.5  # the straight model kept the probability
+    azimuth_error = mean[kin.PHI] + yaw_rate * seconds  # the azimuth turns clockwise, the yaw rate anticlockwise
+    east_error = mean[kin.E] + 15.0 * yaw_rate * seconds**2 / 2
+    assert abs(azimuth_error) > 0.05 and abs(east_error) > 10.0  # the mixture hardly turned
+    assert abs(azimuth_error) < 2.0 * math.sqrt(P[kin.PHI, kin.PHI])
+    assert abs(east_error) < 2.0 * math.sqrt(P[kin.E, kin.E])
 
 
 # ---- registry ---------------------------------------------------------------------------------------------------
