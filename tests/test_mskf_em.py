@@ -54,3 +54,18 @@ def test_settings_are_validated() -> None:
         MskfSettings(block_s=0.0)
     with pytest.raises(ValueError, match="em_iterations"):
         MskfSettings(em_iterations=0)
+
+
+def test_error_estimate_carries_the_azimuth_error_through_an_outage() -> None:
+    """An azimuth error at an outage's start moves the position across the track by the way moved times it: after
+    20 s at 10 m/s the covariance holds at least (200 m)^2 times the azimuth's variance then (the position stage
+    alone, taking it as white noise at every step, held a fifth of it)."""
+    drive = synthetic_drive(duration_s=32.0, silent=[(10.0, 20.0)])
+    est = MskfEm()
+    t0 = drive.samples[0].t
+    before = [s for s in drive.samples if s.t < t0 + 10.0]
+    run(est, before, finish=False)
+    azimuth_var = float(est.heading.P[0, 0])
+    run(est, [s for s in drive.samples[len(before) :] if s.t < t0 + 29.9], finish=False)
+    across = float(np.max(np.linalg.eigvalsh(est._covariance()[:2, :2])))
+    assert across >= (10.0 * 20.0) ** 2 * azimuth_var

@@ -49,9 +49,16 @@ Where it deviates from 002 and why:
   as tuned;
 * no CAN yaw-rate gain state, as ``gtsam-fls`` (``gain0`` is ignored).
 
-Its error estimate is the stages' covariances with the offset of a receiver's heading considered where it follows
-headings (:class:`~.heading_offset.ConsideredHeadingOffset`, the EKF's bound and reading; the estimates do not
-change): the combination takes a heading for the azimuth the position stage moves along.
+Its error estimate is the stages' joint covariance (:func:`joint_step`, the estimates do not change) with the offset
+of a receiver's heading considered where it follows headings (:class:`~.heading_offset.ConsideredHeadingOffset`, the
+EKF's bound and reading): the combination takes a heading for the azimuth the position stage moves along. The
+position stage's own covariance takes the azimuth's error as white noise, ``P_phi g g'`` afresh at every step,
+while it is one slowly drifting error: over an outage of ``t`` seconds an azimuth error at its start moves the
+position by the way moved times it (variance ``t^2``, the stage alone: ``dt t``, ``dt`` the CAN period), the
+CAN yaw rate's bias integrated twice (``t^4``, the stage alone: ``dt t^3``). The joint covariance
+of ``(east, north, s, phi, b)`` carries the cross-covariance between the stages, moved by the same steps and
+updated with the stages' own gains (Joseph form: the covariance of the errors the filter makes, a Schmidt consider
+covariance of the stages' neglected coupling).
 """
 
 from __future__ import annotations
@@ -122,12 +129,16 @@ def residual(z: FloatArray, zhat: FloatArray, wrap: bool) -> FloatArray:
     return np.asarray(wrap_angle(d), dtype=float) if wrap else d
 
 
+def kalman_gain(P: FloatArray, H: FloatArray, R: FloatArray) -> FloatArray:
+    """``K = P H' (H P H' + R)^-1``."""
+    return np.asarray(np.linalg.solve(H @ P @ H.T + R, H @ P).T, dtype=float)
+
+
 def kf_update(
     x: FloatArray, P: FloatArray, H: FloatArray, z: FloatArray, R: FloatArray, wrap: bool
 ) -> tuple[FloatArray, FloatArray]:
     """One Kalman update (Joseph form); the residual wrapped when ``wrap`` (an angle)."""
-    S = H @ P @ H.T + R
-    K = np.linalg.solve(S, H @ P).T  # K = P H' S^-1
+    K = kalman_gain(P, H, R)
     x = x + K @ residual(z, H @ x, wrap)
     IKH = np.eye(len(x)) - K @ H
     P = IKH @ P @ IKH.T + K @ R @ K.T
@@ -145,6 +156,44 @@ def kf_step(
     for H, z, R, scaled in step.updates:
         x, P = kf_update(x, P, H, z, r * R if scaled else R, wrap)
     return xp, Pp, x, P
+
+
+POSITION_ROWS = (0, 1, 2)
+"""The position stage's rows in the joint covariance (``east, north, s``); the heading stage's follow (``phi, b``)."""
+HEADING_ROWS = (3, 4)
+
+
+def joint_step(J: FloatArray, F: FloatArray, g: FloatArray, Q: FloatArray) -> FloatArray:
+    """The joint covariance (5 x 5, ``east, north, s, phi, b``; heading rows already moved by their step) after the
+    position stage's step ``F`` with the azimuth's error moving the position by ``g`` (m/rad) and its noise ``Q``
+    (3 x 3, without the azimuth's share, which the cross-covariance carries)."""
+    A = np.eye(5)
+    A[:3, :3] = F
+    A[:3, 3] = g
+    J = A @ J @ A.T
+    J[:3, :3] += Q
+    return 0.5 * (J + J.T)
+
+
+def joint_heading_step(J: FloatArray, F: FloatArray, Q: FloatArray) -> FloatArray:
+    """The joint covariance after the heading stage's step ``F`` (2 x 2) and noise ``Q`` (2 x 2)."""
+    A = np.eye(5)
+    A[3:, 3:] = F
+    J = A @ J @ A.T
+    J[3:, 3:] += Q
+    return 0.5 * (J + J.T)
+
+
+def joint_update(J: FloatArray, rows: tuple[int, ...], H: FloatArray, K: FloatArray, R: FloatArray) -> FloatArray:
+    """The joint covariance after a stage's update with its own gain ``K`` on its ``rows`` (Joseph form, exact
+    for any gain: the other stage is not corrected, its cross-covariance is)."""
+    Kj = np.zeros((5, len(R)))
+    Kj[list(rows)] = K
+    Hj = np.zeros((len(R), 5))
+    Hj[:, list(rows)] = H
+    IKH = np.eye(5) - Kj @ Hj
+    J = IKH @ J @ IKH.T + Kj @ R @ Kj.T
+    return 0.5 * (J + J.T)
 
 
 def smooth_block(
@@ -234,7 +283,7 @@ class MskfEm(ConsideredHeadingOffset):
     """Multi-stage Kalman filter with on-line block EM of the noise scales (``mskf-em``)."""
 
     name = "mskf-em"
-    snapshot_attrs = ("r", "_r_blocks", "_u", "_omega", "_t_block", "_anchor")
+    snapshot_attrs = ("r", "_r_blocks", "_u", "_omega", "_t_block", "_anchor", "_joint")
     """... and the two stages (:meth:`LinearStage.snapshot`)."""
 
     def __init__(self, settings: EstimationSettings | None = None, table: MskfSettings | None = None) -> None:
@@ -261,6 +310,7 @@ class MskfEm(ConsideredHeadingOffset):
         self._u = 0.0
         self._omega = 0.0
         self._t_block = math.nan
+        self._joint = np.eye(5)
 
     def _start(self, x0: FloatArray, P0: FloatArray) -> None:
         b, k = self.layout.b, self.layout.k
@@ -269,6 +319,8 @@ class MskfEm(ConsideredHeadingOffset):
         self.position.x = np.array([x0[E], x0[N], 1.0])
         self.position.P = np.diag([P0[E, E], P0[N, N], P0[k, k] if k is not None else 0.0])
         self._u = float(x0[V])
+        self._joint = np.zeros((5, 5))
+        self._joint[:3, :3], self._joint[3:, 3:] = self.position.P, self.heading.P
         self._begin_blocks()
 
     def _snapshot(self) -> object:
@@ -295,10 +347,11 @@ class MskfEm(ConsideredHeadingOffset):
         bias_q = n.bias_rw**2 * dt if self.layout.b is not None else 0.0
         F = np.array([[1.0, dt if moving else 0.0], [0.0, 1.0]])  # phi' = -(omega_CAN - b)
         phi_before = float(self.heading.x[0])
-        self.heading.predict(
-            Step(F, np.array([-yaw * dt, 0.0]), np.diag([dt, 0.0]), np.diag([(n.can_yaw_rate_rps * dt) ** 2, bias_q])),
-            self.r,
+        step = Step(
+            F, np.array([-yaw * dt, 0.0]), np.diag([dt, 0.0]), np.diag([(n.can_yaw_rate_rps * dt) ** 2, bias_q])
         )
+        self.heading.predict(step, self.r)
+        self._joint = joint_heading_step(self._joint, F, self.heading.q * step.Q1 + step.Q0)
         phi = phi_before + 0.5 * float(wrap_angle(self.heading.x[0] - phi_before))
         s, u = float(self.position.x[2]), self._u
         sin, cos = math.sin(phi), math.cos(phi)
@@ -306,8 +359,11 @@ class MskfEm(ConsideredHeadingOffset):
         F[0, 2], F[1, 2] = u * dt * sin, u * dt * cos
         g = s * u * dt * np.array([cos, -sin, 0.0])
         scale_q = n.scale_rw**2 * dt if self.layout.k is not None else 0.0
-        Q0 = float(self.heading.P[0, 0]) * np.outer(g, g) + np.diag([0.0, 0.0, scale_q])
-        self.position.predict(Step(F, np.zeros(3), np.diag([dt, dt, 0.0]), Q0), self.r)
+        Q0 = np.diag([0.0, 0.0, scale_q])
+        self.position.predict(
+            Step(F, np.zeros(3), np.diag([dt, dt, 0.0]), float(self.heading.P[0, 0]) * np.outer(g, g) + Q0), self.r
+        )
+        self._joint = joint_step(self._joint, F, g, self.position.q * np.diag([dt, dt, 0.0]) + Q0)
         self._omega = yaw - float(self.heading.x[1]) if moving else 0.0
         if self._t_state + dt - self._t_block >= self.table.block_s + BLOCK_WAIT_S:
             self._em()  # no fix ended the block (an outage)
@@ -325,7 +381,7 @@ class MskfEm(ConsideredHeadingOffset):
         if inputs.standstill and inputs.yaw_rate is not None and self.layout.b is not None:
             # at rest the CAN yaw rate measures the bias
             R = np.array([[self.noise.can_yaw_rate_rps**2 + self.noise.standstill_rps**2]])
-            self.heading.update(np.array([[0.0, 1.0]]), np.array([inputs.yaw_rate]), R, False, self.r)
+            self._stage_update(self.heading, np.array([[0.0, 1.0]]), np.array([inputs.yaw_rate]), R, False)
 
     def _fix_rows(self, kind: str, lag: float) -> tuple[LinearStage, FloatArray, FloatArray, bool]:
         """The stage a GNSS measurement of ``kind`` updates, its H, its offset, and whether its R is scaled."""
@@ -344,18 +400,29 @@ class MskfEm(ConsideredHeadingOffset):
         nu, S = stage.innovation(H, z, Rk, kind == kin.AZIMUTH)
 
         def commit() -> None:
-            stage.update(H, z, R, scaled, self.r)
+            self._stage_update(stage, H, z, R, scaled)
 
         return Pending(nu, S, commit)
+
+    def _stage_update(self, stage: LinearStage, H: FloatArray, z: FloatArray, R: FloatArray, scaled: bool) -> None:
+        """``stage``'s Kalman update, and the joint covariance's with the stage's gain (:func:`joint_update`)."""
+        Rk = self.r * R if scaled else R
+        K = kalman_gain(stage.P, H, Rk)
+        rows = HEADING_ROWS if stage is self.heading else POSITION_ROWS
+        self._joint = joint_update(self._joint, rows, H, K, Rk)
+        stage.update(H, z, R, scaled, self.r)
 
     def _inflate(self, kind: str, nu: FloatArray, R: FloatArray) -> None:
         wide = np.outer(nu, nu) + R
         if kind == kin.AZIMUTH:
             self.heading.P[0, 0] += wide[0, 0]
+            self._joint[3, 3] += wide[0, 0]
         elif kind == kin.GPS_SPEED:
             self.position.P[2, 2] += wide[0, 0] / max(self._u, 1.0) ** 2
+            self._joint[2, 2] += wide[0, 0] / max(self._u, 1.0) ** 2
         else:
             self.position.P[:2, :2] += wide
+            self._joint[:2, :2] += wide
         self._begin_blocks()  # the widened prior is no process noise: the EM starts a new block
 
     def _init_heading(self, phi: float, sigma: float) -> None:
@@ -363,6 +430,9 @@ class MskfEm(ConsideredHeadingOffset):
         P[0, :] = 0.0
         P[:, 0] = 0.0
         P[0, 0] = sigma**2
+        self._joint[3, :] = 0.0
+        self._joint[:, 3] = 0.0
+        self._joint[3, 3] = sigma**2
         self.heading.x[0] = phi
         self._begin_blocks()
 
@@ -379,20 +449,14 @@ class MskfEm(ConsideredHeadingOffset):
         return x
 
     def _covariance(self) -> FloatArray:
-        """The two stages' covariances in the shared layout (the stages are independent: no cross terms between
-        them; the speed's from the scale's, times the CAN speed), a heading's offset considered
+        """The stages' joint covariance (:func:`joint_step`) in the shared layout (the speed's from the scale's,
+        times the CAN speed), a heading's offset considered
         (:meth:`~.heading_offset.ConsideredHeadingOffset._considered`)."""
-        P = np.zeros((self.layout.n, self.layout.n))
-        pos, head = self.position.P, self.heading.P
-        P[np.ix_([E, N], [E, N])] = pos[:2, :2]
-        P[V, V] = pos[2, 2] * self._u**2
-        P[[E, N], V] = P[V, [E, N]] = pos[:2, 2] * self._u
-        P[PHI, PHI] = head[0, 0]
+        T = np.zeros((self.layout.n, 5))
+        T[E, 0], T[N, 1], T[V, 2], T[PHI, 3] = 1.0, 1.0, self._u, 1.0
         if self.layout.b is not None:
-            b = self.layout.b
-            P[b, b] = head[1, 1]
-            P[PHI, b] = P[b, PHI] = head[0, 1]
-        return self._considered(P, self.position.x[:2])
+            T[self.layout.b, 4] = 1.0
+        return self._considered(T @ self._joint @ T.T, self.position.x[:2])
 
     # ---- EM on the block that ended ------------------------------------------------------------------------------
 
