@@ -83,8 +83,13 @@ class ConsideredHeadingOffset(FollowsHeadings):
     ) -> GpsStatus:
         status = super()._gated_update(kind, z, R, lag, gate, t, sigma)
         if kind == POSITION and status == "ok":
-            self._anchor = self._position_anchor(z)
+            self._position_used(z)
         return status
+
+    def _position_used(self, z: FloatArray) -> None:
+        """A position fix ``z`` used: the way moved is counted from there on (``_anchor``: :meth:`_position_anchor`);
+        a subclass with more that a fix ends (the IMM's dropped turn) extends it."""
+        self._anchor = self._position_anchor(z)
 
     def _position_anchor(self, z: FloatArray) -> FloatArray:
         """Where the estimate is (east, north; m) just after the position fix ``z`` updated it: its mean's."""

@@ -53,10 +53,9 @@ from sumhe.baseline.ekf import (
     set_heading,
 )
 from sumhe.baseline.heading_offset import ConsideredHeadingOffset
-from sumhe.baseline.kinematics import OMEGA, PHI, POSITION, E, FloatArray, N
-from sumhe.baseline.stream import Gate, Inputs, Pending
+from sumhe.baseline.kinematics import OMEGA, PHI, E, FloatArray, N
+from sumhe.baseline.stream import Inputs, Pending
 from sumhe.config import Config
-from sumhe.messages import GpsStatus
 from sumhe.settings import EstimationSettings, NoiseSettings
 
 MU_MIN = 1e-4
@@ -208,14 +207,10 @@ class Imm(ConsideredHeadingOffset):
     def _mean(self) -> FloatArray:
         return kin.weighted_mean(np.column_stack(self.xs), self.mu)
 
-    def _gated_update(
-        self, kind: str, z: FloatArray, R: FloatArray, lag: float, gate: Gate, t: float, sigma: float
-    ) -> GpsStatus:
-        """The base class's gated update; a position fix used ends the dropped turn (:func:`dropped_turn`)."""
-        status = super()._gated_update(kind, z, R, lag, gate, t, sigma)
-        if kind == POSITION and status == "ok":
-            self._dropped = np.zeros(self.layout.n)
-        return status
+    def _position_used(self, z: FloatArray) -> None:
+        """A position fix used also ends the dropped turn (:func:`dropped_turn`)."""
+        super()._position_used(z)
+        self._dropped = np.zeros(self.layout.n)
 
     def _covariance(self) -> FloatArray:
         """The mixture's covariance: the cells' covariances and the spread of their means, weighted, and the turn
