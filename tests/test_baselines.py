@@ -386,6 +386,28 @@ def test_transition_matrix_is_stochastic_and_follows_sojourn_times() -> None:
         Imm(sojourn_s=(1.0, 0.0))
 
 
+def test_imm_weighs_a_course_and_a_speed_over_ground_as_the_kalman_peers() -> None:
+    """The IMM is a Kalman filter of two cells: a course gets the lever's error at the mixture's yaw rate and speed,
+    a speed over ground the error of its uncertain time, as the EKF's (without them, on the realistic drives, a
+    course bent in a turn failed the gate until the re-acquisition snapped the azimuth 16 deg off, and the speed
+    scale took the first acceleration's speed over ground for a 2-13 % error)."""
+    imm, ekf = Imm(), Ekf()
+    for s in linear_stream(2.0):
+        imm.push(s)
+        ekf.push(s)
+    for x in imm.xs:
+        x[kin.OMEGA], x[kin.V] = 0.3, 8.0
+    vehicle, gnss = imm.settings.vehicle, imm.settings.gnss
+    lever = lever_course_sigma(
+        0.3, 8.0, math.hypot(vehicle.antenna_forward_m, vehicle.antenna_forward_range_m), gnss.course_min_speed_mps
+    )
+    course = FixMeasurement(101.9, 0.0, 0.0, 1.0, 1.0, 0.5, 0.01, False, 8.0, 0.1, LocalFix(t=101.9, valid=True))
+    assert imm._fix_angle(course) == pytest.approx((0.5, math.hypot(imm.noise.course_rad, 0.01, lever)))
+    assert imm._fix_angle(dataclasses.replace(course, heading=True)) == (0.5, 0.01)
+    assert imm._speed_sigma(course) == pytest.approx(ekf._speed_sigma(course))
+    assert imm._speed_sigma(course) > 0.1
+
+
 def test_imm_covariance_holds_the_turn_the_straight_cell_drops() -> None:
     """A gentle curve (5 mrad/s for 20 s at 15 m/s) in a CAN yaw rate noisier (10 mrad/s) than the filter's sigma:
     the straight cell keeps most of the probability and the mixture hardly turns; its covariance must cover the

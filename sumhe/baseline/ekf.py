@@ -16,7 +16,7 @@ import numpy as np
 from sumhe.baseline import kinematics as kin
 from sumhe.baseline.heading_offset import FollowsHeadings, heading_offset_variance
 from sumhe.baseline.kinematics import AZIMUTH, OMEGA, PHI, FloatArray, V
-from sumhe.baseline.stream import Inputs, Pending
+from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
 from sumhe.config import Config
 from sumhe.frontend.can import Samples
 from sumhe.frontend.stream import FixMeasurement
@@ -205,7 +205,29 @@ class LeverCourse(FollowsHeadings):
         return float(mean[OMEGA]), float(mean[V])
 
 
-class GaussianFilter(LeverCourse):
+class TimedSpeed(RecursiveEstimator):
+    """A recursive estimator that weighs a fix's speed over ground with the error of its uncertain time (the Kalman
+    family: ``ekf``, ``ukf``, ``rts`` and ``imm``)."""
+
+    def _speed_sigma(self, fix: FixMeasurement) -> float:
+        """The speed over ground's sigma with the error of its uncertain time (:func:`timed_speed_sigma`): the
+        standard error of the GNSS time offset the front-end learned,
+        :data:`~sumhe.frontend.alignment.UNLEARNED_TIME_OFFSET_SD_S` until it has
+        (:attr:`~sumhe.frontend.alignment.ClockLearner.sigma_s`; none where it does not learn it: the configured
+        offset is a calibration).
+
+        Without it, the speed scale state took the speed over ground of the first acceleration from standstill,
+        0.25 s off the CAN speed, for a scale error of up to 13 % with a sigma of 0.3 %, and kept it for minutes
+        (its random walk is slow): the speed 0.5 m/s off and the estimate metres behind at the first outages of
+        the realistic drives (its scale's error 49 times its sigma, rms over the outages' starts; 18 with it)."""
+        learner = self.frontend.aligner
+        if learner is None:
+            return fix.speed_sigma_mps
+        acceleration = can_acceleration(self.frontend.can["speed"], fix.t, self.settings.can.max_gap_s)
+        return timed_speed_sigma(fix.speed_sigma_mps, acceleration, learner.sigma_s)
+
+
+class GaussianFilter(LeverCourse, TimedSpeed):
     """A filter whose belief is a mean ``x`` and a covariance ``P`` (the layout of :mod:`.kinematics`); its noise
     is its own table's (:meth:`tuned`) unless given."""
 
@@ -235,23 +257,6 @@ class GaussianFilter(LeverCourse):
 
     def _inflate(self, kind: str, nu: FloatArray, R: FloatArray) -> None:
         self.P = inflate(self.P, kind, nu, R)
-
-    def _speed_sigma(self, fix: FixMeasurement) -> float:
-        """The speed over ground's sigma with the error of its uncertain time (:func:`timed_speed_sigma`): the
-        standard error of the GNSS time offset the front-end learned,
-        :data:`~sumhe.frontend.alignment.UNLEARNED_TIME_OFFSET_SD_S` until it has
-        (:attr:`~sumhe.frontend.alignment.ClockLearner.sigma_s`; none where it does not learn it: the configured
-        offset is a calibration).
-
-        Without it, the speed scale state took the speed over ground of the first acceleration from standstill,
-        0.25 s off the CAN speed, for a scale error of up to 13 % with a sigma of 0.3 %, and kept it for minutes
-        (its random walk is slow): the speed 0.5 m/s off and the estimate metres behind at the first outages of
-        the realistic drives (its scale's error 49 times its sigma, rms over the outages' starts; 18 with it)."""
-        learner = self.frontend.aligner
-        if learner is None:
-            return fix.speed_sigma_mps
-        acceleration = can_acceleration(self.frontend.can["speed"], fix.t, self.settings.can.max_gap_s)
-        return timed_speed_sigma(fix.speed_sigma_mps, acceleration, learner.sigma_s)
 
     def _init_heading(self, phi: float, sigma: float) -> None:
         self.x, self.P = set_heading(self.x, self.P, phi, sigma)
