@@ -658,3 +658,20 @@ def test_a_headings_offset_is_considered_in_the_covariance_not_in_the_estimate(f
             assert added[1] - added[0] == pytest.approx(10.0 * 10.0 * sigma, rel=0.1)
         else:
             assert added == pytest.approx([0.0, 0.0], abs=1e-4)
+
+
+@pytest.mark.parametrize("heading", [True, False])
+def test_the_ekf_tells_the_part_its_considered_heading_offset_makes_of_its_position_variance(heading: bool) -> None:
+    """What the error estimate's scale at a fix may shrink (:meth:`~sumhe.estimator.uncertainty.InnovationScale.
+    at_fix_m2`): the EKF's position variance less that of the same filter without the offset considered (its
+    estimates and gains are the same), none after courses over ground."""
+    settings = EstimationSettings()
+    on, off = Ekf(settings), Ekf(with_changes(settings, {"estimator.azimuth_offset": False}))
+    for s in north_with_azimuths(heading, outage_from=30.0):
+        on.push(s)
+        off.push(s)
+    rows = np.ix_([kin.E, kin.N], [kin.E, kin.N])
+    added = float(np.trace(on._covariance()[rows]) - np.trace(off._covariance()[rows]))
+    assert on.considered_m2() == pytest.approx(added, abs=1e-12)
+    assert (added > 1e-4) if heading else added == pytest.approx(0.0, abs=1e-9)
+    assert off.considered_m2() == pytest.approx(0.0, abs=1e-12)

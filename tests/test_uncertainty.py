@@ -325,6 +325,25 @@ def test_a_consistent_or_underconfident_covariance_at_a_fix_is_never_shrunk() ->
     assert scale.scale == 1.0 and scale.growth_scale == 1.0
 
 
+def test_the_part_of_the_covariance_at_a_fix_a_considered_parameter_makes_is_shrunk_to_what_the_fixes_say() -> None:
+    # the own covariance at a fix says 1 m^2 per axis, the innovations a quarter of it: the floor at 1 holds the
+    # estimator's own statistics (the fixes' slow error the innovations cannot see), not a considered parameter's
+    # part (a heading's offset read from its bound: a lag behind the fixes, which the innovations see)
+    scale = InnovationScale()
+    _innovations(scale, 3000, var_p=0.25, var_r=0.01, var_g=0.0, periods=1.0)
+    assert scale.scale == 1.0
+    at_fix = Spread(1.0, 1.0, 0.0, 0.1, 0.01)
+    assert scale.at_fix_m2(2.0) == 2.0 and scale.calibrated(at_fix, at_fix).var_east_m2 == 1.0
+    shrunk = scale.at_fix_m2(2.0, 2.0)  # all of it considered: what the innovations say
+    assert shrunk == pytest.approx(0.5, rel=0.4)
+    assert scale.at_fix_m2(2.0, 1.0) == 1.0  # at least the own covariance less the considered part
+    assert scale.calibrated(at_fix, at_fix, 0.0, 2.0).var_east_m2 == pytest.approx(0.5 * shrunk)
+    grown = Spread(2.0, 2.0, 0.0, 0.1, 0.01)  # the growth since is scaled as before
+    assert scale.calibrated(grown, at_fix, 0.0, 2.0).var_east_m2 == pytest.approx(
+        0.5 * shrunk + scale.growth_scale * scale.growth_spread
+    )
+
+
 def test_an_underconfident_growth_is_shrunk_to_what_the_gaps_say() -> None:
     # an estimator whose own growth through gaps is 4 times what the fixes after them find (variance): the MHE,
     # whose growth from the bounds read as sigmas was 15-100 times the real drive's; under the old rule (at

@@ -283,7 +283,9 @@ class Ekf(GaussianFilter):
     start and grew as the bias's ``t^3``: 82.8 % of the removed fixes within ``eph`` (1.61x the median error). With
     the offset considered: 93.2 % (2.01x); the 10 and 30 s outages 98.9 and 97.4 % (2.10, 2.35x; were 97.8 and 94.1
     %, 1.78, 1.84x). A course over ground is the velocity's azimuth: no offset (the realistic profile's fixes have
-    courses; its figures do not change)."""
+    courses; its figures do not change). The offset's part of the covariance at a fix (:meth:`considered_m2`) is
+    what the bound allows, which the innovations check both ways
+    (:meth:`~sumhe.estimator.uncertainty.InnovationScale.at_fix_m2`)."""
 
     name = "ekf"
     Pt: FloatArray
@@ -332,3 +334,8 @@ class Ekf(GaussianFilter):
 
     def _covariance(self) -> FloatArray:
         return self.Pt[:-1, :-1]
+
+    def considered_m2(self) -> float:
+        """What the considered offset adds to the position's variance (trace, m^2): ``Pt``'s less ``P``'s."""
+        rows = [kin.E, kin.N]
+        return float(np.trace(self.Pt[np.ix_(rows, rows)]) - np.trace(self.P[np.ix_(rows, rows)]))

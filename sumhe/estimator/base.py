@@ -127,7 +127,7 @@ class StreamEstimator(ABC):
         self.consistency = InnovationScale()
         self._drift = sensor_drift(settings)
         self._since_epoch: list[StateEstimate] = []
-        self._at_fix: tuple[float, Spread | None] = (math.nan, None)
+        self._at_fix: tuple[float, Spread | None, float] = (math.nan, None, 0.0)
         self.started_over = False
         self.unsettled = False
         self._pending_use: tuple[FixMeasurement, tuple[float, float, float] | None, bool] | None = None
@@ -138,7 +138,7 @@ class StreamEstimator(ABC):
         self._receiver = None
         self.consistency.reset()
         self._since_epoch = []
-        self._at_fix = (math.nan, None)
+        self._at_fix = (math.nan, None, 0.0)
         self._pending_use = None
         self.reset_state()
 
@@ -171,12 +171,13 @@ class StreamEstimator(ABC):
         self, estimate: StateEstimate, fix: FixMeasurement, prior: tuple[float, float, float] | None, restart: bool
     ) -> None:
         """A fix used by the epoch's ``estimate``: the consistency scales fed (:meth:`_match`; not where the
-        estimator started over at it, ``restart``), the spread at the fix and the :class:`Receiver` set."""
+        estimator started over at it, ``restart``), the spread at the fix (and its considered part,
+        :meth:`considered_m2`) and the :class:`Receiver` set."""
         if prior is not None and not restart:
             self._match(fix, estimate, *prior)
         else:
             self.consistency.skip()
-        self._at_fix = (fix.t, estimate.spread)
+        self._at_fix = (fix.t, estimate.spread, self.considered_m2())
         white = self.consistency.white_m2(fix.sigma_east_m**2 + fix.sigma_north_m**2)
         self._receiver = Receiver(fix, self._calibrated(estimate), self.averages_fixes, white)
 
@@ -194,7 +195,7 @@ class StreamEstimator(ABC):
         its time (``east_m``, ``north_m``, own trace ``trace_p``); else the estimate that used it (``used``); and
         its residual from ``used`` (a gap's growth is measured by the innovation's change since the residual before
         it)."""
-        t0, spread0 = self._at_fix
+        t0, spread0, _ = self._at_fix
         periods = (fix.t - t0) / self.frontend.period_s if math.isfinite(t0) else 0.0
         trace_r = fix.sigma_east_m**2 + fix.sigma_north_m**2
         if periods <= self.consistency.gap_periods and used.spread is not None:
@@ -217,7 +218,14 @@ class StreamEstimator(ABC):
         """An estimate's own spread with its position covariance scaled by the consistency scales."""
         if estimate.spread is None:
             return None
-        return self.consistency.calibrated(estimate.spread, self._at_fix[1], self._drift_m2(estimate.t, estimate))
+        _, at_fix, considered = self._at_fix
+        return self.consistency.calibrated(estimate.spread, at_fix, self._drift_m2(estimate.t, estimate), considered)
+
+    def considered_m2(self) -> float:
+        """The part (trace, m^2) of the newest estimate's own position covariance that considered parameters make
+        (carried in the covariance, never estimated: the EKF's receiver heading offset), which the consistency
+        scale at a fix may shrink (:meth:`InnovationScale.at_fix_m2`); none by default."""
+        return 0.0
 
     def _finished(self, estimate: StateEstimate) -> StateEstimate:
         """The estimate as pushed out (one new estimate): its spread calibrated (:meth:`_calibrated`) and, after
