@@ -153,12 +153,11 @@ class SqpSolver:
         flat: bool = False,
     ) -> None:
         """``flat``: the window's residual-and-Jacobian function expanded into one flat (SX) function: the same
-        operations on the same numbers, bit for bit, in 35 us instead of 55-65 us per epoch on a 50-step window
-        within a replay (the MX function calls the one-step functions a hundred times), for 2 ms more to build and
-        0.7 MB more at 50 steps (all 11 default sizes: 90 ms and 25 MB, so only the window's normal size is
-        flat). Its common subexpressions are merged (CasADi's ``cse``: each value computed once, from the same
-        operands, so the same bits): 8202 instructions instead of 9679 at 50 steps, 16 us instead of 21 us a call
-        (alone), for 12 ms more to build."""
+        operations on the same numbers, bit for bit, for 2 ms more to build and 0.7 MB more at 50 steps (all 11
+        default sizes: 90 ms and 25 MB, so only the window's normal size is flat; the others call flat blocks of
+        steps, :func:`_over_steps`). Its common subexpressions are merged (CasADi's ``cse``: each value computed
+        once, from the same operands, so the same bits): 8202 instructions instead of 9679 at 50 steps; a call
+        17.5 us alone at 50 steps (the blocks' 26 us, without ``cse`` 21 us), for 15 ms more to build."""
         if capacity < 2:
             raise ValueError(f"capacity: need at least 2 steps, got {capacity}")
         t0 = time.perf_counter()
