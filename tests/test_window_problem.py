@@ -14,7 +14,7 @@ from sumhe.estimator.grid import build_grid
 from sumhe.estimator.lp import solve_lp
 from sumhe.estimator.mhe.nlp import NlpSolver
 from sumhe.estimator.mhe.problem import WindowProblem, residual_functions
-from sumhe.estimator.mhe.sqp import SqpSolver, _linearisation
+from sumhe.estimator.mhe.sqp import BLOCK_STEPS, SqpSolver, _linearisation
 from sumhe.settings import EstimationSettings, with_changes
 
 # "caps": the centre stage runs with q, r at their caps, the MHE's fixed bounds
@@ -80,11 +80,14 @@ def test_the_start_point_is_not_the_answer(case: tuple) -> None:
     assert np.abs(problem.x[:, :2] - batch.states[:, :2]).max() > 0.05  # the solvers had to move
 
 
-def test_the_window_jacobian_from_one_steps_is_the_whole_windows(case: tuple) -> None:
-    # the SQP solver puts J together from one step's Jacobian: the same pattern and, bit for bit, the same values
-    # as differentiating the whole window's residuals at once
+@pytest.mark.parametrize("C", [6, BLOCK_STEPS + 7])
+def test_the_window_jacobian_from_one_steps_is_the_whole_windows(case: tuple, C: int) -> None:
+    # the SQP solver puts J together from one step's Jacobian (in flat blocks of steps, then the rest: C = 32 has
+    # one of each): the same pattern and, bit for bit, the same values as differentiating the whole window's
+    # residuals at once
     model, _, problem = case
-    C, md, n = 6, model.n_dynamic, model.n_outputs
+    md, n = model.n_dynamic, model.n_outputs
+    assert problem.n_steps >= C
     lin, rows, cols = _linearisation(model, C)
     fw, fe = residual_functions(model)
     Xd, th = ca.SX.sym("x", md, C), ca.SX.sym("theta", model.n_states - md)

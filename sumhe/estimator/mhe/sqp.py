@@ -13,6 +13,7 @@ function), ``P``'s arrival block, ``l``, ``u`` and ``q`` change: OSQP is set up 
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 
@@ -38,6 +39,9 @@ through the azimuth (positions enter linearly, speed bilinearly with the scale),
 one QP per epoch unless a transient, e.g. the azimuth found when driving off, needs more."""
 BOX_TOL = 1e-9
 """Slack allowed on the boxes when the banded (unconstrained) solution is checked against them."""
+BLOCK_STEPS = 25
+"""Steps per flat block of the window function's step functions (:func:`_over_steps`): long enough that the map's
+call per block is a small part of a block's time, short enough to build in about a millisecond."""
 REGULARISATION = 1e-6
 """Added to the normal matrix's diagonal: directions no data fixes (an azimuth at standstill) stay put."""
 _PBTRF, _TBTRS = get_lapack_funcs(("pbtrf", "tbtrs"), (np.zeros(1),))
@@ -50,14 +54,18 @@ def _free(mask: NDArray[np.bool_], lo: NDArray, hi: NDArray) -> tuple[NDArray, N
     return np.where(mask, lo, -np.inf), np.where(mask, hi, np.inf)
 
 
-def _linearisation(model: SuModel, C: int) -> tuple[ca.Function, NDArray[np.int64], NDArray[np.int64]]:
-    """``(z, h, y) -> [r; J.nz]`` of a window of ``C`` steps: the residuals ``r`` (the state noises of the steps,
-    then the output noises) and the nonzeros of their Jacobian ``J`` in the variables ``z`` (the dynamic states
-    step by step, then the CAN states), column-major as CasADi stores a sparse matrix; and ``J``'s rows and columns.
+Pattern = tuple[NDArray[np.int64], NDArray[np.int64]]
+"""A sparse matrix's nonzeros: their rows and columns, in CasADi's (column-major) order."""
+StepLinearisation = tuple[ca.Function, ca.Function, Pattern, Pattern]
+"""One step's ``(xp, xn, theta, h) -> (w, dw.nz)`` and ``(x, theta, y) -> (e, de.nz)``, and the patterns of
+``dw`` (in ``(xp, xn, theta)``) and ``de`` (in ``(x, theta)``)."""
 
-    ``J`` is put together from the Jacobians of one step, derived once: the same expressions, entry for entry, as
-    differentiating the whole window (checked in the tests), for a sixth of the build time (11 window sizes are
-    built at start-up)."""
+
+@functools.lru_cache(maxsize=4)
+def _step_linearisation(model: SuModel) -> StepLinearisation:
+    """One step's residuals and the nonzeros of their Jacobians (:data:`StepLinearisation`), derived once per model
+    and shared by every window size's solver (11 at start-up: 35 ms less to build; the same functions, so the same
+    arithmetic)."""
     md, n, nt = model.n_dynamic, model.n_outputs, model.n_states - model.n_dynamic
     fw, fe = residual_functions(model)
     xp, xn, x, th = ca.SX.sym("xp", md), ca.SX.sym("xn", md), ca.SX.sym("x", md), ca.SX.sym("theta", nt)
@@ -66,18 +74,55 @@ def _linearisation(model: SuModel, C: int) -> tuple[ca.Function, NDArray[np.int6
     jw, je = ca.jacobian(w, ca.vertcat(xp, xn, th)), ca.jacobian(e, ca.vertcat(x, th))
     step_w = ca.Function("mhe_w_lin", [xp, xn, th, h], [w, jw.nz[:]])
     step_e = ca.Function("mhe_e_lin", [x, th, y], [e, je.nz[:]])
-    # the window's function calls the step functions (MX: a map node each), not copies of their expressions (SX):
-    # the same arithmetic, bit for bit, built in a few ms at any size instead of 12-26 ms (11 sizes at start-up)
+    (rw, cw), (re, ce) = jw.sparsity().get_triplet(), je.sparsity().get_triplet()
+    return step_w, step_e, (np.asarray(rw), np.asarray(cw)), (np.asarray(re), np.asarray(ce))
+
+
+@functools.lru_cache(maxsize=16)
+def _step_blocks(model: SuModel, steps: int) -> tuple[ca.Function, ca.Function]:
+    """The one-step functions of :func:`_step_linearisation` mapped over ``steps`` steps and expanded into flat
+    (SX) functions: one call runs the steps' operations without the map's call of the step function per step."""
+    step_w, step_e, _, _ = _step_linearisation(model)
+    return step_w.map(steps).expand(), step_e.map(steps).expand()
+
+
+def _over_steps(model: SuModel, which: int, steps: int, args: list[ca.MX]) -> list[ca.MX]:
+    """The outputs of one-step function ``which`` (0: the state noise's, 1: the outputs') of
+    :func:`_step_linearisation` over ``steps`` steps, as its map would give them: per-step inputs are the columns of
+    ``args``, a one-column input is every step's. Flat blocks of :data:`BLOCK_STEPS` steps mapped, then one flat
+    block of the rest (:func:`_step_blocks`): the same operations per step as the map of the step function, bit for
+    bit (tested), in about 0.7 of its time on an outage's long windows."""
+    full, rest = divmod(steps, BLOCK_STEPS)
+    parts = []
+    for n_steps, first, last in ((BLOCK_STEPS, 0, full * BLOCK_STEPS), (rest, full * BLOCK_STEPS, steps)):
+        if last > first:
+            block = _step_blocks(model, n_steps)[which]
+            block = block.map((last - first) // n_steps) if last - first > n_steps else block
+            parts.append(block(*(a if a.size2() == 1 else a[:, first:last] for a in args)))
+    return [ca.horzcat(*outs) for outs in zip(*parts, strict=True)]
+
+
+def _linearisation(model: SuModel, C: int) -> tuple[ca.Function, NDArray[np.int64], NDArray[np.int64]]:
+    """``(z, h, y) -> [r; J.nz]`` of a window of ``C`` steps: the residuals ``r`` (the state noises of the steps,
+    then the output noises) and the nonzeros of their Jacobian ``J`` in the variables ``z`` (the dynamic states
+    step by step, then the CAN states), column-major as CasADi stores a sparse matrix; and ``J``'s rows and columns.
+
+    ``J`` is put together from the Jacobians of one step (:func:`_step_linearisation`), derived once: the same
+    expressions, entry for entry, as differentiating the whole window (checked in the tests), for a sixth of the
+    build time (11 window sizes are built at start-up)."""
+    md, n, nt = model.n_dynamic, model.n_outputs, model.n_states - model.n_dynamic
+    _, _, (rw, cw), (re, ce) = _step_linearisation(model)
+    # the window's function calls flat blocks of the step functions (MX: a map node each, :func:`_over_steps`), not
+    # copies of their expressions for the whole window (SX): the same arithmetic, bit for bit, built in a few ms at
+    # any size instead of 12-26 ms (11 sizes at start-up)
     nx = C * md
     z = ca.MX.sym("z", nx + nt)
     Xd, TH = ca.reshape(z[:nx], md, C), z[nx:]
     H, Y = ca.MX.sym("h", 1, C - 1), ca.MX.sym("y", n, C)
-    W, JW = step_w.map(C - 1)(Xd[:, :-1], Xd[:, 1:], TH, H)
-    E, JE = step_e.map(C)(Xd, TH, Y)
+    W, JW = _over_steps(model, 0, C - 1, [Xd[:, :-1], Xd[:, 1:], TH, H])
+    E, JE = _over_steps(model, 1, C, [Xd, TH, Y])
     # each step's entries placed: its rows after the previous steps', its states' columns at its step (then the
     # next step's for a state noise), the CAN states' after all dynamic states
-    rw, cw = (np.asarray(a) for a in jw.sparsity().get_triplet())
-    re, ce = (np.asarray(a) for a in je.sparsity().get_triplet())
     kw, ke = np.arange(C - 1)[:, None], np.arange(C)[:, None]
     rows = np.concatenate([(kw * md + rw).ravel(), ((C - 1) * md + ke * n + re).ravel()])
     cols = np.concatenate(
@@ -108,12 +153,11 @@ class SqpSolver:
         flat: bool = False,
     ) -> None:
         """``flat``: the window's residual-and-Jacobian function expanded into one flat (SX) function: the same
-        operations on the same numbers, bit for bit, in 35 us instead of 55-65 us per epoch on a 50-step window
-        within a replay (the MX function calls the one-step functions a hundred times), for 2 ms more to build and
-        0.7 MB more at 50 steps (all 11 default sizes: 90 ms and 25 MB, so only the window's normal size is
-        flat). Its common subexpressions are merged (CasADi's ``cse``: each value computed once, from the same
-        operands, so the same bits): 8202 instructions instead of 9679 at 50 steps, 16 us instead of 21 us a call
-        (alone), for 12 ms more to build."""
+        operations on the same numbers, bit for bit, for 2 ms more to build and 0.7 MB more at 50 steps (all 11
+        default sizes: 90 ms and 25 MB, so only the window's normal size is flat; the others call flat blocks of
+        steps, :func:`_over_steps`). Its common subexpressions are merged (CasADi's ``cse``: each value computed
+        once, from the same operands, so the same bits): 8202 instructions instead of 9679 at 50 steps; a call
+        17.5 us alone at 50 steps (the blocks' 26 us, without ``cse`` 21 us), for 15 ms more to build."""
         if capacity < 2:
             raise ValueError(f"capacity: need at least 2 steps, got {capacity}")
         t0 = time.perf_counter()
