@@ -1,3 +1,3 @@
 from sumhe import cli
 
-raise SystemExit(cli.main())
+cli.script()

@@ -220,3 +220,48 @@ def test_a_replay_of_candump_logs_loads_python_can_without_its_mf4_reader_and_ot
     assert _python_can_mf4(["-v", "replay", "drive.log", "--nmea", "drive.nmea"]) == "False True"
     assert _python_can_mf4(["replay", "a.log", "b.MF4"]) == "True True"
     assert _python_can_mf4(["run", "--config", "x.toml"]) == "True True"
+
+
+def _ends(code: str, **kw) -> subprocess.CompletedProcess:
+    """``code`` run after ``from sumhe.cli import end_process`` in a fresh interpreter, its outputs piped."""
+    return subprocess.run(
+        [sys.executable, "-c", f"import logging, sys; from sumhe.cli import end_process; {code}"],
+        **({"capture_output": True} if not kw else {}),
+        text=True,
+        timeout=60,
+        **kw,
+    )
+
+
+def test_end_process_exits_with_the_code_after_flushing_the_streams_and_the_log():
+    run = _ends("logging.basicConfig(); sys.stdout.write('out'); logging.warning('said'); end_process(3)")
+    assert (run.returncode, run.stdout) == (3, "out")
+    assert "WARNING:root:said" in run.stderr
+    run = _ends("import atexit; atexit.register(print, 'teardown'); end_process(0)")
+    assert (run.returncode, run.stdout) == (0, "")  # no atexit handler but logging's runs
+
+
+def test_end_process_takes_a_reader_gone_for_no_error():
+    read, write = os.pipe()
+    os.close(read)  # the reader is gone before the text still buffered is flushed
+    try:
+        buffered = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}  # kept until end_process
+        run = _ends("sys.stdout.write('lost'); end_process(0)", stdout=write, stderr=subprocess.PIPE, env=buffered)
+    finally:
+        os.close(write)
+    assert (run.returncode, run.stderr) == (0, "")
+
+
+def test_the_script_ends_a_replay_at_once_with_every_line_written_and_its_exit_code(tmp_path):
+    drive = REPO / "sumhe" / "data" / "drive"
+    proc = _sumhe("replay", str(drive / "drive.log"), "--nmea", str(drive / "drive.nmea"))
+    out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0, err
+    lines = out.splitlines()
+    assert len(lines) == 12602 and out.endswith("}\n")
+    assert json.loads(lines[-1])["class"] == "TPV"
+    assert re.search(r"^replay: mhe: 2101 fixes \(1651 valid\), 31502 CAN samples, 12602 estimates", err), err
+    (tmp_path / "none.nmea").write_text("$GPGGA,080000.00,,,,,0,00,,,M,,M,,*6A\n")
+    proc = _sumhe("replay", str(drive / "drive.log"), "--nmea", str(tmp_path / "none.nmea"))
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 1 and "error: nothing to estimate from" in err, err

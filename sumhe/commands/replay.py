@@ -24,6 +24,10 @@ from sumhe.frontend.can import CAN_USED
 from sumhe.io.can import reference_config
 from sumhe.io.replay import RecordedDrive, check_gps_source
 
+EXIT_AT_ONCE = True
+"""The ``sumhe`` script ends the process when :func:`run` returns (:func:`sumhe.cli.end_process`): the output file
+is closed and the summary printed by then, and a replay starts no thread nor child process."""
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
