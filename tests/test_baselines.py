@@ -408,10 +408,9 @@ def test_imm_weighs_a_course_and_a_speed_over_ground_as_the_kalman_peers() -> No
     assert imm._speed_sigma(course) > 0.1
 
 
-def test_imm_covariance_holds_the_turn_the_straight_cell_drops() -> None:
-    """A gentle curve (5 mrad/s for 20 s at 15 m/s) in a CAN yaw rate noisier (10 mrad/s) than the filter's sigma:
-    the straight cell keeps most of the probability and the mixture hardly turns; its covariance must cover the
-    azimuth and cross-track errors that leaves (the interaction alone kept them at 30 and 12 sigmas)."""
+def _imm_through_a_gentle_curve(yaw_rate: float, seconds: float) -> Imm:
+    """An IMM at 15 m/s after ``seconds`` of a curve at ``yaw_rate`` (rad/s) in a CAN yaw rate noisier (10 mrad/s)
+    than the filter's sigma, from a start without a position fix since."""
     imm = Imm()
     imm.reset_state()
     n = imm.layout.n
@@ -420,12 +419,20 @@ def test_imm_covariance_holds_the_turn_the_straight_cell_drops() -> None:
     x0[imm.layout.k] = 1.0
     imm._start(x0, np.diag([1.0, 1.0, 1e-6, 0.01, 1e-6] + [1e-8] * (n - 5)))
     rng = np.random.default_rng(0)
-    dt, steps, yaw_rate = 0.02, 1000, 0.005
-    for _ in range(steps):
+    dt = 0.02
+    for _ in range(round(seconds / dt)):
         inputs = Inputs(15.0, yaw_rate + rng.normal(0.0, 0.01), False)
         imm._predict(dt, inputs)
         imm._can_update(inputs)
-    seconds = dt * steps
+    return imm
+
+
+def test_imm_covariance_holds_the_turn_the_straight_cell_drops() -> None:
+    """A gentle curve (5 mrad/s for 20 s at 15 m/s): the straight cell keeps most of the probability and the
+    mixture hardly turns; its covariance must cover the azimuth and cross-track errors that leaves (the interaction
+    alone kept them at 30 and 12 sigmas)."""
+    yaw_rate, seconds = 0.005, 20.0
+    imm = _imm_through_a_gentle_curve(yaw_rate, seconds)
     mean, P = imm._mean(), imm._covariance()
     assert imm.mu[0] > 0.5  # the straight model kept the probability
     azimuth_error = mean[kin.PHI] + yaw_rate * seconds  # the azimuth turns clockwise, the yaw rate anticlockwise
@@ -433,6 +440,19 @@ def test_imm_covariance_holds_the_turn_the_straight_cell_drops() -> None:
     assert abs(azimuth_error) > 0.05 and abs(east_error) > 10.0  # the mixture hardly turned
     assert abs(azimuth_error) < 2.0 * math.sqrt(P[kin.PHI, kin.PHI])
     assert abs(east_error) < 2.0 * math.sqrt(P[kin.E, kin.E])
+
+
+def test_imm_takes_the_dropped_turns_growth_as_known() -> None:
+    """The dropped turn's part of the position's variance (:meth:`Imm.considered_growth_m2`) is what the error
+    estimate adds unscaled: in the covariance, most of its growth through the curve, and nil after a position fix
+    (which ends it)."""
+    imm = _imm_through_a_gentle_curve(0.005, 20.0)
+    P = imm._covariance()
+    known = imm.considered_growth_m2()
+    assert known == pytest.approx(imm._dropped[kin.E] ** 2 + imm._dropped[kin.N] ** 2)
+    assert 0.5 * (P[kin.E, kin.E] + P[kin.N, kin.N]) < known < P[kin.E, kin.E] + P[kin.N, kin.N]
+    imm._position_used(imm._mean()[[kin.E, kin.N]])
+    assert imm.considered_growth_m2() == 0.0
 
 
 # ---- registry ---------------------------------------------------------------------------------------------------

@@ -40,7 +40,10 @@ covariance holds the cells' spread at each step only, and the interaction turns 
 step, into independent steps of a random walk: the straight cell's azimuth covariance grew by its ``heading_rw``,
 a few mrad, while the azimuth was off by tenths of a radian. The turn the curved model makes and the mixture does
 not is the mixture's error where the curved model is right; it is carried as a considered error (the estimates do
-not change) from one position fix to the next: the azimuth's and the position's it makes along the way moved.
+not change) from one position fix to the next: the azimuth's and the position's it makes along the way moved. Its
+part of the position's variance is a known error's size, not the filter's belief: the error estimate adds it as it
+is, beside the growth the gaps' fixes scale (:meth:`Imm.considered_growth_m2`,
+:class:`~sumhe.estimator.uncertainty.InnovationScale`).
 """
 
 from __future__ import annotations
@@ -221,6 +224,12 @@ class Imm(ConsideredHeadingOffset, LeverCourse, TimedSpeed):
         """A position fix used also ends the dropped turn (:func:`dropped_turn`)."""
         super()._position_used(z)
         self._dropped = np.zeros(self.layout.n)
+
+    def considered_growth_m2(self) -> float:
+        """The dropped turn's part of the position's variance (trace, m^2): a considered error grown since the
+        newest position fix, taken as known by the error estimate (not multiplied by the growth scale the gaps
+        teach, which learns from what it leaves unexplained)."""
+        return float(self._dropped[E] ** 2 + self._dropped[N] ** 2)
 
     def _covariance(self) -> FloatArray:
         """The mixture's covariance: the cells' covariances and the spread of their means, weighted, and the turn

@@ -130,7 +130,7 @@ class StreamEstimator(ABC):
         self._at_fix: tuple[float, Spread | None, float] = (math.nan, None, 0.0)
         self.started_over = False
         self.unsettled = False
-        self._pending_use: tuple[FixMeasurement, tuple[float, float, float] | None, bool] | None = None
+        self._pending_use: tuple[FixMeasurement, tuple[float, float, float, float] | None, bool] | None = None
 
     def reset(self) -> None:
         """Forget the estimate, the stream (CAN data, GNSS timing) and the consistency scales; counters are kept."""
@@ -150,7 +150,8 @@ class StreamEstimator(ABC):
             if isinstance(event, Epoch):
                 fix = event.fix
                 ahead = self.settings.can.max_gap_s  # farther on, the CAN data are missing: no prediction
-                prior = predicted_at(self._since_epoch, fix.t, ahead) if fix is not None else None
+                predicted = predicted_at(self._since_epoch, fix.t, ahead) if fix is not None else None
+                prior = None if predicted is None else (*predicted, self.considered_growth_m2())
                 self.started_over, self.unsettled = event.start, False
                 estimate: StateEstimate | None = self.on_epoch(event)
                 self._since_epoch = []
@@ -168,7 +169,11 @@ class StreamEstimator(ABC):
         return out
 
     def _use(
-        self, estimate: StateEstimate, fix: FixMeasurement, prior: tuple[float, float, float] | None, restart: bool
+        self,
+        estimate: StateEstimate,
+        fix: FixMeasurement,
+        prior: tuple[float, float, float, float] | None,
+        restart: bool,
     ) -> None:
         """A fix used by the epoch's ``estimate``: the consistency scales fed (:meth:`_match`; not where the
         estimator started over at it, ``restart``), the spread at the fix (and its considered part,
@@ -190,9 +195,12 @@ class StreamEstimator(ABC):
         if pending is not None and estimate is not None and estimate.gps == "ok":
             self._use(estimate, *pending)
 
-    def _match(self, fix: FixMeasurement, used: StateEstimate, east_m: float, north_m: float, trace_p: float) -> None:
+    def _match(
+        self, fix: FixMeasurement, used: StateEstimate, east_m: float, north_m: float, trace_p: float, known_m2: float
+    ) -> None:
         """Feed the consistency scales one used fix (:class:`InnovationScale`): after a gap, the own prediction at
-        its time (``east_m``, ``north_m``, own trace ``trace_p``); else the estimate that used it (``used``); and
+        its time (``east_m``, ``north_m``, own trace ``trace_p``, of which a considered error grown since the fix
+        before makes ``known_m2``: :meth:`considered_growth_m2`); else the estimate that used it (``used``); and
         its residual from ``used`` (a gap's growth is measured by the innovation's change since the residual before
         it)."""
         t0, spread0, _ = self._at_fix
@@ -206,7 +214,7 @@ class StreamEstimator(ABC):
         nu = np.array([fix.east_m - east_m, fix.north_m - north_m])
         residual = np.array([fix.east_m - used.east_m, fix.north_m - used.north_m])
         drift = self._drift_m2(fix.t, used) if periods > self.consistency.gap_periods else 0.0
-        self.consistency.add(fix.t, nu, trace_r, trace0, trace_p - trace0, periods, drift, residual)
+        self.consistency.add(fix.t, nu, trace_r, trace0, trace_p - trace0, periods, drift, residual, known_m2)
 
     def _drift_m2(self, t: float, estimate: StateEstimate) -> float:
         """What the CAN calibration's drift makes of the position's error (trace, m^2) at ``t`` since the newest fix
@@ -219,12 +227,21 @@ class StreamEstimator(ABC):
         if estimate.spread is None:
             return None
         _, at_fix, considered = self._at_fix
-        return self.consistency.calibrated(estimate.spread, at_fix, self._drift_m2(estimate.t, estimate), considered)
+        drift = self._drift_m2(estimate.t, estimate)
+        return self.consistency.calibrated(estimate.spread, at_fix, drift, considered, self.considered_growth_m2())
 
     def considered_m2(self) -> float:
         """The part (trace, m^2) of the newest estimate's own position covariance that considered parameters make
         (carried in the covariance, never estimated: the EKF's receiver heading offset), which the consistency
         scale at a fix may shrink (:meth:`InnovationScale.at_fix_m2`); none by default."""
+        return 0.0
+
+    def considered_growth_m2(self) -> float:
+        """The part (trace, m^2) of the newest estimate's own position covariance that a considered error grown
+        since the newest position fix makes and that the estimator takes as known, not as a belief of its own
+        statistics: the growth scale does not multiply it, and the gaps' fixes teach that scale only what it
+        leaves unexplained (:meth:`InnovationScale.calibrated`, :meth:`InnovationScale.add`; the IMM's dropped
+        turn); none by default."""
         return 0.0
 
     def _finished(self, estimate: StateEstimate) -> StateEstimate:
