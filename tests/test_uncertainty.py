@@ -416,6 +416,24 @@ def test_the_change_of_the_fixes_slow_error_over_a_short_gap_is_not_taken_for_gr
     assert scale.growth_scale == pytest.approx((400.0 - 4.5) / 200.0, rel=0.1)
 
 
+def test_the_slow_error_of_a_poorer_fix_before_a_gap_is_not_taken_for_growth() -> None:
+    # the fix before the gap said 7 m per axis (trace 98 m^2) and was off by that much, the fix after it 1 m: their
+    # slow errors' change squares to between (7 - 1)^2 and 7^2 + 1^2 per axis, not to between 0 and twice the fix
+    # after the gap's. Dead reckoning, which took the first fix as it was, had a growth scale of 5.4 after the first
+    # 10 s outage of the shared real drive (its own growth 17 m^2 there; 3.9 with the fix's own variance counted)
+    def learned(trace_before: float) -> float:
+        scale = InnovationScale()
+        rng = np.random.default_rng(3)
+        for k in range(100):
+            nu = 0.1 * rng.standard_normal(2)
+            scale.add(0.1 * k, nu, trace_before, 1.0, 0.0, 1.0, residual=nu)
+        scale.add(20.0, np.array([7.0, 7.0]), 2.0, trace_before, 10.0, 100.0, residual=np.zeros(2))
+        return scale.growth_scale
+
+    assert learned(98.0) < 2.0
+    assert learned(2.0) > 5.0  # the same change after a fix that said 1 m is growth
+
+
 def test_gaps_that_say_nothing_of_the_growth_leave_what_the_others_said() -> None:
     # ten 30 s gaps find the growth 4 times too small; then a burst of fixes missed one at a time, each innovation
     # all the fix's and the estimate's own error: the old rule dragged the scale down by their negative excess

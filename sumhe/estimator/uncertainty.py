@@ -334,9 +334,14 @@ class InnovationScale:
 
     The change of the innovation over a gap holds, beside the growth and the white errors, the change of the fixes'
     slow error (``tr R - W`` each, what :class:`~sumhe.estimator.base.Receiver` adds to every estimate): the
-    estimate carried the slow error of the fix before the gap into it, the fix after it has its own. That change's
-    expected square is ``2 (tr R - W) (1 - rho)``, nothing where the two are the same, ``2 (tr R - W)`` where they
-    are independent; how fast the slow error decorrelates (``rho`` over the gap) the innovations do not say, and a
+    estimate carried the slow error of the fix before the gap into it, the fix after it has its own. With ``S0``
+    and ``S`` those two fixes' slow variances that change's expected square is ``S0 + S - 2 rho sqrt(S0 S)`` =
+    ``(sqrt S0 - sqrt S)^2 + 2 (1 - rho) sqrt(S0 S)``, ``(sqrt S0 - sqrt S)^2`` where the two are fully correlated,
+    ``S0 + S`` where they are independent (taken as ``2 S``, the fix after the gap's twice, a fix of 7 m before the
+    shared real drive's first outage, where the fixes after it said 1 m, had been taken for growth: dead reckoning's
+    growth scale 5.4 after that 10 s outage, 3.9 now, its next one's ``eph`` 117.8 m, 99.5 m now, at its end against
+    an error of 5.3 m; the rest is that outage's error, 15.5 m, beyond the fix's 7 m and its own growth's 4 m); how
+    fast the slow error decorrelates (``rho`` over the gap) the innovations do not say, and a
     correlation time would be a constant no drive pins down, so ``rho`` is taken as unknown, uniform in [0, 1]: the
     likelihood of ``s`` is averaged over it (:class:`_ScaleLikelihood`), and the outlier cap counts its mean. A short
     gap (a fix or two missed, a 5 s outage), whose own growth is decimetres beside the metres by which the slow error
@@ -394,6 +399,7 @@ class InnovationScale:
         self._growth = _ScaleLikelihood(self.memory_s)
         self._white = _Ratio(self.memory_s)
         self._last: np.ndarray | None = None
+        self._last_r = 0.0
         self._growth_spread = 1.0
 
     def add(
@@ -416,6 +422,7 @@ class InnovationScale:
         unknown after a gap)."""
         consecutive = periods <= self.gap_periods
         start, self._last = self._last, residual if residual is not None or not consecutive else nu
+        trace_r0, self._last_r = self._last_r, trace_r
         if consecutive and start is not None:
             change = nu - start
             self._white.add(t, 0.5 * float(change @ change), 1.0)
@@ -423,9 +430,13 @@ class InnovationScale:
         if consecutive:
             self._fix.add(t, float(nu @ nu) - white, trace_p0 + trace_g)
         elif (growth := max(trace_g - known_m2, drift_m2)) > 0.0:
-            unsure = 2.0 * max(trace_r - white, 0.0)  # the change of the fixes' slow error: 0 to independent
+            slow = max(trace_r - white, 0.0)
+            slow0 = max(trace_r0 - white, 0.0) if start is not None else slow
+            # the change of the fixes' slow errors, correlated 1 to 0: (sqrt S0 - sqrt S)^2 + (0 to 2) sqrt(S0 S)
+            unsure = 2.0 * math.sqrt(slow * slow0)
             if start is not None:  # the change over the gap: the estimate's lag behind the fixes at its start cancels
-                square, fixed = float((nu - start) @ (nu - start)), 2.0 * white + known_m2
+                square = float((nu - start) @ (nu - start))
+                fixed = 2.0 * white + known_m2 + (math.sqrt(slow0) - math.sqrt(slow)) ** 2
             else:
                 square, fixed = float(nu @ nu), self.scale * trace_p0 + white + known_m2
             expected = fixed + 0.5 * unsure + self.growth_scale * self.growth_spread * growth
