@@ -59,7 +59,7 @@ class Ukf(ConsideredHeadingOffset, GaussianFilter):
     """Unscented Kalman filter (``ukf``)."""
 
     name = "ukf"
-    snapshot_attrs = ("x", "P", "_anchor")
+    snapshot_attrs = ("x", "P", "_anchor", "_t_yaw")
 
     def __init__(self, settings: EstimationSettings | None = None, noise: NoiseSettings | None = None) -> None:
         super().__init__(settings, noise)
