@@ -31,7 +31,6 @@ import numpy as np
 from sumhe.baseline import kinematics as kin
 from sumhe.baseline.ekf import Ekf
 from sumhe.baseline.kinematics import OMEGA, PHI, E, FloatArray, N, V
-from sumhe.baseline.stream import Inputs
 from sumhe.estimator.base import StateEstimate
 from sumhe.frontend.fixes import LocalFix
 from sumhe.messages import CanSample
@@ -123,10 +122,10 @@ class Rts(Ekf):
         super()._start(x0, P0)
         self._steps.append(_Step(0, self._t_state, 0.0, self.x.copy(), self.P.copy(), restart=True))
 
-    def _predict(self, dt: float, inputs: Inputs) -> None:
+    def _step(self, dt: float) -> None:
         last = self._steps[-1]
         last.x_post, last.P_post = self.x.copy(), self.P.copy()
-        super()._predict(dt, inputs)
+        super()._step(dt)
         t = self._t_state + dt
         self._steps.append(_Step(last.index + 1, t, dt, self.x.copy(), self.P.copy()))
         oldest = self._history.oldest_t if self._history is not None else math.inf  # where a re-run may go back to

@@ -59,7 +59,7 @@ class Ukf(ConsideredHeadingOffset, GaussianFilter):
     """Unscented Kalman filter (``ukf``)."""
 
     name = "ukf"
-    snapshot_attrs = ("x", "P", "_anchor")
+    snapshot_attrs = ("x", "P", "_anchor", "_t_yaw")
 
     def __init__(self, settings: EstimationSettings | None = None, noise: NoiseSettings | None = None) -> None:
         super().__init__(settings, noise)
@@ -70,12 +70,12 @@ class Ukf(ConsideredHeadingOffset, GaussianFilter):
         """The noise of its table, ``[estimator.ukf]``."""
         return settings.estimator.ukf
 
-    def _predict(self, dt: float, inputs: Inputs) -> None:
+    def _step(self, dt: float) -> None:
         X = kin.step(sigma_points(self.x, self.P, self._spread), dt)
         self.x, P, _ = unscented_transform(X, self._wm, self._wc)
         self.P = P + kin.process_noise(dt, self.noise, self.layout)
 
-    def _can_update(self, inputs: Inputs) -> None:
+    def _update_can(self, inputs: Inputs) -> None:
         rows, z = can_rows(inputs)
         if rows:
             R = np.diag(np.square(kin.can_sigmas(rows, self.noise)))
