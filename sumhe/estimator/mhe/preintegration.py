@@ -69,11 +69,11 @@ def can_step_bound(
     q_phi = h * can_allowance(s.yaw_rate_quantum_rps, s.yaw_rate_sigma_rps, k_sig, max(n_yaw, 1))
     q_pos = h * can_allowance(s.speed_quantum_mps, s.speed_sigma_mps, k_sig, max(n_speed, 1))
     q_pos += 0.5 * abs(speed_mps) * h * q_phi
-    q = np.full(model.n_dynamic, np.nan)
+    q = [math.nan] * model.n_dynamic  # filled as floats, one array at the end: np.full and three stores cost twice
     i_e, i_n = model.position
     q[i_e] = q[i_n] = q_pos
     q[model.i_phi] = q_phi
-    return q
+    return np.array(q)
 
 
 def step_motion(
