@@ -142,5 +142,6 @@ def test_live_drive_over_udp_multicast_with_faults_and_gpsd(drive, tmp_path):
     with_eph = [m for m in with_pos if "eph" in m]
     assert len(with_eph) > 0.9 * len(with_pos), f"gpsd's TPV without eph: {with_pos[0]}"
     eph_dr = [m["eph"] for m in with_eph if m.get("status") == 5]
-    eph_gps = [m["eph"] for m in with_eph if m.get("status") != 5]
+    first_dr = next((i for i, m in enumerate(with_eph) if m.get("status") == 5), len(with_eph))
+    eph_gps = [m["eph"] for m in with_eph[:first_dr]]
     assert eph_dr and eph_gps and max(eph_dr) > max(eph_gps) > 0

@@ -16,7 +16,7 @@ from sumhe.bench import metrics, report
 from sumhe.bench.mhe import drive_stream
 from sumhe.bench.report import calibration_cells
 from sumhe.commands.candump import reference_config
-from sumhe.estimator.base import Receiver, StateEstimate, predicted_at, sensor_drift, to_estimate
+from sumhe.estimator.base import Receiver, StateEstimate, StreamEstimator, predicted_at, sensor_drift, to_estimate
 from sumhe.estimator.registry import make_estimator
 from sumhe.estimator.uncertainty import (
     K1,
@@ -36,7 +36,7 @@ from sumhe.geo import LocalFrame
 from sumhe.io.nmea_format import nmea_checksum
 from sumhe.io.udp import encode_json, encode_nmea
 from sumhe.messages import ErrorEstimate, Estimate
-from sumhe.settings import EstimationSettings
+from sumhe.settings import EstimationSettings, with_changes
 from sumhe.settings.peers import EKF_TUNED
 from sumhe.sim import SimSettings, simulate
 
@@ -598,3 +598,63 @@ def test_the_receiver_adds_only_the_fixes_error_that_carries_from_fix_to_fix() -
     # reckoning (offset False), which takes each fix as it is, never
     assert Receiver(fix, None, True, 8.0).var_east_m2 == 0.0
     assert Receiver(fix, None, False, 0.0).var_east_m2 == 0.0
+
+
+def _along_across(spread: Spread, azimuth_rad: float) -> tuple[float, float]:
+    """A spread's position variances (m^2) along and across the azimuth (clockwise from north)."""
+    u = np.array([math.sin(azimuth_rad), math.cos(azimuth_rad)])
+    cov = np.array([[spread.var_east_m2, spread.cov_en_m2], [spread.cov_en_m2, spread.var_north_m2]])
+    w = np.array([u[1], -u[0]])
+    return float(u @ cov @ u), float(w @ cov @ w)
+
+
+def test_the_receiver_adds_the_error_of_the_fixes_time_along_the_track_at_the_fix() -> None:
+    # a fix placed on the CAN clock with an offset of 0.3 s sigma (the learner's prior before its first fit) at
+    # 20 m/s heading 30 deg east of north: every estimate after it is off along that track by 6 m (1-sigma), in
+    # outages too, whatever the estimate's own azimuth since; across it nothing
+    fix = FixMeasurement(0.0, 0.0, 0.0, 2.0, 2.0, None, 0.01, False, None, 0.1, LocalFix(t=0.0, valid=True))
+    azimuth = math.radians(30.0)
+    receiver = Receiver(fix, None, False, 0.0, 0.3, (20.0, azimuth))
+    own = Spread(1.0, 4.0, 0.5, 0.1, 0.01)
+    for gps in ("ok", "outage"):
+        spread, _, _ = receiver.tag(gps, own)  # type: ignore[arg-type]
+        assert spread is not None
+        along, across = _along_across(spread, azimuth)
+        own_along, own_across = _along_across(own, azimuth)
+        assert along == pytest.approx(own_along + 36.0) and across == pytest.approx(own_across)
+    # with a learned offset (a fit's standard error of 0.02 s) the term is small; with the offset configured (a
+    # calibration: the front-end reports 0 s) there is none, and a car standing still has none either
+    learned, _, _ = Receiver(fix, None, False, 0.0, 0.02, (20.0, azimuth)).tag("ok", own)
+    assert learned is not None and _along_across(learned, azimuth)[0] == pytest.approx(
+        _along_across(own, azimuth)[0] + 0.16
+    )
+    for sigma_s, speed in ((0.0, 20.0), (0.3, 0.0)):
+        assert Receiver(fix, None, False, 0.0, sigma_s, (speed, azimuth)).tag("outage", own)[0] == own
+
+
+def test_every_estimate_carries_the_front_ends_time_offset_error(outage_drive) -> None:
+    """The same drive with the time offset learned (0.3 s sigma before the learner's first fit) and configured (a
+    calibration, 0 s as the front-end reports): before the learner moves the offset the estimates are the same,
+    and the learned run's covariance is larger by (speed x 0.3 s)^2 along the azimuth of the estimate at the
+    newest fix used (dead reckoning: the Kalman peers weigh the speed over ground by that sigma too)."""
+    config = reference_config()
+    learned = make_estimator("dead-reckoning", config)
+    configured = make_estimator("dead-reckoning", with_changes(config, {"sensors.gnss.learn_time_offset": False}))
+    assert isinstance(learned, StreamEstimator) and learned.frontend.time_offset_sigma_s == 0.3
+    assert isinstance(configured, StreamEstimator) and configured.frontend.time_offset_sigma_s == 0.0
+    at_fix, checked = None, 0
+    for sample in drive_stream(outage_drive):
+        pairs = list(zip(learned.push(sample), configured.push(sample), strict=True))
+        if learned.frontend.time_offset_s != 0.0:
+            break
+        for a, b in pairs:
+            assert (a.t, a.east_m, a.azimuth_rad) == (b.t, b.east_m, b.azimuth_rad)
+            if isinstance(sample, LocalFix) and a.gps == "ok" and a.t == sample.t:
+                at_fix = a  # the epoch's estimate, which used the fix
+            if at_fix is not None and a.spread is not None and b.spread is not None:
+                along, across = _along_across(a.spread, at_fix.azimuth_rad)
+                along0, across0 = _along_across(b.spread, at_fix.azimuth_rad)
+                assert along - along0 == pytest.approx((0.3 * at_fix.speed_mps) ** 2, rel=1e-6, abs=1e-9)
+                assert across == pytest.approx(across0, rel=1e-6, abs=1e-9)
+                checked += 1
+    assert checked > 100 and at_fix is not None and at_fix.speed_mps > 1.0

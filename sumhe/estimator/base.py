@@ -37,7 +37,7 @@ from typing import ClassVar, Protocol, runtime_checkable
 
 import numpy as np
 
-from sumhe.estimator.uncertainty import InnovationScale, Spread, drift_variance, gpsd_errors
+from sumhe.estimator.uncertainty import InnovationScale, Spread, along, drift_variance, gpsd_errors
 from sumhe.frontend.fixes import LocalFix
 from sumhe.frontend.stream import CanTick, Epoch, FixMeasurement, FrontEnd, Tally
 from sumhe.geo import LocalFrame
@@ -108,8 +108,8 @@ class StreamEstimator(ABC):
     by ``self.consistency`` (:class:`~sumhe.estimator.uncertainty.InnovationScale`), fed at every fix used with the
     innovation of the estimator's own prediction of it (:func:`predicted_at`: its estimates since the previous
     epoch), except where it started over at the fix (``epoch.start``, or ``self.started_over`` set by
-    :meth:`on_epoch`: the MHE's gate restarts), then the fix's offset added (:class:`Receiver`). The estimates
-    themselves are not changed.
+    :meth:`on_epoch`: the MHE's gate restarts), then the fix's offset and the error of its time added
+    (:class:`Receiver`). The estimates themselves are not changed.
     """
 
     name: ClassVar[str] = ""
@@ -185,7 +185,9 @@ class StreamEstimator(ABC):
             self.consistency.skip()
         self._at_fix = (fix.t, estimate.spread, self.considered_m2())
         white = self.consistency.white_m2(fix.sigma_east_m**2 + fix.sigma_north_m**2)
-        self._receiver = Receiver(fix, self._calibrated(estimate), self.averages_fixes, white)
+        motion = (estimate.speed_mps, estimate.azimuth_rad)
+        sigma_s = self.frontend.time_offset_sigma_s
+        self._receiver = Receiver(fix, self._calibrated(estimate), self.averages_fixes, white, sigma_s, motion)
 
     def settled(self, estimate: StateEstimate | None) -> None:
         """The estimate of the epoch :meth:`on_epoch` left unsettled (it set ``self.unsettled``: its estimate was a
@@ -311,19 +313,42 @@ class Receiver:
     fix is what the innovations say beyond it, and an estimator that weighs the fixes smooths some of it into its
     estimate); adding the fix's whole variance counted it twice (the MHE, which follows the fixes, had 98.3 % of its
     errors within ``eph`` with GPS on the realistic drives, 99.5 % at a fix: its squared error there 9.7 m^2 on the
-    mean where its ``eph`` claimed about 19)."""
+    mean where its ``eph`` claimed about 19).
 
-    def __init__(self, fix: FixMeasurement, spread: Spread | None, offset: bool = True, white_m2: float = 0.0) -> None:
+    The fix's time is an error of the whole stream too: the front-end places each fix on the CAN clock with a GNSS
+    time offset of standard deviation ``time_sigma_s`` (s, :attr:`~sumhe.frontend.stream.FrontEnd.time_offset_sigma_s`:
+    :data:`~sumhe.frontend.alignment.UNLEARNED_TIME_OFFSET_SD_S` before the clock learner's first fit, its fits'
+    standard error after, 0 for a configured offset), and an estimate that follows fixes placed ``dt`` late is
+    where the vehicle was ``dt`` earlier: off along the track by the speed times ``dt``, which no innovation sees
+    (the estimates follow the misplaced fixes). An outage inherits that offset as it was at the newest fix used
+    (the estimate's speed and azimuth there, ``motion``: m/s, rad clockwise from north); the estimate's own growth
+    since does not change it. So every estimate's covariance, dead reckoning's too, gets a position error of
+    ``speed time_sigma_s`` (1-sigma) along the azimuth at that fix. On the shared real drive the offset learned
+    is -0.36 s, and 0 s (sigma 0.3 s) until the learner's first fit after 160 s: the estimates entered the outage
+    at 150 s at 9.7 m/s 7.7-8.7 m behind the removed fixes, 3.5 m of it the offset's."""
+
+    def __init__(
+        self,
+        fix: FixMeasurement,
+        spread: Spread | None,
+        offset: bool = True,
+        white_m2: float = 0.0,
+        time_sigma_s: float = 0.0,
+        motion: tuple[float, float] = (0.0, 0.0),
+    ) -> None:
         gnss = fix.fix.fix
         self.sats = gnss.sats if gnss is not None else None
         self.hdop = fix.fix.hdop
         trace = fix.sigma_east_m**2 + fix.sigma_north_m**2
         scale = max(1.0 - white_m2 / trace, 0.0) if offset and trace > 0.0 else 0.0
-        self.var_east_m2, self.var_north_m2 = scale * fix.sigma_east_m**2, scale * fix.sigma_north_m**2
+        speed_mps, azimuth_rad = motion
+        east, north, self.cov_en_m2 = along(speed_mps * time_sigma_s, azimuth_rad)
+        self.var_east_m2 = scale * fix.sigma_east_m**2 + east
+        self.var_north_m2 = scale * fix.sigma_north_m**2 + north
         self.sigma_m = horizontal_sigma(self._grow(spread))
 
     def _grow(self, spread: Spread | None) -> Spread | None:
-        return None if spread is None else spread.grown(self.var_east_m2, self.var_north_m2)
+        return None if spread is None else spread.grown(self.var_east_m2, self.var_north_m2, self.cov_en_m2)
 
     def tag(self, gps: GpsStatus, spread: Spread | None) -> tuple[Spread | None, int | None, float | None]:
         """An estimate's spread, satellites and HDOP from its GNSS status and (calibrated) spread: the fix's

@@ -75,15 +75,22 @@ class Spread:
             self.sigma_azimuth_rad,
         )
 
-    def grown(self, var_east_m2: float, var_north_m2: float) -> Spread:
-        """The spread with independent position errors of these variances (m^2) added."""
+    def grown(self, var_east_m2: float, var_north_m2: float, cov_en_m2: float = 0.0) -> Spread:
+        """The spread with a position error of these variances and covariance (m^2) added."""
         return Spread(
             self.var_east_m2 + var_east_m2,
             self.var_north_m2 + var_north_m2,
-            self.cov_en_m2,
+            self.cov_en_m2 + cov_en_m2,
             self.sigma_speed_mps,
             self.sigma_azimuth_rad,
         )
+
+
+def along(sigma_m: float, azimuth_rad: float) -> tuple[float, float, float]:
+    """The position covariance (east variance, north variance, their covariance; m^2) of an error of ``sigma_m``
+    (m, 1-sigma) along the azimuth ``azimuth_rad`` (rad, clockwise from north: east = sin, north = cos)."""
+    east, north = sigma_m * math.sin(azimuth_rad), sigma_m * math.cos(azimuth_rad)
+    return east * east, north * north, east * north
 
 
 def exact_radius_95(sigma_major_m: float, sigma_minor_m: float) -> float:
