@@ -670,8 +670,9 @@ def test_a_headings_offset_is_considered_in_the_covariance_not_in_the_estimate(f
     """The offset of a heading from the azimuth of the velocity (bounded by ``gnss.azimuth_offset_max_rad``, read
     as ``r_cap_sigmas`` sigmas: 0.43 deg) is a considered parameter of every filter that follows headings: the
     estimates are those of the filter without it, and through 10 s of outage at 10 m/s the sigma across the track
-    it adds grows by ``10 s x 10 m/s x sigma`` (the offset is the same all along: sigmas, not variances, add); a
-    course over ground has no offset."""
+    it adds grows by ``10 s x 10 m/s x sigma`` (the offset is the same all along: sigmas, not variances, add; the
+    Kalman filters, which carry it through their own recursion, by 0.9 of that: their azimuth holds 0.9 of the
+    offset here, the fixes' track the rest); a course over ground has no offset."""
     settings = EstimationSettings()
     sigma = math.sqrt(heading_offset_variance(settings))
     assert sigma == pytest.approx(0.03 / 4.0)
@@ -687,18 +688,21 @@ def test_a_headings_offset_is_considered_in_the_covariance_not_in_the_estimate(f
             np.testing.assert_allclose(a, b, atol=1e-9)
             added.append(math.sqrt(max(on._covariance()[kin.E, kin.E] - off._covariance()[kin.E, kin.E], 0.0)))
         if heading:
-            assert added[1] - added[0] == pytest.approx(10.0 * 10.0 * sigma, rel=0.1)
+            assert added[1] - added[0] == pytest.approx(10.0 * 10.0 * sigma, rel=0.15)
         else:
             assert added == pytest.approx([0.0, 0.0], abs=1e-4)
 
 
+@pytest.mark.parametrize("filter_class", [Ekf, Ukf])
 @pytest.mark.parametrize("heading", [True, False])
-def test_the_ekf_tells_the_part_its_considered_heading_offset_makes_of_its_position_variance(heading: bool) -> None:
+def test_the_kalman_filters_tell_the_part_their_considered_heading_offset_makes_of_their_position_variance(
+    filter_class: type, heading: bool
+) -> None:
     """What the error estimate's scale at a fix may shrink (:meth:`~sumhe.estimator.uncertainty.InnovationScale.
-    at_fix_m2`): the EKF's position variance less that of the same filter without the offset considered (its
+    at_fix_m2`): the position variance less that of the same filter without the offset considered (its
     estimates and gains are the same), none after courses over ground."""
     settings = EstimationSettings()
-    on, off = Ekf(settings), Ekf(with_changes(settings, {"estimator.azimuth_offset": False}))
+    on, off = filter_class(settings), filter_class(with_changes(settings, {"estimator.azimuth_offset": False}))
     for s in north_with_azimuths(heading, outage_from=30.0):
         on.push(s)
         off.push(s)
@@ -707,6 +711,23 @@ def test_the_ekf_tells_the_part_its_considered_heading_offset_makes_of_its_posit
     assert on.considered_m2() == pytest.approx(added, abs=1e-12)
     assert (added > 1e-4) if heading else added == pytest.approx(0.0, abs=1e-9)
     assert off.considered_m2() == pytest.approx(0.0, abs=1e-12)
+
+
+def test_the_ukf_considers_a_headings_offset_as_the_ekf_does() -> None:
+    """The UKF and the EKF share the model, the states and the noise: following headings north at 10 m/s, then
+    through 10 s of outage, their covariances (the offset considered) agree to first order, at the newest fix (where
+    the filter that followed the headings between fixes is off across the track by 81 m per rad of offset) and at
+    the outage's end (171 m/rad). Before, the UKF took its position at the newest fix as right and its azimuth as
+    off by the whole offset: its east variance 0.003 m^2 at the fix against the EKF's 0.375 m^2."""
+    ekf, ukf = Ekf(), Ukf()
+    stream = north_with_azimuths(True)
+    rows = np.ix_([kin.E, kin.N, kin.PHI], [kin.E, kin.N, kin.PHI])
+    for part in ([s for s in stream if s.t < 70.0], [s for s in stream if s.t >= 70.0]):
+        for s in part:
+            ekf.push(s)
+            ukf.push(s)
+        np.testing.assert_allclose(ukf._covariance()[rows], ekf._covariance()[rows], rtol=0.01, atol=1e-9)
+        assert ukf.considered_m2() == pytest.approx(ekf.considered_m2(), rel=0.01)
 
 
 def turn_then_outage(speed_period_s: float) -> list[LocalFix | CanSample]:
