@@ -44,8 +44,9 @@ def joseph(P: FloatArray, K: FloatArray, H: FloatArray, R: FloatArray) -> FloatA
 
 def considered(A: FloatArray, corner: float) -> FloatArray:
     """A square matrix of the state grown by a considered parameter's row and column, zero but the corner."""
-    out = np.pad(A, ((0, 1), (0, 1)))
-    out[-1, -1] = corner
+    n = len(A)
+    out = np.zeros((n + 1, n + 1))
+    out[:n, :n], out[n, n] = A, corner
     return out
 
 
@@ -62,9 +63,11 @@ def considered_update(
     symmetric positive semi-definite): the state (wrapped), ``P`` and ``Pt`` (``P`` grown by a considered parameter
     the measurement sees ``sensitivity`` times, :func:`considered`; Schmidt's consider covariance)."""
     K = kalman_gain(P, H, R)
-    Ht = np.hstack([H, np.full((len(H), 1), sensitivity)])
+    m, n = H.shape
+    Kt, Ht = np.zeros((n + 1, m)), np.full((m, n + 1), sensitivity)
+    Kt[:n], Ht[:, :n] = K, H  # the parameter is never updated: its row of the gain is zero
     x = kin.wrap_state(x + K @ nu)  # x^+ = x^- + K nu
-    return x, joseph(P, K, H, R), joseph(Pt, np.pad(K, ((0, 1), (0, 0))), Ht, R)
+    return x, joseph(P, K, H, R), joseph(Pt, Kt, Ht, R)
 
 
 def considered_part_m2(Pt: FloatArray, P: FloatArray) -> float:

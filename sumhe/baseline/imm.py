@@ -118,8 +118,9 @@ def mix(
         out_x.append(kin.wrap_state(ref + dbar))
         spread = [np.outer(D[i] - dbar, D[i] - dbar) for i in range(len(xs))]
         for Ps, out in zip(covariances, out_P, strict=True):
-            extra = len(Ps[0]) - len(ref)
-            out.append(sum(W[i, j] * (Ps[i] + np.pad(spread[i], (0, extra))) for i in range(len(xs))))
+            grown = len(Ps[0]) > len(ref)  # a considered parameter's row: no spread
+            cells = range(len(xs))
+            out.append(sum(W[i, j] * (Ps[i] + (considered(spread[i], 0.0) if grown else spread[i])) for i in cells))
     return out_x, out_P, c
 
 
