@@ -1,6 +1,6 @@
 """Extended Kalman filter on the shared model: predict at CAN rate, update with CAN speed / yaw rate and GNSS.
 
-The maths is in two procedural functions (``kf_predict``, ``kf_update``, after filterpy's
+The maths is in procedural functions (``kf_predict``, ``considered_update``, after filterpy's
 ``kalman_filter.py``), reused by the RTS smoother and the IMM cells; :class:`GaussianFilter` holds a mean and
 covariance and implements the hooks every Gaussian filter shares (start, re-acquisition, heading set-up);
 :class:`Ekf` adds the linearised prediction and updates. Stream handling, gating and re-acquisition are in
@@ -28,14 +28,6 @@ def kf_predict(P: FloatArray, F: FloatArray, Q: FloatArray) -> FloatArray:
     return F @ P @ F.T + Q  # P^- = F P F' + Q
 
 
-def kf_update(
-    x: FloatArray, P: FloatArray, nu: FloatArray, H: FloatArray, R: FloatArray
-) -> tuple[FloatArray, FloatArray]:
-    """One Kalman update with innovation ``nu``; Joseph form, so P stays symmetric positive semi-definite."""
-    K = kalman_gain(P, H, R)
-    return x + K @ nu, joseph(P, K, H, R)  # x^+ = x^- + K nu
-
-
 def kalman_gain(P: FloatArray, H: FloatArray, R: FloatArray) -> FloatArray:
     """``K = P H' S^-1``, ``S = H P H' + R`` the innovation covariance."""
     PHt = P @ H.T
@@ -52,9 +44,36 @@ def joseph(P: FloatArray, K: FloatArray, H: FloatArray, R: FloatArray) -> FloatA
 
 def considered(A: FloatArray, corner: float) -> FloatArray:
     """A square matrix of the state grown by a considered parameter's row and column, zero but the corner."""
-    out = np.pad(A, ((0, 1), (0, 1)))
-    out[-1, -1] = corner
+    n = len(A)
+    out = np.zeros((n + 1, n + 1))
+    out[:n, :n], out[n, n] = A, corner
     return out
+
+
+def considered_predict(Pt: FloatArray, F: FloatArray, Q: FloatArray) -> FloatArray:
+    """``Pt`` (the state's covariance grown by a considered parameter's, :func:`considered`) after a step of
+    Jacobian ``F`` and process noise ``Q`` (the parameter's constant)."""
+    return kf_predict(Pt, considered(F, 1.0), considered(Q, 0.0))
+
+
+def considered_update(
+    x: FloatArray, P: FloatArray, Pt: FloatArray, nu: FloatArray, H: FloatArray, R: FloatArray, sensitivity: float
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """One Kalman update with innovation ``nu`` and the gain of ``P`` (Joseph form, so the covariances stay
+    symmetric positive semi-definite): the state (wrapped), ``P`` and ``Pt`` (``P`` grown by a considered parameter
+    the measurement sees ``sensitivity`` times, :func:`considered`; Schmidt's consider covariance)."""
+    K = kalman_gain(P, H, R)
+    m, n = H.shape
+    Kt, Ht = np.zeros((n + 1, m)), np.full((m, n + 1), sensitivity)
+    Kt[:n], Ht[:, :n] = K, H  # the parameter is never updated: its row of the gain is zero
+    x = kin.wrap_state(x + K @ nu)  # x^+ = x^- + K nu
+    return x, joseph(P, K, H, R), joseph(Pt, Kt, Ht, R)
+
+
+def considered_part_m2(Pt: FloatArray, P: FloatArray) -> float:
+    """What a considered parameter adds to the position's variance (trace, m^2): ``Pt``'s less ``P``'s."""
+    rows = [kin.E, kin.N]
+    return float(np.trace(Pt[np.ix_(rows, rows)]) - np.trace(P[np.ix_(rows, rows)]))
 
 
 def inflate(P: FloatArray, kind: str, nu: FloatArray, R: FloatArray) -> FloatArray:
@@ -122,19 +141,6 @@ def can_measurement(
     H = kin.can_jacobian(x, rows, layout)
     R = np.diag(np.square(kin.can_sigmas(rows, noise)))
     return z - kin.can_model(x, rows, layout), H, R
-
-
-def ekf_can_update(
-    x: FloatArray, P: FloatArray, inputs: Inputs, noise: NoiseSettings, layout: kin.Layout
-) -> tuple[FloatArray, FloatArray, float]:
-    """The EKF update with the CAN rows of ``inputs``; also returns the update's log-likelihood."""
-    measured = can_measurement(x, inputs, noise, layout)
-    if measured is None:
-        return x, P, 0.0
-    nu, H, R = measured
-    loglik = gaussian_loglik(nu, H @ P @ H.T + R)
-    x, P = kf_update(x, P, nu, H, R)
-    return kin.wrap_state(x), P, loglik
 
 
 def ekf_innovation(
@@ -373,7 +379,7 @@ class Ekf(GaussianFilter):
 
     def _step(self, dt: float) -> None:
         self.x, F, Q = ekf_step(self.x, dt, self.noise, self.layout)
-        self.P, self.Pt = kf_predict(self.P, F, Q), kf_predict(self.Pt, considered(F, 1.0), considered(Q, 0.0))
+        self.P, self.Pt = kf_predict(self.P, F, Q), considered_predict(self.Pt, F, Q)
 
     def _update_can(self, inputs: Inputs) -> None:
         measured = can_measurement(self.x, inputs, self.noise, self.layout)
@@ -387,15 +393,11 @@ class Ekf(GaussianFilter):
 
     def _update(self, nu: FloatArray, H: FloatArray, R: FloatArray, sensitivity: float) -> None:
         """The update with the filter's gain; ``Pt`` with the considered offset, seen ``sensitivity`` times."""
-        K = kalman_gain(self.P, H, R)
-        self.x = kin.wrap_state(self.x + K @ nu)
-        Ht = np.hstack([H, np.full((len(H), 1), sensitivity)])
-        self.P, self.Pt = joseph(self.P, K, H, R), joseph(self.Pt, np.pad(K, ((0, 1), (0, 0))), Ht, R)
+        self.x, self.P, self.Pt = considered_update(self.x, self.P, self.Pt, nu, H, R, sensitivity)
 
     def _covariance(self) -> FloatArray:
         return self.Pt[:-1, :-1]
 
     def considered_m2(self) -> float:
         """What the considered offset adds to the position's variance (trace, m^2): ``Pt``'s less ``P``'s."""
-        rows = [kin.E, kin.N]
-        return float(np.trace(self.Pt[np.ix_(rows, rows)]) - np.trace(self.P[np.ix_(rows, rows)]))
+        return considered_part_m2(self.Pt, self.P)

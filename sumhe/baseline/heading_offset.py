@@ -7,15 +7,16 @@ headings as that azimuth follows them, so its azimuth carries their offset into 
 across the track that grows linearly with the way moved since the newest position fix (before it, the fixes hold
 the position). The offset's variance is the config's bound read as sigmas (:func:`heading_offset_variance`).
 
-:class:`FollowsHeadings` keeps whether the newest azimuth measured was a heading (a course over ground is the
-velocity's azimuth: no offset). :class:`ConsideredHeadingOffset` adds the position the estimate had at the newest
-position fix and the covariance the offset adds since it (:func:`considered_heading_offset`), for the filters whose
-error estimate is a covariance of their own beliefs (``imm``, ``mskf-em``, ``pf``, ``sr-upf``, ``gtsam-fls``); it
-takes the position at that fix as right and the azimuth as off by the whole offset. The EKF and the UKF carry the
-offset as a Schmidt consider parameter through their own recursion instead (:class:`~sumhe.baseline.ekf.Ekf`,
-:class:`~sumhe.baseline.ukf.Ukf`), which also holds what the offset makes of the position at the fix: between fixes
-a filter follows the headings, and the fixes pull it back only in part (on the shared real drive 0.4-3.9 m across
-the track, 1-sigma, at the starts of the 60 s outages).
+:class:`FollowsHeadings` keeps whether the newest azimuth measured was a heading (a course over ground is the velocity's
+azimuth: no offset). :class:`ConsideredHeadingOffset` adds the position the estimate had at the newest position fix and
+the covariance the offset adds since it (:func:`considered_heading_offset`), for the filters whose error estimate is a
+covariance of their own beliefs (``pf``, ``sr-upf``, ``gtsam-fls``); it takes the position at that fix as right and the
+azimuth as off by the whole offset. The Kalman filters carry the offset as a Schmidt consider parameter through their
+own recursion instead (:class:`~sumhe.baseline.ekf.Ekf`, :class:`~sumhe.baseline.ukf.Ukf`,
+:class:`~sumhe.baseline.imm.Imm` per cell, :class:`~sumhe.baseline.mskf_em.MskfEm` in its stages' joint covariance),
+which also holds what the offset makes of the position at the fix: between fixes a filter follows the headings, and the
+fixes pull it back only in part (on the shared real drive 0.4-3.9 m across the track, 1-sigma, at the starts of the 60 s
+outages).
 """
 
 from __future__ import annotations
@@ -61,7 +62,24 @@ class FollowsHeadings(RecursiveEstimator):
         super()._angle_update(fix, lag)
 
 
-class ConsideredHeadingOffset(FollowsHeadings):
+class UsesPositionFixes(RecursiveEstimator):
+    """A recursive estimator told of each position fix it used (:meth:`_position_used`), where what it counts
+    since the newest one starts again."""
+
+    def _gated_update(
+        self, kind: str, z: FloatArray, R: FloatArray, lag: float, gate: Gate, t: float, sigma: float
+    ) -> GpsStatus:
+        status = super()._gated_update(kind, z, R, lag, gate, t, sigma)
+        if kind == POSITION and status == "ok":
+            self._position_used(z)
+        return status
+
+    def _position_used(self, z: FloatArray) -> None:
+        """A position fix ``z`` (east, north; m) used."""
+        raise NotImplementedError
+
+
+class ConsideredHeadingOffset(FollowsHeadings, UsesPositionFixes):
     """A filter whose error estimate considers a heading's offset (the module docstring): ``_anchor`` is where its
     estimate was (east, north; m) at the newest position fix it used (``_position_anchor``); a subclass adds
     :meth:`_considered` to its covariance and keeps ``_anchor`` among its ``snapshot_attrs``."""
@@ -81,17 +99,8 @@ class ConsideredHeadingOffset(FollowsHeadings):
         super()._begin(fix)
         self._anchor = np.array([fix.east_m, fix.north_m])
 
-    def _gated_update(
-        self, kind: str, z: FloatArray, R: FloatArray, lag: float, gate: Gate, t: float, sigma: float
-    ) -> GpsStatus:
-        status = super()._gated_update(kind, z, R, lag, gate, t, sigma)
-        if kind == POSITION and status == "ok":
-            self._position_used(z)
-        return status
-
     def _position_used(self, z: FloatArray) -> None:
-        """A position fix ``z`` used: the way moved is counted from there on (``_anchor``: :meth:`_position_anchor`);
-        a subclass with more that a fix ends (the IMM's dropped turn) extends it."""
+        """A position fix ``z`` used: the way moved is counted from there on (``_anchor``: :meth:`_position_anchor`)."""
         self._anchor = self._position_anchor(z)
 
     def _position_anchor(self, z: FloatArray) -> FloatArray:

@@ -18,9 +18,9 @@ two-state Markov chain, ``Pi[i, j] = P(model j after dt | model i before)``, wit
 transition matrix is paper 002's, trained on real driving data (its Sigma = [[0.9168, 0.0832], [0.2328,
 0.7672]] per 1 s GPS epoch: 11.5 s straight, 3.8 s manoeuvring). Measurement noise, gate and priors come from the
 straight model's :class:`~sumhe.settings.NoiseSettings`; the output is the probability-weighted mean. Its error
-estimate is the mixture's covariance with the offset of a receiver's heading considered where it follows headings
-(:class:`~.heading_offset.ConsideredHeadingOffset`, the EKF's bound and reading; the estimates do not change) and
-with the turn the mixture dropped since the newest position fix (:func:`dropped_turn`).
+estimate is the mixture's covariance with the offset of a receiver's heading considered as the EKF considers it
+(:class:`Imm`; the estimates do not change) and with the turn the mixture dropped since the newest position fix
+(:func:`dropped_turn`).
 
 Its cells weigh the GNSS data as the other Kalman filters do: a course with the lever arm's error at the mixture's
 yaw rate and speed (:class:`~sumhe.baseline.ekf.LeverCourse`: the model has no antenna offset) and a speed over
@@ -57,16 +57,21 @@ from sumhe.baseline import kinematics as kin
 from sumhe.baseline.ekf import (
     LeverCourse,
     TimedSpeed,
-    ekf_can_update,
+    can_measurement,
+    considered,
+    considered_part_m2,
+    considered_predict,
+    considered_update,
     ekf_innovation,
-    ekf_predict,
+    ekf_step,
     gaussian_loglik,
     inflate,
-    kf_update,
+    kf_predict,
+    pin,
     set_heading,
 )
-from sumhe.baseline.heading_offset import ConsideredHeadingOffset
-from sumhe.baseline.kinematics import OMEGA, PHI, E, FloatArray, N
+from sumhe.baseline.heading_offset import UsesPositionFixes, heading_offset_variance
+from sumhe.baseline.kinematics import AZIMUTH, OMEGA, PHI, E, FloatArray, N
 from sumhe.baseline.stream import Inputs, Pending
 from sumhe.config import Config
 from sumhe.settings import EstimationSettings, NoiseSettings
@@ -81,11 +86,12 @@ def transition_matrix(dt: float, sojourn_s: tuple[float, float]) -> FloatArray:
     return np.array([[1.0 - leave[0], leave[0]], [leave[1], 1.0 - leave[1]]])
 
 
-def straight_predict(
-    x: FloatArray, P: FloatArray, dt: float, noise: NoiseSettings, layout: kin.Layout, yaw_rate_sigma: float
-) -> tuple[FloatArray, FloatArray]:
-    """The straight model's EKF time update: the su5 step at zero yaw rate (the azimuth held), and the yaw rate
-    drawn anew about zero with sigma ``yaw_rate_sigma`` (rad/s); the other states as the shared model."""
+def straight_step(
+    x: FloatArray, dt: float, noise: NoiseSettings, layout: kin.Layout, yaw_rate_sigma: float
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The straight model's state ``dt`` seconds on, the step's Jacobian and its process noise (as
+    :func:`~sumhe.baseline.ekf.ekf_step`): the su5 step at zero yaw rate (the azimuth held), and the yaw rate drawn
+    anew about zero with sigma ``yaw_rate_sigma`` (rad/s); the other states as the shared model."""
     x0 = x.copy()
     x0[OMEGA] = 0.0
     F = kin.step_jacobian(x0, dt)
@@ -93,21 +99,28 @@ def straight_predict(
     F[OMEGA, :] = 0.0  # ... which starts again from zero
     Q = kin.process_noise(dt, noise, layout)
     Q[OMEGA, OMEGA] = yaw_rate_sigma**2
-    return kin.wrap_state(kin.step(x0, dt)), F @ P @ F.T + Q
+    return kin.wrap_state(kin.step(x0, dt)), F, Q
 
 
 def mix(
-    xs: list[FloatArray], Ps: list[FloatArray], mu: FloatArray, Pi: FloatArray
-) -> tuple[list[FloatArray], list[FloatArray], FloatArray]:
-    """The IMM interaction step: mixed initial states and covariances of each cell and the predicted probabilities."""
+    xs: list[FloatArray], covariances: tuple[list[FloatArray], ...], mu: FloatArray, Pi: FloatArray
+) -> tuple[list[FloatArray], tuple[list[FloatArray], ...], FloatArray]:
+    """The IMM interaction step: mixed initial states and covariances of each cell (each list of ``covariances``
+    mixed alike; a considered parameter's rows beyond the state's, :func:`~sumhe.baseline.ekf.considered`, take no
+    spread of the means) and the predicted probabilities."""
     c = mu @ Pi  # c_j = sum_i mu_i Pi_ij
     W = mu[:, None] * Pi / c[None, :]  # mixing weights mu_i|j
-    out_x, out_P = [], []
+    out_x: list[FloatArray] = []
+    out_P: tuple[list[FloatArray], ...] = tuple([] for _ in covariances)
     for j, ref in enumerate(xs):
         D = [kin.state_difference(x, ref) for x in xs]
         dbar = sum(W[i, j] * D[i] for i in range(len(xs)))
         out_x.append(kin.wrap_state(ref + dbar))
-        out_P.append(sum(W[i, j] * (Ps[i] + np.outer(D[i] - dbar, D[i] - dbar)) for i in range(len(xs))))
+        spread = [np.outer(D[i] - dbar, D[i] - dbar) for i in range(len(xs))]
+        for Ps, out in zip(covariances, out_P, strict=True):
+            grown = len(Ps[0]) > len(ref)  # a considered parameter's row: no spread
+            cells = range(len(xs))
+            out.append(sum(W[i, j] * (Ps[i] + (considered(spread[i], 0.0) if grown else spread[i])) for i in cells))
     return out_x, out_P, c
 
 
@@ -123,11 +136,22 @@ def dropped_turn(dropped: FloatArray, moved: FloatArray, turn: float) -> FloatAr
     return out
 
 
-class Imm(ConsideredHeadingOffset, LeverCourse, TimedSpeed):
-    """IMM of a straight and a curved EKF cell (``imm``)."""
+class Imm(UsesPositionFixes, LeverCourse, TimedSpeed):
+    """IMM of a straight and a curved EKF cell (``imm``).
+
+    Its error estimate considers the offset of a receiver's heading as the EKF does (:class:`~sumhe.baseline.ekf.
+    Ekf`: Schmidt's consider covariance, the offset's variance :func:`~.heading_offset.heading_offset_variance`):
+    each cell carries ``Pts[j]``, its covariance ``Ps[j]`` grown by the offset's row, moved by the cell's own step
+    and updated with its own gain (a heading measures the azimuth plus the offset), and the interaction mixes them
+    as it mixes the cells' covariances (the offset's row takes no spread of the means: it is the same in every
+    cell); the gains and likelihoods are ``Ps``'s, so the estimates do not change. Before, it added the offset's
+    part from the way moved since the newest position fix alone (the position at the fix taken as right, the
+    azimuth off by the whole offset), while between fixes the cells follow the headings and the fixes pull them back
+    only in part (:class:`~sumhe.baseline.ukf.Ukf`: on the shared real drive 0.4-3.9 m across the track, 1-sigma,
+    at the starts of the 60 s outages)."""
 
     name = "imm"
-    snapshot_attrs = ("xs", "Ps", "mu", "_anchor", "_dropped")
+    snapshot_attrs = ("xs", "Ps", "Pts", "mu", "_dropped")
 
     def __init__(
         self,
@@ -148,6 +172,7 @@ class Imm(ConsideredHeadingOffset, LeverCourse, TimedSpeed):
             raise ValueError(f"straight_yaw_rate_rps: must be a finite number >= 0, got {sigma!r}")
         self.straight_yaw_rate_rps = sigma
         super().__init__(settings, self.models[0])
+        self._offset_var = heading_offset_variance(self.settings)
 
     @classmethod
     def from_config(cls, config: Config) -> Imm:
@@ -160,11 +185,13 @@ class Imm(ConsideredHeadingOffset, LeverCourse, TimedSpeed):
         self._dropped = np.zeros(self.layout.n)
         self.xs = [np.zeros(self.layout.n) for _ in self.models]
         self.Ps = [np.eye(self.layout.n) for _ in self.models]
+        self.Pts = [considered(P, 0.0) for P in self.Ps]
         self.mu = np.array(self.sojourn_s) / sum(self.sojourn_s)
 
     def _start(self, x0: FloatArray, P0: FloatArray) -> None:
         self.xs = [x0.copy() for _ in self.models]
         self.Ps = [P0.copy() for _ in self.models]
+        self.Pts = [considered(P0, self._offset_var) for _ in self.models]
 
     def _weigh(self, loglik: list[float]) -> None:
         """Bayes' rule on the model probabilities with each cell's log-likelihood."""
@@ -174,13 +201,17 @@ class Imm(ConsideredHeadingOffset, LeverCourse, TimedSpeed):
         self.mu = p / p.sum()
 
     def _predict(self, dt: float, inputs: Inputs) -> None:
-        self.xs, self.Ps, self.mu = mix(self.xs, self.Ps, self.mu, transition_matrix(dt, self.sojourn_s))
+        self.xs, (self.Ps, self.Pts), self.mu = mix(
+            self.xs, (self.Ps, self.Pts), self.mu, transition_matrix(dt, self.sojourn_s)
+        )
         before, curved_before = self._mean(), self.xs[1]
         straight, curved = self.models
-        self.xs[0], self.Ps[0] = straight_predict(
-            self.xs[0], self.Ps[0], dt, straight, self.layout, self.straight_yaw_rate_rps
+        steps = (
+            straight_step(self.xs[0], dt, straight, self.layout, self.straight_yaw_rate_rps),
+            ekf_step(self.xs[1], dt, curved, self.layout),
         )
-        self.xs[1], self.Ps[1] = ekf_predict(self.xs[1], self.Ps[1], dt, curved, self.layout)
+        for j, (x, F, Q) in enumerate(steps):
+            self.xs[j], self.Ps[j], self.Pts[j] = x, kf_predict(self.Ps[j], F, Q), considered_predict(self.Pts[j], F, Q)
         turn = kin.state_difference(self.xs[1], curved_before)[PHI]  # the straight cell's azimuth is held
         moved = kin.state_difference(self._mean(), before)
         self._dropped = dropped_turn(self._dropped, moved, float(self.mu[0] * turn))
@@ -188,9 +219,18 @@ class Imm(ConsideredHeadingOffset, LeverCourse, TimedSpeed):
     def _can_update(self, inputs: Inputs) -> None:
         loglik = []
         for j in range(len(self.models)):
-            self.xs[j], self.Ps[j], ll = ekf_can_update(self.xs[j], self.Ps[j], inputs, self.noise, self.layout)
-            loglik.append(ll)
+            measured = can_measurement(self.xs[j], inputs, self.noise, self.layout)
+            loglik.append(0.0 if measured is None else self._cell_update(j, *measured, 0.0))
         self._weigh(loglik)
+
+    def _cell_update(self, j: int, nu: FloatArray, H: FloatArray, R: FloatArray, sensitivity: float) -> float:
+        """Cell ``j``'s EKF update with innovation ``nu``, its ``Pts[j]`` with the considered offset seen
+        ``sensitivity`` times; returns the update's log-likelihood."""
+        loglik = gaussian_loglik(nu, H @ self.Ps[j] @ H.T + R)
+        self.xs[j], self.Ps[j], self.Pts[j] = considered_update(
+            self.xs[j], self.Ps[j], self.Pts[j], nu, H, R, sensitivity
+        )
+        return loglik
 
     def _innovation(self, kind: str, z: FloatArray, R: FloatArray, lag: float) -> Pending:
         cells = [ekf_innovation(x, P, kind, z, R, lag) for x, P in zip(self.xs, self.Ps, strict=True)]
@@ -199,30 +239,27 @@ class Imm(ConsideredHeadingOffset, LeverCourse, TimedSpeed):
         dev = kin.residual(kind, zhats, zhat[:, None])
         S = sum(m * (S_j + np.outer(d, d)) for m, (_, S_j, _), d in zip(self.mu, cells, dev.T, strict=True))
         nu = kin.residual(kind, z, zhat)
+        offset = 1.0 if kind == AZIMUTH and self._heading else 0.0  # a heading measures azimuth + offset
 
         def commit() -> None:
-            loglik = []
-            for j, (nu_j, S_j, H_j) in enumerate(cells):
-                loglik.append(gaussian_loglik(nu_j, S_j))
-                x, self.Ps[j] = kf_update(self.xs[j], self.Ps[j], nu_j, H_j, R)
-                self.xs[j] = kin.wrap_state(x)
-            self._weigh(loglik)
+            self._weigh([self._cell_update(j, nu_j, H_j, R, offset) for j, (nu_j, _, H_j) in enumerate(cells)])
 
         return Pending(nu, np.asarray(S), commit)
 
     def _inflate(self, kind: str, nu: FloatArray, R: FloatArray) -> None:
         self.Ps = [inflate(P, kind, nu, R) for P in self.Ps]
+        self.Pts = [inflate(P, kind, nu, R) for P in self.Pts]
 
     def _init_heading(self, phi: float, sigma: float) -> None:
         cells = [set_heading(x, P, phi, sigma) for x, P in zip(self.xs, self.Ps, strict=True)]
         self.xs, self.Ps = [x for x, _ in cells], [P for _, P in cells]
+        self.Pts = [pin(P, [PHI], np.array([[sigma**2]])) for P in self.Pts]
 
     def _mean(self) -> FloatArray:
         return kin.weighted_mean(np.column_stack(self.xs), self.mu)
 
     def _position_used(self, z: FloatArray) -> None:
-        """A position fix used also ends the dropped turn (:func:`dropped_turn`)."""
-        super()._position_used(z)
+        """A position fix used ends the dropped turn (:func:`dropped_turn`)."""
         self._dropped = np.zeros(self.layout.n)
 
     def considered_growth_m2(self) -> float:
@@ -231,11 +268,16 @@ class Imm(ConsideredHeadingOffset, LeverCourse, TimedSpeed):
         teach, which learns from what it leaves unexplained)."""
         return float(self._dropped[E] ** 2 + self._dropped[N] ** 2)
 
+    def considered_m2(self) -> float:
+        """What the considered offset adds to the position's variance (trace, m^2), as the EKF's
+        (:meth:`~sumhe.baseline.ekf.Ekf.considered_m2`): the cells' ``Pts``'s less their ``Ps``'s, weighted."""
+        return sum(m * considered_part_m2(Pt, P) for m, Pt, P in zip(self.mu, self.Pts, self.Ps, strict=True))
+
     def _covariance(self) -> FloatArray:
-        """The mixture's covariance: the cells' covariances and the spread of their means, weighted, and the turn
-        dropped since the newest position fix (:func:`dropped_turn`, the module docstring); a heading's offset
-        considered (:meth:`~.heading_offset.ConsideredHeadingOffset._considered`)."""
+        """The mixture's covariance: the cells' covariances (the heading's offset considered, ``Pts``) and the
+        spread of their means, weighted, and the turn dropped since the newest position fix (:func:`dropped_turn`,
+        the module docstring)."""
         mean = self._mean()
         spread = kin.weighted_covariance(np.column_stack(self.xs), self.mu, mean)
-        cells = sum(m * P for m, P in zip(self.mu, self.Ps, strict=True))
-        return self._considered(np.asarray(cells + spread + np.outer(self._dropped, self._dropped)), mean[[E, N]])
+        cells = sum(m * Pt[:-1, :-1] for m, Pt in zip(self.mu, self.Pts, strict=True))
+        return np.asarray(cells + spread + np.outer(self._dropped, self._dropped))

@@ -50,15 +50,20 @@ Where it deviates from 002 and why:
 * no CAN yaw-rate gain state, as ``gtsam-fls`` (``gain0`` is ignored).
 
 Its error estimate is the stages' joint covariance (:func:`joint_step`, the estimates do not change) with the offset
-of a receiver's heading considered where it follows headings (:class:`~.heading_offset.ConsideredHeadingOffset`, the
-EKF's bound and reading): the combination takes a heading for the azimuth the position stage moves along. The
-position stage's own covariance takes the azimuth's error as white noise, ``P_phi g g'`` afresh at every step,
-while it is one slowly drifting error: over an outage of ``t`` seconds an azimuth error at its start moves the
-position by the way moved times it (variance ``t^2``, the stage alone: ``dt t``, ``dt`` the CAN period), the
-CAN yaw rate's bias integrated twice (``t^4``, the stage alone: ``dt t^3``). The joint covariance
-of ``(east, north, s, phi, b)`` carries the cross-covariance between the stages, moved by the same steps and
-updated with the stages' own gains (Joseph form: the covariance of the errors the filter makes, a Schmidt consider
-covariance of the stages' neglected coupling).
+of a receiver's heading considered as the EKF considers it (:class:`~sumhe.baseline.ekf.Ekf`: Schmidt's consider
+covariance, the offset's variance :func:`~.heading_offset.heading_offset_variance`): the combination takes a heading
+for the azimuth the position stage moves along, so the joint covariance carries the offset as a sixth row
+(:data:`OFFSET_ROW`), constant through the steps, seen by the heading stage's updates with a heading and never
+updated (the estimates, the stages' and the EM's, do not change). Before, it added the offset's part from the way
+moved since the newest position fix alone (the position at the fix taken as right, the azimuth off by the whole
+offset), while between fixes the combined azimuth follows the headings and the fixes pull the position back only in
+part (:class:`~sumhe.baseline.ukf.Ukf`). The position stage's own covariance takes the azimuth's error as white
+noise, ``P_phi g g'`` afresh at every step, while it is one slowly drifting error: over an outage of ``t`` seconds an
+azimuth error at its start moves the position by the way moved times it (variance ``t^2``, the stage alone: ``dt
+t``, ``dt`` the CAN period), the CAN yaw rate's bias integrated twice (``t^4``, the stage alone: ``dt t^3``). The
+joint covariance of ``(east, north, s, phi, b, offset)`` carries the cross-covariance between the stages, moved by
+the same steps and updated with the stages' own gains (Joseph form: the covariance of the errors the filter makes, a
+Schmidt consider covariance of the stages' neglected coupling).
 """
 
 from __future__ import annotations
@@ -71,7 +76,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sumhe.baseline import kinematics as kin
-from sumhe.baseline.heading_offset import ConsideredHeadingOffset
+from sumhe.baseline.ekf import considered
+from sumhe.baseline.heading_offset import FollowsHeadings, heading_offset_variance
 from sumhe.baseline.kinematics import OMEGA, PHI, E, FloatArray, N, V
 from sumhe.baseline.stream import Inputs, Pending
 from sumhe.config import Config
@@ -161,13 +167,15 @@ def kf_step(
 POSITION_ROWS = (0, 1, 2)
 """The position stage's rows in the joint covariance (``east, north, s``); the heading stage's follow (``phi, b``)."""
 HEADING_ROWS = (3, 4)
+OFFSET_ROW = 5
+"""The considered heading offset's row in the joint covariance, after the stages'."""
 
 
 def joint_step(J: FloatArray, F: FloatArray, g: FloatArray, Q: FloatArray) -> FloatArray:
-    """The joint covariance (5 x 5, ``east, north, s, phi, b``; heading rows already moved by their step) after the
-    position stage's step ``F`` with the azimuth's error moving the position by ``g`` (m/rad) and its noise ``Q``
-    (3 x 3, without the azimuth's share, which the cross-covariance carries)."""
-    A = np.eye(5)
+    """The joint covariance (6 x 6, ``east, north, s, phi, b, offset``; heading rows already moved by their step)
+    after the position stage's step ``F`` with the azimuth's error moving the position by ``g`` (m/rad) and its
+    noise ``Q`` (3 x 3, without the azimuth's share, which the cross-covariance carries)."""
+    A = np.eye(len(J))
     A[:3, :3] = F
     A[:3, 3] = g
     J = A @ J @ A.T
@@ -177,21 +185,27 @@ def joint_step(J: FloatArray, F: FloatArray, g: FloatArray, Q: FloatArray) -> Fl
 
 def joint_heading_step(J: FloatArray, F: FloatArray, Q: FloatArray) -> FloatArray:
     """The joint covariance after the heading stage's step ``F`` (2 x 2) and noise ``Q`` (2 x 2)."""
-    A = np.eye(5)
-    A[3:, 3:] = F
+    rows = np.ix_(HEADING_ROWS, HEADING_ROWS)
+    A = np.eye(len(J))
+    A[rows] = F
     J = A @ J @ A.T
-    J[3:, 3:] += Q
+    J[rows] += Q
     return 0.5 * (J + J.T)
 
 
-def joint_update(J: FloatArray, rows: tuple[int, ...], H: FloatArray, K: FloatArray, R: FloatArray) -> FloatArray:
+def joint_update(
+    J: FloatArray, rows: tuple[int, ...], H: FloatArray, K: FloatArray, R: FloatArray, offset: float
+) -> FloatArray:
     """The joint covariance after a stage's update with its own gain ``K`` on its ``rows`` (Joseph form, exact
-    for any gain: the other stage is not corrected, its cross-covariance is)."""
-    Kj = np.zeros((5, len(R)))
+    for any gain: the other stage is not corrected, its cross-covariance is; nor is the heading's offset, which the
+    measurement sees ``offset`` times)."""
+    n = len(J)
+    Kj = np.zeros((n, len(R)))
     Kj[list(rows)] = K
-    Hj = np.zeros((len(R), 5))
+    Hj = np.zeros((len(R), n))
     Hj[:, list(rows)] = H
-    IKH = np.eye(5) - Kj @ Hj
+    Hj[:, OFFSET_ROW] = offset
+    IKH = np.eye(n) - Kj @ Hj
     J = IKH @ J @ IKH.T + Kj @ R @ Kj.T
     return 0.5 * (J + J.T)
 
@@ -279,17 +293,18 @@ class LinearStage:
         self.x, self.P = kf_update(self.x, self.P, H, z, r * R if scaled else R, bool(self.wrap_rows))
 
 
-class MskfEm(ConsideredHeadingOffset):
+class MskfEm(FollowsHeadings):
     """Multi-stage Kalman filter with on-line block EM of the noise scales (``mskf-em``)."""
 
     name = "mskf-em"
-    snapshot_attrs = ("r", "_r_blocks", "_u", "_omega", "_t_block", "_anchor", "_joint")
+    snapshot_attrs = ("r", "_r_blocks", "_u", "_omega", "_t_block", "_joint")
     """... and the two stages (:meth:`LinearStage.snapshot`)."""
 
     def __init__(self, settings: EstimationSettings | None = None, table: MskfSettings | None = None) -> None:
         settings = settings or EstimationSettings()
         self.table = table or settings.estimator.mskf_em
         super().__init__(settings, self.table.noise)
+        self._offset_var = heading_offset_variance(self.settings)
 
     @classmethod
     def from_config(cls, config: Config) -> MskfEm:
@@ -310,7 +325,7 @@ class MskfEm(ConsideredHeadingOffset):
         self._u = 0.0
         self._omega = 0.0
         self._t_block = math.nan
-        self._joint = np.eye(5)
+        self._joint = considered(np.eye(5), 0.0)
 
     def _start(self, x0: FloatArray, P0: FloatArray) -> None:
         b, k = self.layout.b, self.layout.k
@@ -319,8 +334,8 @@ class MskfEm(ConsideredHeadingOffset):
         self.position.x = np.array([x0[E], x0[N], 1.0])
         self.position.P = np.diag([P0[E, E], P0[N, N], P0[k, k] if k is not None else 0.0])
         self._u = float(x0[V])
-        self._joint = np.zeros((5, 5))
-        self._joint[:3, :3], self._joint[3:, 3:] = self.position.P, self.heading.P
+        self._joint = considered(np.zeros((5, 5)), self._offset_var)
+        self._joint[:3, :3], self._joint[3:OFFSET_ROW, 3:OFFSET_ROW] = self.position.P, self.heading.P
         self._begin_blocks()
 
     def _snapshot(self) -> object:
@@ -381,7 +396,7 @@ class MskfEm(ConsideredHeadingOffset):
         if inputs.standstill and inputs.yaw_rate is not None and self.layout.b is not None:
             # at rest the CAN yaw rate measures the bias
             R = np.array([[self.noise.can_yaw_rate_rps**2 + self.noise.standstill_rps**2]])
-            self._stage_update(self.heading, np.array([[0.0, 1.0]]), np.array([inputs.yaw_rate]), R, False)
+            self._stage_update(self.heading, np.array([[0.0, 1.0]]), np.array([inputs.yaw_rate]), R, False, 0.0)
 
     def _fix_rows(self, kind: str, lag: float) -> tuple[LinearStage, FloatArray, FloatArray, bool]:
         """The stage a GNSS measurement of ``kind`` updates, its H, its offset, and whether its R is scaled."""
@@ -398,18 +413,22 @@ class MskfEm(ConsideredHeadingOffset):
         z = z - offset
         Rk = self.r * R if scaled else R
         nu, S = stage.innovation(H, z, Rk, kind == kin.AZIMUTH)
+        offset = 1.0 if kind == kin.AZIMUTH and self._heading else 0.0  # a heading measures azimuth + offset
 
         def commit() -> None:
-            self._stage_update(stage, H, z, R, scaled)
+            self._stage_update(stage, H, z, R, scaled, offset)
 
         return Pending(nu, S, commit)
 
-    def _stage_update(self, stage: LinearStage, H: FloatArray, z: FloatArray, R: FloatArray, scaled: bool) -> None:
-        """``stage``'s Kalman update, and the joint covariance's with the stage's gain (:func:`joint_update`)."""
+    def _stage_update(
+        self, stage: LinearStage, H: FloatArray, z: FloatArray, R: FloatArray, scaled: bool, offset: float
+    ) -> None:
+        """``stage``'s Kalman update, and the joint covariance's with the stage's gain (:func:`joint_update`; the
+        heading's offset seen ``offset`` times)."""
         Rk = self.r * R if scaled else R
         K = kalman_gain(stage.P, H, Rk)
         rows = HEADING_ROWS if stage is self.heading else POSITION_ROWS
-        self._joint = joint_update(self._joint, rows, H, K, Rk)
+        self._joint = joint_update(self._joint, rows, H, K, Rk, offset)
         stage.update(H, z, R, scaled, self.r)
 
     def _inflate(self, kind: str, nu: FloatArray, R: FloatArray) -> None:
@@ -449,14 +468,22 @@ class MskfEm(ConsideredHeadingOffset):
         return x
 
     def _covariance(self) -> FloatArray:
-        """The stages' joint covariance (:func:`joint_step`) in the shared layout (the speed's from the scale's,
-        times the CAN speed), a heading's offset considered
-        (:meth:`~.heading_offset.ConsideredHeadingOffset._considered`)."""
-        T = np.zeros((self.layout.n, 5))
+        """The stages' joint covariance (:func:`joint_step`, a heading's offset considered) in the shared layout
+        (the speed's from the scale's, times the CAN speed)."""
+        T = np.zeros((self.layout.n, OFFSET_ROW))
         T[E, 0], T[N, 1], T[V, 2], T[PHI, 3] = 1.0, 1.0, self._u, 1.0
         if self.layout.b is not None:
             T[self.layout.b, 4] = 1.0
-        return self._considered(T @ self._joint @ T.T, self.position.x[:2])
+        return T @ self._joint[:OFFSET_ROW, :OFFSET_ROW] @ T.T
+
+    def considered_m2(self) -> float:
+        """What the considered offset adds to the position's variance (trace, m^2), as the EKF's
+        (:meth:`~sumhe.baseline.ekf.Ekf.considered_m2`): the offset never updated, its part is ``c c' / sigma^2``,
+        ``c`` the position's covariance with it."""
+        if not self._offset_var:
+            return 0.0
+        cross = self._joint[[0, 1], OFFSET_ROW]
+        return float(cross @ cross) / self._offset_var
 
     # ---- EM on the block that ended ------------------------------------------------------------------------------
 
