@@ -17,7 +17,7 @@ from sumhe.frontend.alignment import UNLEARNED_TIME_OFFSET_SD_S
 from sumhe.frontend.can import CanBuffer
 from sumhe.frontend.epochs import EpochClock, nominal_period
 from sumhe.frontend.fixes import FixConverter, LocalFix
-from sumhe.frontend.measurements import azimuth_measurement, course_sigma, fix_sigmas, gps_speed
+from sumhe.frontend.measurements import azimuth_measurement, chord_azimuth, course_sigma, fix_sigmas, gps_speed
 from sumhe.frontend.stream import MAX_DATA_GAP_S, CanTick, Epoch, FrontEnd, Tally
 from sumhe.messages import CanSample, GnssFix
 from sumhe.settings import EstimationSettings, GnssModel, with_changes
@@ -318,3 +318,19 @@ def test_fixes_that_start_coming_later_are_taken_again_after_at_most_a_few(learn
     assert len(after) >= 140 and max(taken) > 19.0
     if filled:  # the same fix again: its epoch is filled once
         assert fe.push(_fix(filled[-1])) == [] and fe.tally.counts["dropped_backwards"] == 1
+
+
+@pytest.mark.parametrize("yaw_rate", [0.0, 0.3, -0.2])
+def test_the_chord_between_fixes_gives_the_azimuth_at_the_later_one_on_a_circle(yaw_rate: float) -> None:
+    """On a circle at a constant yaw rate (anticlockwise; the azimuth turns clockwise from north) the chord points
+    half the turn behind the later fix's azimuth; its sigma is the error across it over its length."""
+    phi0, speed, dt, h = 2.0, 10.0, 1.0, 1e-4
+    e = n = 0.0
+    for k in range(round(dt / h)):
+        phi = phi0 - yaw_rate * (k + 0.5) * h
+        e, n = e + speed * h * math.sin(phi), n + speed * h * math.cos(phi)
+    got = chord_azimuth(e, n, 1.5, dt, yaw_rate)
+    assert got is not None
+    assert got[0] == pytest.approx((phi0 - yaw_rate * dt) % (2 * math.pi), abs=1e-6)
+    assert got[1] == pytest.approx(1.5 / math.hypot(e, n))
+    assert chord_azimuth(0.0, 0.0, 1.5, dt, yaw_rate) is None
