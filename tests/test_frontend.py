@@ -3,6 +3,7 @@ every streaming estimator reads."""
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Iterator
 
@@ -241,6 +242,23 @@ def test_the_learned_time_offset_is_applied_gradually_and_keeps_epochs_in_order(
     assert fe.time_offset_s == pytest.approx(-0.3, abs=0.02)
     assert all(np.diff(times) > 0.5)  # 1 Hz epochs, each moved by at most 0.2 s more than the one before
     assert times[-1] == pytest.approx(299.0 + fe.time_offset_s)
+
+
+@pytest.mark.parametrize("learn", [True, False])
+def test_fixes_without_a_speed_over_ground_are_counted_where_the_time_offset_is_learned(
+    learn: bool, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A receiver that sends no speed over ground gives the learner nothing: each valid fix is counted and the
+    first logged (the offset stays at the config's); with the offset configured (not learned) nothing is said."""
+    fe = _frontend(**{"can.delay_s": 0.0, "gnss.learn_time_offset": learn})
+    with caplog.at_level(logging.WARNING, logger="test"):
+        for k in range(1, 120):
+            fe.push(CanSample(0.5 * k, "speed", 12.0 + math.sin(k / 6.0)))
+            if k % 2 == 0:
+                fe.push(LocalFix(t=0.5 * k, valid=True, east_m=1.0, north_m=2.0, hdop=1.0))
+    assert fe.tally.counts["fixes_without_speed"] == (59 if learn else 0)
+    assert fe.time_offset_s == 0.0 and fe.time_offset_sigma_s == (UNLEARNED_TIME_OFFSET_SD_S if learn else 0.0)
+    assert ("not learned" in caplog.text) == learn
 
 
 def test_the_applied_time_offsets_error_is_the_prior_then_the_fit_and_what_the_slew_has_not_applied() -> None:
