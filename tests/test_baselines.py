@@ -784,3 +784,17 @@ def test_fixes_without_course_or_heading_give_the_azimuth_by_their_motion(name: 
     t = last.t - 50.0
     assert math.hypot(last.east_m - 10.0 * t, last.north_m) < 10.0
     assert abs(kin.wrap_angle(last.azimuth_rad - 0.5 * math.pi)) < 0.1
+
+
+def test_a_chord_across_a_gap_in_the_fixes_measures_no_azimuth() -> None:
+    """Across missed epochs the chord is a long way's mean azimuth with a sigma the smaller the longer the way: only
+    the chord from the previous epoch's fix counts. Two fixes left out take at least three chords away."""
+
+    def chords(gap: tuple[float, float]) -> int:
+        est = make_estimator("mskf-em", load_config())
+        for s in east_without_azimuths(40.0, 40.0):
+            if not (isinstance(s, LocalFix) and gap[0] <= s.t < gap[1]):
+                est.push(s)
+        return int(est.stats()["motion_azimuths"])
+
+    assert chords((65.0, 67.0)) <= chords((0.0, 0.0)) - 3
