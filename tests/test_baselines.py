@@ -626,32 +626,47 @@ def test_a_course_of_an_antenna_ahead_bends_by_yaw_rate_times_lever_over_speed()
     assert lever_course_sigma(0.0, 8.0, 2.0, 2.0) == 0.0
 
 
-def north_with_azimuths(heading: bool, seconds: float = 30.0, outage_from: float = 20.0) -> list[LocalFix | CanSample]:
-    """10 m/s north, straight: CAN 50/100 Hz, fixes at 10 Hz with a heading (or a course) until ``outage_from``."""
-    rng = np.random.default_rng(4)
+def straight_stream(
+    seconds: float,
+    fix_period_s: float,
+    outage_from: float,
+    seed: int,
+    fix: Callable[[float, np.random.Generator], LocalFix],
+) -> list[LocalFix | CanSample]:
+    """10 m/s straight: the CAN speed at 50 Hz and the yaw rate at 100 Hz (noise only), ``fix(t, rng)`` (``t``
+    from the start, s) every ``fix_period_s`` until ``outage_from``."""
+    rng = np.random.default_rng(seed)
     t0, h = 50.0, 0.01
+    fix_every = round(fix_period_s / h)
     samples: list[LocalFix | CanSample] = []
     for k in range(int(seconds / h)):
         t = k * h
         if k % 2 == 0:
             samples.append(CanSample(t0 + t, "speed", 10.0 + rng.normal(0, 0.02)))
         samples.append(CanSample(t0 + t + 0.001, "yaw_rate", rng.normal(0, 0.002)))
-        if k % 10 == 5 and t < outage_from:
-            azimuth = rng.normal(0, 0.005) % (2 * math.pi)
-            samples.append(
-                LocalFix(
-                    t=t0 + t + 0.002,
-                    valid=True,
-                    east_m=rng.normal(0, 0.3),
-                    north_m=10.0 * t + rng.normal(0, 0.3),
-                    gst_sigma_east_m=0.3,
-                    gst_sigma_north_m=0.3,
-                    speed_mps=10.0,
-                    heading_rad=azimuth if heading else None,
-                    course_rad=None if heading else azimuth,
-                )
-            )
+        if k % fix_every == 5 and t < outage_from:
+            samples.append(dataclasses.replace(fix(t, rng), t=t0 + t + 0.002))
     return samples
+
+
+def north_with_azimuths(heading: bool, seconds: float = 30.0, outage_from: float = 20.0) -> list[LocalFix | CanSample]:
+    """10 m/s north, straight: CAN 50/100 Hz, fixes at 10 Hz with a heading (or a course) until ``outage_from``."""
+
+    def fix(t: float, rng: np.random.Generator) -> LocalFix:
+        azimuth = rng.normal(0, 0.005) % (2 * math.pi)
+        return LocalFix(
+            t=t,
+            valid=True,
+            east_m=rng.normal(0, 0.3),
+            north_m=10.0 * t + rng.normal(0, 0.3),
+            gst_sigma_east_m=0.3,
+            gst_sigma_north_m=0.3,
+            speed_mps=10.0,
+            heading_rad=azimuth if heading else None,
+            course_rad=None if heading else azimuth,
+        )
+
+    return straight_stream(seconds, 0.1, outage_from, 4, fix)
 
 
 def test_a_considered_heading_offset_moves_the_position_across_the_way_moved() -> None:
@@ -793,3 +808,44 @@ def test_a_state_ahead_of_the_can_data_takes_every_yaw_rate_sample(filter_class:
     assert f._t_state > f.frontend.can["yaw_rate"].newest + 0.25  # the state is ahead of the CAN data
     truth = -0.2 * (f._t_state - 60.0)
     assert math.degrees(kin.wrap_angle(f._mean()[kin.PHI] - truth)) == pytest.approx(0.0, abs=1.0)
+
+
+def east_without_azimuths(seconds: float = 40.0, outage_from: float = 30.0) -> list[LocalFix | CanSample]:
+    """10 m/s east, straight (an azimuth of pi/2, not the filters' 0 before any azimuth): CAN 50/100 Hz, fixes at 1
+    Hz with a speed over ground but neither a course nor a heading (a receiver that sends neither), until
+    ``outage_from``."""
+
+    def fix(t: float, rng: np.random.Generator) -> LocalFix:
+        east, north = 10.0 * t + rng.normal(0, 1.0), rng.normal(0, 1.0)
+        sigmas = {"gst_sigma_east_m": 1.0, "gst_sigma_north_m": 1.0}
+        return LocalFix(t=t, valid=True, east_m=east, north_m=north, speed_mps=10.0, **sigmas)
+
+    return straight_stream(seconds, 1.0, outage_from, 6, fix)
+
+
+@pytest.mark.parametrize("name", estimator_params(sorted(set(estimator_names(live_only=True)) - {"mhe"})))
+def test_fixes_without_course_or_heading_give_the_azimuth_by_their_motion(name: str) -> None:
+    """Every peer finds the azimuth from the fixes' motion alone and keeps to the road through a 10 s outage:
+    ``gtsam-fls`` had opened no graph (the estimate stayed at the newest fix, 100 m behind at the outage's end),
+    ``mskf-em``'s heading stage had kept its azimuth of 0 (north)."""
+    est = make_estimator(name, load_config())
+    out = [e for s in east_without_azimuths() for e in est.push(s)]
+    assert ("motion_azimuths" in est.stats()) == (name in {"gtsam-fls", "mskf-em"})
+    last = out[-1]
+    t = last.t - 50.0
+    assert math.hypot(last.east_m - 10.0 * t, last.north_m) < 10.0
+    assert abs(kin.wrap_angle(last.azimuth_rad - 0.5 * math.pi)) < 0.1
+
+
+def test_a_chord_across_a_gap_in_the_fixes_measures_no_azimuth() -> None:
+    """Across missed epochs the chord is a long way's mean azimuth with a sigma the smaller the longer the way: only
+    the chord from the previous epoch's fix counts. Two fixes left out take at least three chords away."""
+
+    def chords(gap: tuple[float, float]) -> int:
+        est = make_estimator("mskf-em", load_config())
+        for s in east_without_azimuths(40.0, 40.0):
+            if not (isinstance(s, LocalFix) and gap[0] <= s.t < gap[1]):
+                est.push(s)
+        return int(est.stats()["motion_azimuths"])
+
+    assert chords((65.0, 67.0)) <= chords((0.0, 0.0)) - 3

@@ -3,6 +3,7 @@ every streaming estimator reads."""
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Iterator
 
@@ -17,7 +18,7 @@ from sumhe.frontend.alignment import UNLEARNED_TIME_OFFSET_SD_S
 from sumhe.frontend.can import CanBuffer
 from sumhe.frontend.epochs import EpochClock, nominal_period
 from sumhe.frontend.fixes import FixConverter, LocalFix
-from sumhe.frontend.measurements import azimuth_measurement, course_sigma, fix_sigmas, gps_speed
+from sumhe.frontend.measurements import azimuth_measurement, chord_azimuth, course_sigma, fix_sigmas, gps_speed
 from sumhe.frontend.stream import MAX_DATA_GAP_S, CanTick, Epoch, FrontEnd, Tally
 from sumhe.messages import CanSample, GnssFix
 from sumhe.settings import EstimationSettings, GnssModel, with_changes
@@ -243,6 +244,23 @@ def test_the_learned_time_offset_is_applied_gradually_and_keeps_epochs_in_order(
     assert times[-1] == pytest.approx(299.0 + fe.time_offset_s)
 
 
+@pytest.mark.parametrize("learn", [True, False])
+def test_fixes_without_a_speed_over_ground_are_counted_where_the_time_offset_is_learned(
+    learn: bool, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A receiver that sends no speed over ground gives the learner nothing: each valid fix is counted and the
+    first logged (the offset stays at the config's); with the offset configured (not learned) nothing is said."""
+    fe = _frontend(**{"can.delay_s": 0.0, "gnss.learn_time_offset": learn})
+    with caplog.at_level(logging.WARNING, logger="test"):
+        for k in range(1, 120):
+            fe.push(CanSample(0.5 * k, "speed", 12.0 + math.sin(k / 6.0)))
+            if k % 2 == 0:
+                fe.push(LocalFix(t=0.5 * k, valid=True, east_m=1.0, north_m=2.0, hdop=1.0))
+    assert fe.tally.counts["fixes_without_speed"] == (59 if learn else 0)
+    assert fe.time_offset_s == 0.0 and fe.time_offset_sigma_s == (UNLEARNED_TIME_OFFSET_SD_S if learn else 0.0)
+    assert ("not learned" in caplog.text) == learn
+
+
 def test_the_applied_time_offsets_error_is_the_prior_then_the_fit_and_what_the_slew_has_not_applied() -> None:
     """The same receiver (fixes true 0.3 s before their stamp): until the learner's first fit the applied offset's
     error is the prior it starts from; then the fit's standard error and the part the slew has not applied yet
@@ -318,3 +336,19 @@ def test_fixes_that_start_coming_later_are_taken_again_after_at_most_a_few(learn
     assert len(after) >= 140 and max(taken) > 19.0
     if filled:  # the same fix again: its epoch is filled once
         assert fe.push(_fix(filled[-1])) == [] and fe.tally.counts["dropped_backwards"] == 1
+
+
+@pytest.mark.parametrize("yaw_rate", [0.0, 0.3, -0.2])
+def test_the_chord_between_fixes_gives_the_azimuth_at_the_later_one_on_a_circle(yaw_rate: float) -> None:
+    """On a circle at a constant yaw rate (anticlockwise; the azimuth turns clockwise from north) the chord points
+    half the turn behind the later fix's azimuth; its sigma is the error across it over its length."""
+    phi0, speed, dt, h = 2.0, 10.0, 1.0, 1e-4
+    e = n = 0.0
+    for k in range(round(dt / h)):
+        phi = phi0 - yaw_rate * (k + 0.5) * h
+        e, n = e + speed * h * math.sin(phi), n + speed * h * math.cos(phi)
+    got = chord_azimuth(e, n, 1.5, dt, yaw_rate)
+    assert got is not None
+    assert got[0] == pytest.approx((phi0 - yaw_rate * dt) % (2 * math.pi), abs=1e-6)
+    assert got[1] == pytest.approx(1.5 / math.hypot(e, n))
+    assert chord_azimuth(0.0, 0.0, 1.5, dt, yaw_rate) is None

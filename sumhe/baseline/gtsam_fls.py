@@ -33,7 +33,9 @@ Stream: the front-end's epochs (:mod:`sumhe.frontend`), the gate and re-acquisit
 its node sits at its own time, and the CAN steps after it go into the next node's odometry. Gating uses the newest
 node's marginal covariance carried to the fix by the odometry; re-acquisition widens the odometry factor into the
 fix's node. CAN-rate estimates are the newest node carried forward by the odometry since it. Until the first
-course or heading gives an azimuth there is no graph: the estimate is the newest fix.
+course or heading gives an azimuth there is no graph: the estimate is the newest fix; from fixes without either
+(a receiver that sends neither), the first chord between two of them opens it (``azimuth_from_motion``,
+:mod:`.stream`).
 
 Error estimate: the newest node's joint marginal carried by the odometry (:meth:`GtsamFls._covariance`), with the
 offset of a receiver's heading considered as the EKF and the particle filter consider it
@@ -320,6 +322,7 @@ class GtsamFls(ConsideredHeadingOffset, LeverCourse):
     """GTSAM's iSAM2 fixed-lag smoother over the CAN odometry and GNSS (``gtsam-fls``; the module docstring)."""
 
     name = "gtsam-fls"
+    azimuth_from_motion = "start"
 
     def __init__(self, settings: EstimationSettings | None = None, table: GtsamSettings | None = None) -> None:
         settings = settings or EstimationSettings()

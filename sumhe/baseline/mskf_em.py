@@ -40,7 +40,10 @@ Where it deviates from 002 and why:
 * no GNSS-only stage (002's KF1, a constant-acceleration filter of the fixes whose velocity gives the GNSS
   orientation): receivers report the course over ground from Doppler, a better orientation than the direction of
   a position filter's velocity; the GNSS noise it re-estimated is re-estimated in the position stage, which
-  observes the same fixes (002 computes the shared entries "only once" too);
+  observes the same fixes (002 computes the shared entries "only once" too). A receiver that sends neither a
+  course nor a heading gives the chord between consecutive fixes instead (``azimuth_from_motion``,
+  :mod:`.stream`): without it the heading stage ran on the CAN yaw rate alone from an azimuth of 0, and the
+  shared real drive without its headings was 113-557 m off the removed fixes;
 * linear Kalman filters, not UKFs: with the CAN yaw rate and speed as inputs and the combined azimuth as the
   position stage's control input (as 002 does), both stages are linear, and an unscented transform of a linear
   model is the Kalman filter;
@@ -297,6 +300,9 @@ class MskfEm(FollowsHeadings):
     """Multi-stage Kalman filter with on-line block EM of the noise scales (``mskf-em``)."""
 
     name = "mskf-em"
+    azimuth_from_motion = "always"
+    """Without a receiver's course or heading the chord between fixes is the GNSS orientation (002's KF1's role):
+    the position stage does not turn the heading stage, whose azimuth only the combination corrects."""
     snapshot_attrs = ("r", "_r_blocks", "_u", "_omega", "_t_block", "_joint")
     """... and the two stages (:meth:`LinearStage.snapshot`)."""
 

@@ -11,6 +11,8 @@ reads its measurements from here, through :class:`~sumhe.frontend.stream.FrontEn
 * Azimuth: an HDT/THS heading (with ``use_heading``) at ``heading_sigma_rad``; else the course over ground above
   ``course_min_speed_mps`` (of the fix's speed, else the CAN speed) at ``hypot(course_sigma_rad,
   speed_sigma_mps / speed)`` (:func:`azimuth_measurement`).
+* Azimuth from the fixes' motion, for receivers that send no course or heading: the chord between two fixes,
+  turned by half the CAN yaw rate's turn in between, at ``sigma / distance`` (:func:`chord_azimuth`).
 * Speed over ground (Doppler, with ``use_speed``): above ``course_min_speed_mps``, signed like the CAN speed
   (reversing), at ``max(speed_sigma_mps, NMEA's resolution)`` (:func:`gps_speed`).
 * CAN: an average of ``count`` samples bounds its error by half a quantum plus ``k`` sigmas of the mean
@@ -103,6 +105,22 @@ def azimuth_measurement(
     if _finite(course_rad) and _finite(speed_mps) and speed_mps >= gnss.course_min_speed_mps:  # type: ignore[operator]
         return float(course_rad), float(course_sigma(speed_mps, gnss)), False  # type: ignore[arg-type]
     return None
+
+
+def chord_azimuth(
+    east_m: float, north_m: float, sigma_m: float, dt_s: float, yaw_rate_rps: float
+) -> tuple[float, float] | None:
+    """The azimuth (rad, clockwise from north, in [0, 2 pi)) the motion between two fixes measures at the later one,
+    and its 1-sigma (rad): a receiver that sends no course or heading still gives the chord between its positions.
+    ``east_m``, ``north_m``: the later fix less the earlier (m); ``sigma_m``: the chord's 1-sigma error across it
+    (m, both fixes' errors); ``dt_s``: the time between them (s); ``yaw_rate_rps``: the mean yaw rate in between
+    (rad/s, anticlockwise). At a constant yaw rate the chord points along the azimuth half-way, half the turn
+    behind the later fix's. None for fixes at one place."""
+    distance = math.hypot(east_m, north_m)
+    if not distance > 0.0:
+        return None
+    azimuth = math.atan2(east_m, north_m) - 0.5 * yaw_rate_rps * dt_s
+    return azimuth % (2.0 * math.pi), sigma_m / distance
 
 
 def gps_speed(speed_mps: Any, can_speed_mps: Any, gnss: GnssModel) -> Any:

@@ -13,7 +13,10 @@ is worth and when it counts:
 * each fix's measurements by the one policy of :mod:`sumhe.frontend.measurements` (:class:`FixMeasurement`);
 * the GNSS time offset: a fix's time is moved by ``sensors.gnss.time_offset_s`` onto the CAN clock, or by the
   offset learned on line (:class:`~sumhe.frontend.alignment.ClockLearner`, ``learn_time_offset``), which the
-  applied offset follows by at most ``OFFSET_SLEW`` of a period per fix (epochs stay in order);
+  applied offset follows by at most ``OFFSET_SLEW`` of a period per fix (epochs stay in order); the learner needs
+  the fixes' speed over ground: a valid fix without one is counted (``fixes_without_speed``; a receiver that
+  sends none had left the offset at the config's all drive without a word: the shared real drive without its
+  speed signal ran 0.37 s off, every estimate's ``eph`` carrying 0.3 s of it);
 * the start: nothing before the first usable fix, which comes as ``Epoch(start=True)``; no sample at all for
   ``MAX_DATA_GAP_S`` restarts there (counted ``restarts``).
 
@@ -326,6 +329,13 @@ class FrontEnd:
     def _on_can_clock(self, fix: LocalFix) -> LocalFix:
         """The fix at its time on the CAN clock: its stamped time plus the GNSS time offset (module docstring)."""
         if self.aligner is not None and isinstance(fix.t, _NUMBER) and math.isfinite(fix.t):
+            if fix.valid and fix.speed_mps is None:
+                self.tally.count(
+                    "fixes_without_speed",
+                    "valid GNSS fix without a speed over ground: the time offset is not learned from it (%.3f s "
+                    "applied; sensors.gnss.time_offset_s sets it, sumhe calibrate measures it)",
+                    self.time_offset_s,
+                )
             self.aligner.add_fix(fix.t, fix.speed_mps if fix.valid else None)
             step = OFFSET_SLEW * self.period_s
             self.time_offset_s += min(max(self.aligner.offset_s - self.time_offset_s, -step), step)
