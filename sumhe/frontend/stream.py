@@ -43,6 +43,7 @@ from sumhe.frontend.can import CAN_USED, CanBuffer
 from sumhe.frontend.epochs import EpochClock, bad_epoch_time
 from sumhe.frontend.fixes import LocalFix
 from sumhe.frontend.measurements import azimuth_measurement, gps_speed, gps_speed_sigma
+from sumhe.frontend.sensor_check import SensorCheck
 from sumhe.messages import CanSample
 from sumhe.records import quick_init, replace
 from sumhe.settings import EstimationSettings
@@ -155,6 +156,8 @@ class FrontEnd:
         self.fills_missed = True
         """Whether fixes that come after their epoch was declared missed fill it (:meth:`_after_missed`)."""
         self._limits = can_limits(settings)
+        self.check = SensorCheck(settings, tally)
+        """The on-line check of the CAN yaw rate's and speed's mapping (its verdicts outlive :meth:`reset`)."""
         self.reset()
 
     def reset(self) -> None:
@@ -163,7 +166,11 @@ class FrontEnd:
         gnss = self.settings.gnss
         self.can = CanBuffer()
         self.clock = EpochClock(gnss.period_s)
-        self.aligner = ClockLearner(gnss.time_offset_s) if gnss.learn_time_offset else None
+        self.learner = ClockLearner(gnss.time_offset_s)
+        """The fits of the receiver's speed over ground against the CAN speed: the time offset learned (applied
+        with ``learn_time_offset``: :attr:`aligner`) and the CAN speed's scale :attr:`check` judges."""
+        self.aligner = self.learner if gnss.learn_time_offset else None
+        self.check.clear()
         self._delay_s = self.settings.can.delay_s
         self.time_offset_s = gnss.time_offset_s
         self.started = False
@@ -228,9 +235,10 @@ class FrontEnd:
         self._check_gap(t)
         value = float(value)
         store.add(t, value)
-        speed = q == "speed"
-        if speed and self.aligner is not None:
-            self.aligner.add_can_speed(t, value)
+        if q == "speed":
+            self.learner.add_can_speed(t, value)
+        else:
+            self.check.add_yaw(t, value)
         if not self.started:
             return []
         tick = _new_tuple(CanTick, (t, stamp, q, value, q == OUTPUT_QUANTITY))
@@ -270,6 +278,8 @@ class FrontEnd:
         usable = fix.usable(sigmas)
         if fix.valid and not usable:
             self.tally.count("bad_fixes", "valid fix without a usable position or sigma taken as no fix")
+        if fix.valid:
+            self._check(fix)
         self.clock.observe(stamp, newest_can)
         self._check_gap(t)
         if not self.started:
@@ -326,8 +336,18 @@ class FrontEnd:
         """The fix at its stamped time plus the GNSS time offset applied now."""
         return replace(fix, t=fix.t + self.time_offset_s) if self.time_offset_s else fix
 
+    def _check(self, fix: LocalFix) -> None:
+        """A valid fix (on the CAN clock) to the sensor check, with the learner's newest speed fit."""
+        speed = fix.speed_mps
+        if speed is None or not math.isfinite(speed):
+            speed = self.can["speed"].at(fix.t, self.settings.can.max_gap_s)
+        self.check.add_fix(fix, math.nan if speed is None else speed)
+        self.check.check_speed(self.learner.newest, fix.t)
+
     def _on_can_clock(self, fix: LocalFix) -> LocalFix:
         """The fix at its time on the CAN clock: its stamped time plus the GNSS time offset (module docstring)."""
+        if isinstance(fix.t, _NUMBER) and math.isfinite(fix.t):
+            self.learner.add_fix(fix.t, fix.speed_mps if fix.valid else None)
         if self.aligner is not None and isinstance(fix.t, _NUMBER) and math.isfinite(fix.t):
             if fix.valid and fix.speed_mps is None:
                 self.tally.count(
@@ -336,7 +356,6 @@ class FrontEnd:
                     "applied; sensors.gnss.time_offset_s sets it, sumhe calibrate measures it)",
                     self.time_offset_s,
                 )
-            self.aligner.add_fix(fix.t, fix.speed_mps if fix.valid else None)
             step = OFFSET_SLEW * self.period_s
             self.time_offset_s += min(max(self.aligner.offset_s - self.time_offset_s, -step), step)
         return self._moved(fix)
