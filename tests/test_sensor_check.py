@@ -1,6 +1,6 @@
 """The on-line check of the CAN yaw rate's and speed's mapping against the receiver: a flipped sign, a yaw rate that
 does not follow the azimuth, a speed in the wrong unit, each said once at ERROR naming the key, and counted; nothing
-said of a correct mapping."""
+said of a correct mapping. A flipped sign is turned round from the verdict on, the estimator starting over afresh."""
 
 from __future__ import annotations
 
@@ -9,14 +9,16 @@ import logging
 import math
 from collections.abc import Callable
 
+import numpy as np
 import pytest
 
 from sumhe.baseline.ekf import Ekf
 from sumhe.bench.mhe import StreamItem, drive_stream
+from sumhe.estimator.mhe import MovingHorizonEstimator
 from sumhe.frontend.alignment import LagFit
 from sumhe.frontend.fixes import LocalFix
 from sumhe.frontend.sensor_check import CHECK_SIGMAS, speed_scale_outside, yaw_verdict
-from sumhe.frontend.stream import FrontEnd, Tally
+from sumhe.frontend.stream import CanTick, Epoch, FrontEnd, Tally
 from sumhe.messages import CanSample
 from sumhe.settings import EstimationSettings
 from sumhe.sim import SimSettings, simulate
@@ -82,11 +84,44 @@ def test_a_wrong_mapping_is_said_once_at_error_naming_the_key(urban, caplog, cha
     assert error.levelno == logging.ERROR and says in error.getMessage() and " +- " in error.getMessage()
 
 
-def test_the_estimators_stats_carry_the_counter(urban):
-    ekf = Ekf(EstimationSettings())
-    for s in urban:
-        ekf.push(_scaled("yaw_rate", -1.0)(s))
-    assert ekf.stats()["yaw_rate_sign_flipped"] == 1
+def test_a_flipped_yaw_rate_is_turned_round_from_the_verdict_on_and_the_estimator_starts_afresh(urban):
+    """Until the verdict the yaw ticks are as mapped; from it on turned round (the samples kept too), and the fix of
+    the verdict starts the estimator over with ``fresh`` (its CAN states learned from the wrong sign dropped)."""
+    fe = FrontEnd(EstimationSettings(), Tally("test", logging.getLogger("test.sensor_check")))
+    raw, ticked, starts = [], [], []
+    for s in map(_scaled("yaw_rate", -1.0), urban):
+        for e in fe.push(s):
+            if isinstance(e, CanTick) and e.quantity == "yaw_rate":
+                raw.append(s.value)  # type: ignore[union-attr]
+                ticked.append(e.value)
+            elif isinstance(e, Epoch) and e.start:
+                starts.append((e.t, e.fresh, len(ticked)))
+    assert fe.tally.counts["restarts"] == 1 and fe.check.yaw_sign == -1.0
+    (_, first, _), (t, fresh, k) = starts
+    assert fresh and not first and 40.0 < t - urban[0].t < 70.0
+    assert ticked[:k] == raw[:k] and ticked[k:] == [-v for v in raw[k:]]
+    assert all(v == -w for v, w in zip(fe.can["yaw_rate"].v, raw[-len(fe.can["yaw_rate"].v) :], strict=True))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("estimator", [Ekf, MovingHorizonEstimator])
+def test_through_an_outage_after_the_verdict_a_flipped_drive_does_as_well_as_the_right_one(estimator):
+    """A town drive whose yaw rate reads clockwise-positive, with a 20 s outage 10 s after the verdict (59 s): the
+    error through it is that of the drive mapped right (MHE 1.56 against 1.92 m, EKF 1.63 against 1.41 m); the
+    MHE's was 6.1 m when it kept the CAN states learned from the wrong sign over the restart."""
+    drive = simulate(SimSettings(scenario="urban", seed=3, duration_s=100.0))
+    t0 = drive.settings.start_unix_s
+    out = (t0 + 70.0, t0 + 90.0)
+    right = [s for s in drive_stream(drive) if not (isinstance(s, LocalFix) and out[0] <= s.t < out[1])]
+    errors = []
+    for stream in (right, [_scaled("yaw_rate", -1.0)(s) for s in right]):
+        est = estimator(EstimationSettings())
+        estimates = [e for s in stream for e in est.push(s) if out[0] <= e.t < out[1]]
+        truth = drive.truth.at(np.array([e.t for e in estimates]))
+        east, north = np.array([[e.east_m, e.north_m] for e in estimates]).T
+        errors.append(float(np.mean(np.hypot(east - truth.east, north - truth.north))))
+    assert est.stats()["yaw_rate_sign_flipped"] == 1
+    assert errors[1] < 1.3 * errors[0] + 0.5, errors
 
 
 @pytest.mark.parametrize(

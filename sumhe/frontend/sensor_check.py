@@ -23,9 +23,13 @@ only that it kept rejecting fixes and restarting. :class:`SensorCheck` gathers, 
 
 Each finding is logged once, at ERROR, with the config key, the fitted value and its standard error, and counted
 (``yaw_rate_sign_flipped``, ``yaw_rate_not_following``, ``speed_scale_outside``: the estimator's ``stats()``, which
-``sumhe replay`` prints and the daemon's status line carries). The fallback: the estimators keep running on the
-config as it is (a sign flipped under them mid-drive would turn their state and its history the wrong way at
-once), so their estimates through outages stay as wrong as the config until it is changed.
+``sumhe replay`` prints and the daemon's status line carries). The fallbacks: a flipped sign is unambiguous (the
+scale's magnitude plausible, 5 standard errors from it): from the verdict on the front-end turns the yaw rate round
+(:attr:`SensorCheck.yaw_sign`) and the estimator starts over at that fix afresh (``Epoch.fresh``: its CAN states,
+output bounds and consistency scales were learned from the wrong sign); on the shared real drive with ``scale =
+-1`` the MHE's 10/30 s outages after it came out at 2.22/3.26 m (2.42/3.60 mapped right; 128/143 m as mapped). A
+yaw rate that does not follow, or a speed scale out of bounds, has no one correction: the estimators keep running
+on the config as it is, and their estimates through outages stay as wrong as it until it is changed.
 """
 
 from __future__ import annotations
@@ -115,6 +119,8 @@ class SensorCheck:
         self.tally = tally
         self.yaw_done = False
         """A verdict on the yaw rate was reached: nothing more is gathered."""
+        self.yaw_sign = 1.0
+        """-1 once the yaw rate's sign is found flipped: the front-end turns the CAN yaw rate round from then on."""
         self.speed_done = False
         self._speed_fit: LagFit | None = None
         self.clear()
@@ -211,11 +217,13 @@ class SensorCheck:
         if verdict == "ok":
             self.tally.log.info("%s: the CAN yaw rate follows the receiver's azimuth: %s", self.tally.name, found)
         elif verdict == "sign_flipped":
+            self.yaw_sign = -1.0
             self.tally.count(
                 "yaw_rate_sign_flipped",
                 "the CAN yaw rate turns against the receiver's azimuth: %s; set scale = -1 (times the scale it has) in "
-                "can.signals.yaw_rate (left turns must read positive). The estimates run on the config as it is: "
-                "through outages they turn the wrong way",
+                "can.signals.yaw_rate (left turns must read positive). Until then its sign is turned round on line "
+                "from here, and the estimator starts over at this fix (what it estimated before turned the wrong way "
+                "through outages)",
                 found,
                 level=logging.ERROR,
             )

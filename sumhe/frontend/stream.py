@@ -114,6 +114,9 @@ class Epoch:
     fix: FixMeasurement | None
     missed: bool = False
     start: bool = False
+    fresh: bool = False
+    """With ``start``: the CAN data changed meaning before it (the yaw rate's sign turned round on line,
+    :meth:`FrontEnd._turn_yaw_round`): the CAN sensor states learned before are no longer of these data."""
     fills: bool = False
     """The fix of an epoch handed out before as ``missed`` (it came after the epoch was declared missed): the
     estimator puts it in that epoch, as a late fix (:meth:`FrontEnd._after_missed`)."""
@@ -174,6 +177,7 @@ class FrontEnd:
         self._delay_s = self.settings.can.delay_s
         self.time_offset_s = gnss.time_offset_s
         self.started = False
+        self._fresh = False
         self._t_last = -math.inf
         self._t_epoch = -math.inf
         """The time of the last epoch handed out, on the CAN clock."""
@@ -234,11 +238,12 @@ class FrontEnd:
             return []
         self._check_gap(t)
         value = float(value)
-        store.add(t, value)
         if q == "speed":
             self.learner.add_can_speed(t, value)
         else:
             self.check.add_yaw(t, value)
+            value *= self.check.yaw_sign
+        store.add(t, value)
         if not self.started:
             return []
         tick = _new_tuple(CanTick, (t, stamp, q, value, q == OUTPUT_QUANTITY))
@@ -290,7 +295,8 @@ class FrontEnd:
             self.tally.counts["epochs"] += 1
             self.can.trim(t - max(CAN_KEEP_S, 3.0 * self.period_s))
             self._t_epoch = t
-            return [Epoch(t, self.measure(fix, sigmas), start=True)]
+            fresh, self._fresh = self._fresh, False
+            return [Epoch(t, self.measure(fix, sigmas), start=True, fresh=fresh)]
         events: list[Epoch | CanTick] = self._missed(stamp)
         self.clock.last_epoch = stamp
         self.tally.counts["epochs"] += 1
@@ -341,8 +347,21 @@ class FrontEnd:
         speed = fix.speed_mps
         if speed is None or not math.isfinite(speed):
             speed = self.can["speed"].at(fix.t, self.settings.can.max_gap_s)
+        sign = self.check.yaw_sign
         self.check.add_fix(fix, math.nan if speed is None else speed)
         self.check.check_speed(self.learner.newest, fix.t)
+        if self.check.yaw_sign != sign:
+            self._turn_yaw_round()
+
+    def _turn_yaw_round(self) -> None:
+        """The CAN yaw rate's sign was found flipped (:attr:`check`): the samples kept are turned round as the
+        new ones will be, and the estimator starts over at this fix (its state and window hold the wrong turns)."""
+        samples = self.can.samples["yaw_rate"]
+        samples.v[:] = [-v for v in samples.v]
+        self._fresh = True
+        if self.started:
+            self.started = False
+            self.tally.counts["restarts"] += 1
 
     def _on_can_clock(self, fix: LocalFix) -> LocalFix:
         """The fix at its time on the CAN clock: its stamped time plus the GNSS time offset (module docstring)."""
