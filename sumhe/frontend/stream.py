@@ -17,6 +17,9 @@ is worth and when it counts:
   the fixes' speed over ground: a valid fix without one is counted (``fixes_without_speed``; a receiver that
   sends none had left the offset at the config's all drive without a word: the shared real drive without its
   speed signal ran 0.37 s off, every estimate's ``eph`` carrying 0.3 s of it);
+* the CAN mapping checked against the receiver (:class:`~sumhe.frontend.sensor_check.SensorCheck`): a yaw rate's
+  flipped sign, a yaw rate that does not follow the azimuth, a speed scale out of bounds, said once and counted; a
+  flipped sign turned round from the verdict on, the estimator starting over afresh there (``Epoch.fresh``);
 * the start: nothing before the first usable fix, which comes as ``Epoch(start=True)``; no sample at all for
   ``MAX_DATA_GAP_S`` restarts there (counted ``restarts``).
 
