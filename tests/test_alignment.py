@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from sumhe.frontend.alignment import UNLEARNED_TIME_OFFSET_SD_S, ClockLearner, _Series, course_lag, speed_lag
+from sumhe.frontend.alignment import UNLEARNED_TIME_OFFSET_SD_S, ClockLearner, TimeSeries, course_lag, speed_lag
 from sumhe.sim import SimSettings, simulate
 
 RNG = np.random.default_rng(7)
@@ -229,7 +229,7 @@ def test_course_lag_with_the_scale_held_gives_the_bias():
 def test_series_keeps_what_a_deque_trimmed_by_its_second_pair_keeps(times, trims):
     """The learner's CAN speeds: the same pairs as the deque they replaced, popped from the front while more than
     two remain and the second is before the trim time (in or out of order), at every length and trim."""
-    series, pairs = _Series(), deque()
+    series, pairs = TimeSeries(), deque()
     for i, t in enumerate(times):
         series.append(t, float(i))
         pairs.append((t, float(i)))

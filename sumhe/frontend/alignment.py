@@ -305,7 +305,7 @@ def _fit_lags(
     return rss, coef
 
 
-class _Series:
+class TimeSeries:
     """(t, value) pairs appended in time order into two flat ``array('d')`` columns, forgotten from the front by
     moving a start index (the arrays compacted once half is forgotten). The learner's CAN speeds (15 000 in its
     300 s window at 50 Hz) come to each refit as numpy arrays copied in one go (2.5 us; a deque of tuples flattened
@@ -362,7 +362,7 @@ class ClockLearner:
         """The newest fit, sure or not (the on-line sensor check reads its speed scale)."""
         self.window_s, self.refit_s, self.max_std_s = window_s, refit_s, max_std_s
         self._fixes: deque[tuple[float, float]] = deque()
-        self._can = _Series()
+        self._can = TimeSeries()
         self._next_fit = -math.inf
 
     @property
@@ -392,7 +392,7 @@ class ClockLearner:
     def _fit(self) -> None:
         if len(self._fixes) < MIN_PAIRS or len(self._can) < 2:
             return
-        f = _columns(self._fixes)
+        f = row_array(self._fixes)
         fit = speed_lag(f[:, 0], f[:, 1], *self._can.columns())
         if fit is None:
             return
@@ -410,7 +410,7 @@ def _weighed(prior: float, prior_sd: float, value: float, sd: float) -> tuple[fl
     return prior + w * (value - prior), math.sqrt(w) * sd
 
 
-def _columns(rows: deque[tuple[float, ...]]) -> NDArray[np.float64]:
+def row_array(rows: deque[tuple[float, ...]]) -> NDArray[np.float64]:
     """``numpy.array(rows)`` (n x the rows' length, n > 0), built from a flat iterator (``numpy.array`` inspects
     each tuple, 2.5 times slower)."""
     width = len(rows[0])

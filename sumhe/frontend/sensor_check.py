@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from sumhe.frontend.alignment import CHORD_S, MIN_PAIRS, MIN_SPEED_MPS, LagFit, _columns, _Series, course_lag
+from sumhe.frontend.alignment import CHORD_S, MIN_PAIRS, MIN_SPEED_MPS, LagFit, TimeSeries, course_lag, row_array
 from sumhe.frontend.fixes import LocalFix
 from sumhe.frontend.measurements import chord_azimuth
 from sumhe.settings import EstimationSettings
@@ -71,11 +71,6 @@ CHORD_JITTER = 0.9
 chords would otherwise span two periods, too far apart to pair (:func:`course_lag`'s ``max_gap_s``)."""
 MIN_SPEED_FIXES = 100
 """The speed's scale is judged from fits of at least this many moving fixes."""
-
-
-def _wrapped(angle: float) -> float:
-    """The angle (rad) within [-pi, pi)."""
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def yaw_verdict(scale: float, std: float) -> str | None:
@@ -127,7 +122,7 @@ class SensorCheck:
 
     def clear(self) -> None:
         """Forget the evidence gathered (a clock jump); the verdicts stay (the config did not change)."""
-        self._yaw = _Series()
+        self._yaw = TimeSeries()
         self._fixes: deque[tuple[float, float, float, float]] = deque()
         self._turns: deque[tuple[float, float]] = deque()
         self._turned = 0.0
@@ -192,14 +187,14 @@ class SensorCheck:
         if anchor is None or t - anchor[0] > 2.0 * TURN_STEP_S:
             self._anchor = (t, azimuth)
         elif t - anchor[0] >= TURN_STEP_S:
-            turn = abs(_wrapped(azimuth - anchor[1]))
+            turn = abs(math.remainder(azimuth - anchor[1], math.tau))
             self._turns.append((t, turn))
             self._turned += turn
             self._turned_total += turn
             self._anchor = (t, azimuth)
 
     def _judge_yaw(self, t: float) -> None:
-        f = _columns(self._fixes)
+        f = row_array(self._fixes)
         heading = np.count_nonzero(np.isfinite(f[:, 1])) >= MIN_PAIRS
         azimuth, source = (f[:, 1], "heading") if heading else (f[:, 2], "course (over ground, or between positions)")
         fit = course_lag(f[:, 0], azimuth, f[:, 3], *self._yaw.columns(), CHECK_LAGS_S, speed_weighted=not heading)
@@ -209,7 +204,7 @@ class SensorCheck:
         if verdict is None:
             return
         self.yaw_done = True
-        self._yaw, self._fixes, self._turns = _Series(), deque(), deque()
+        self._yaw, self._fixes, self._turns = TimeSeries(), deque(), deque()
         found = (
             f"scale {fit.scale:.3f} +- {fit.scale_std:.3f} (true = scale x CAN) from the receiver's {source} over "
             f"{fit.n} pairs of fixes, {math.degrees(self._turned):.0f} deg turned, {t - self._t0:.0f} s into the data"
