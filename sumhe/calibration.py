@@ -44,7 +44,7 @@ from numpy.typing import NDArray
 
 from sumhe.config import Config, SignalSpec
 from sumhe.errors import CalibrationError
-from sumhe.frontend.alignment import MIN_PAIRS, MIN_SPEED_MPS, LagFit, course_lag, speed_lag
+from sumhe.frontend.alignment import CHORD_S, MIN_PAIRS, MIN_SPEED_MPS, LagFit, course_lag, speed_lag
 from sumhe.geo import LocalFrame
 from sumhe.io.quanta import signal_quanta
 from sumhe.io.replay import Paths, RecordedDrive
@@ -72,8 +72,6 @@ SIDESLIP_GRADIENT = (math.radians(0.2), math.radians(0.1))
 """Body sideslip per lateral acceleration at the rear axle (mean, sigma; rad per m/s^2): passenger cars show
 0.05-0.4 deg/(m/s^2). The direction of motion then follows the body's yaw by ``k v`` s: a course's lag
 includes it, a heading's does not."""
-CHORD_S = (1.0, 2.0)
-"""Shortest and longest baseline (s) of the speed and course taken between fix positions."""
 TURN_RATE_RPS = math.radians(2.0)
 """A yaw rate above this is a turn (for the message saying why a scale is undetermined)."""
 STANDSTILL_MIN_S = 5.0

@@ -154,6 +154,8 @@ class StreamEstimator(ABC):
                 predicted = predicted_at(self._since_epoch, fix.t, ahead) if fix is not None else None
                 prior = None if predicted is None else (*predicted, self.considered_growth_m2())
                 self.started_over, self.unsettled = event.start, False
+                if event.fresh:  # the CAN data changed meaning: what the scales learned of the errors is past
+                    self.consistency.reset()
                 estimate: StateEstimate | None = self.on_epoch(event)
                 self._since_epoch = []
                 if estimate is not None and estimate.gps == "ok" and event.fix is not None:

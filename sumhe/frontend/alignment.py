@@ -43,6 +43,9 @@ SLOPE_S = 0.5
 """Half the interval (s) over which the model's derivative with respect to the lag is taken (smooths sensor noise)."""
 LAG_TOLERANCE_S = 1e-4
 """The speed lag is searched to this (s) between the grid's neighbours of its minimum (:func:`speed_lag`)."""
+CHORD_S = (1.0, 2.0)
+"""Shortest and longest baseline (s) of the speed and course taken between fix positions (``sumhe calibrate``, and
+the on-line sensor check of a receiver without a course or heading)."""
 UNLEARNED_TIME_OFFSET_SD_S = 0.3
 """The standard deviation (s) of the GNSS time offset before :class:`ClockLearner` has fitted it: real recordings
 show -0.4 to +0.2 s, the realistic profile draws -0.3 to +0.3 s (docs/simulator.md)."""
@@ -61,6 +64,10 @@ class LagFit:
     n: int
     lever_m: float = 0.0
     """The antenna's forward lever arm (m) fitted with the lag (:func:`course_lag` with ``lever_prior_m``)."""
+    scale_std: float = math.nan
+    """The standard error of ``scale`` at the lag (:func:`_coefficient_std`; NaN where the scale is not fitted)."""
+    level: float = math.nan
+    """The mean magnitude of the GNSS quantity fitted (:func:`speed_lag`: the mean speed over ground, m/s)."""
 
 
 def _refine(lags: NDArray[np.float64], rss: NDArray[np.float64], n: int, params: int) -> tuple[float, float]:
@@ -114,7 +121,8 @@ def speed_lag(
     rms = math.sqrt(rss_lag / len(g))
     early, now, late = (scale_lag * np.abs(np.interp(tf - lag + d, tc, c)) for d in (-SLOPE_S, 0.0, SLOPE_S))
     std = max(std, _correlated_std(g - now, (early - late) / (2.0 * SLOPE_S), _signal_information(early, now, late)))
-    return LagFit(lag, std, scale_lag, 0.0, rms, len(g))
+    scale_std = _coefficient_std([now], g - now, 0) * abs(scale_lag)
+    return LagFit(lag, std, scale_lag, 0.0, rms, len(g), scale_std=scale_std, level=float(np.mean(g)))
 
 
 def _signal_information(early: NDArray[np.float64], now: NDArray[np.float64], late: NDArray[np.float64]) -> float:
@@ -148,6 +156,19 @@ def _correlated_std(residuals: NDArray[np.float64], slope: NDArray[np.float64], 
     products = np.fft.irfft(spectrum * np.conj(spectrum), 2 * n)[:n]
     quadratic = float(products[0] + 2.0 * np.sum(products[1:] * rho ** np.arange(1, n)))
     return math.sqrt(mean_square * max(quadratic, 0.0)) / information
+
+
+def _coefficient_std(columns: list[NDArray[np.float64]], residuals: NDArray[np.float64], j: int) -> float:
+    """The standard error of the least-squares coefficient of ``columns[j]`` (the others fitted beside it) with
+    the ``residuals`` correlated as :func:`_correlated_std` takes them: the column less its projection on the others
+    is what tells the coefficient. The on-line sensor check (:mod:`sumhe.frontend.sensor_check`) judges a scale by
+    it."""
+    x = columns[j]
+    others = [c for i, c in enumerate(columns) if i != j]
+    if others:
+        a = np.column_stack(others)
+        x = x - a @ np.linalg.lstsq(a, x, rcond=None)[0]
+    return _correlated_std(residuals, x, float(x @ x))
 
 
 def _grid_rss(can: NDArray[np.float64], g: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -246,6 +267,8 @@ def course_lag(
         rss, coef = _fit_lags(systems, (coef.shape[1], l0, weight))
     lag, std = _refine(lags, rss, len(rate), coef.shape[1] + 1)
     i = int(np.argmin(rss))
+    cols, y_i = systems[i]
+    scale_std = _coefficient_std(cols, y_i - np.column_stack(cols) @ coef[i], 0) if fixed_scale is None else math.nan
     row = list(coef[i]) if fixed_scale is None else [fixed_scale, *coef[i]]
     scale, intercept = row[0], row[1]
     bias = -intercept / scale if scale else math.nan
@@ -253,7 +276,7 @@ def course_lag(
     rms = math.sqrt(float(rss[i]) / len(rate))
     slope = root_w * (mean(t1 - lag - SLOPE_S, t2 - lag - SLOPE_S) - mean(t1 - lag + SLOPE_S, t2 - lag + SLOPE_S))
     std = max(std, _linear_std(rms, scale * slope / (2.0 * SLOPE_S)))
-    return LagFit(lag, std, float(scale), float(bias), rms, len(rate), lever)
+    return LagFit(lag, std, float(scale), float(bias), rms, len(rate), lever, scale_std)
 
 
 LEVER_SMOOTH_S = 0.5
@@ -282,7 +305,7 @@ def _fit_lags(
     return rss, coef
 
 
-class _Series:
+class TimeSeries:
     """(t, value) pairs appended in time order into two flat ``array('d')`` columns, forgotten from the front by
     moving a start index (the arrays compacted once half is forgotten). The learner's CAN speeds (15 000 in its
     300 s window at 50 Hz) come to each refit as numpy arrays copied in one go (2.5 us; a deque of tuples flattened
@@ -335,9 +358,11 @@ class ClockLearner:
         self.offset_s = self.initial_s = initial_s
         self.std_s = math.inf
         self.fits = 0
+        self.newest: LagFit | None = None
+        """The newest fit, sure or not (the on-line sensor check reads its speed scale)."""
         self.window_s, self.refit_s, self.max_std_s = window_s, refit_s, max_std_s
         self._fixes: deque[tuple[float, float]] = deque()
-        self._can = _Series()
+        self._can = TimeSeries()
         self._next_fit = -math.inf
 
     @property
@@ -367,10 +392,11 @@ class ClockLearner:
     def _fit(self) -> None:
         if len(self._fixes) < MIN_PAIRS or len(self._can) < 2:
             return
-        f = _columns(self._fixes)
+        f = row_array(self._fixes)
         fit = speed_lag(f[:, 0], f[:, 1], *self._can.columns())
         if fit is None:
             return
+        self.newest = fit
         if fit.std_s <= self.max_std_s:
             self.offset_s, self.std_s = -fit.lag_s, fit.std_s
             self.fits += 1
@@ -384,7 +410,8 @@ def _weighed(prior: float, prior_sd: float, value: float, sd: float) -> tuple[fl
     return prior + w * (value - prior), math.sqrt(w) * sd
 
 
-def _columns(pairs: deque[tuple[float, float]]) -> NDArray[np.float64]:
-    """``numpy.array(pairs)`` (n x 2), built from a flat iterator (``numpy.array`` inspects each tuple, 2.5 times
-    slower)."""
-    return np.fromiter(itertools.chain.from_iterable(pairs), float, 2 * len(pairs)).reshape(-1, 2)
+def row_array(rows: deque[tuple[float, ...]]) -> NDArray[np.float64]:
+    """``numpy.array(rows)`` (n x the rows' length, n > 0), built from a flat iterator (``numpy.array`` inspects
+    each tuple, 2.5 times slower)."""
+    width = len(rows[0])
+    return np.fromiter(itertools.chain.from_iterable(rows), float, width * len(rows)).reshape(-1, width)

@@ -17,6 +17,9 @@ is worth and when it counts:
   the fixes' speed over ground: a valid fix without one is counted (``fixes_without_speed``; a receiver that
   sends none had left the offset at the config's all drive without a word: the shared real drive without its
   speed signal ran 0.37 s off, every estimate's ``eph`` carrying 0.3 s of it);
+* the CAN mapping checked against the receiver (:class:`~sumhe.frontend.sensor_check.SensorCheck`): a yaw rate's
+  flipped sign, a yaw rate that does not follow the azimuth, a speed scale out of bounds, said once and counted; a
+  flipped sign turned round from the verdict on, the estimator starting over afresh there (``Epoch.fresh``);
 * the start: nothing before the first usable fix, which comes as ``Epoch(start=True)``; no sample at all for
   ``MAX_DATA_GAP_S`` restarts there (counted ``restarts``).
 
@@ -43,6 +46,7 @@ from sumhe.frontend.can import CAN_USED, CanBuffer
 from sumhe.frontend.epochs import EpochClock, bad_epoch_time
 from sumhe.frontend.fixes import LocalFix
 from sumhe.frontend.measurements import azimuth_measurement, gps_speed, gps_speed_sigma
+from sumhe.frontend.sensor_check import SensorCheck
 from sumhe.messages import CanSample
 from sumhe.records import quick_init, replace
 from sumhe.settings import EstimationSettings
@@ -113,6 +117,9 @@ class Epoch:
     fix: FixMeasurement | None
     missed: bool = False
     start: bool = False
+    fresh: bool = False
+    """With ``start``: the CAN data changed meaning before it (the yaw rate's sign turned round on line,
+    :meth:`FrontEnd._turn_yaw_round`): the CAN sensor states learned before are no longer of these data."""
     fills: bool = False
     """The fix of an epoch handed out before as ``missed`` (it came after the epoch was declared missed): the
     estimator puts it in that epoch, as a late fix (:meth:`FrontEnd._after_missed`)."""
@@ -155,6 +162,8 @@ class FrontEnd:
         self.fills_missed = True
         """Whether fixes that come after their epoch was declared missed fill it (:meth:`_after_missed`)."""
         self._limits = can_limits(settings)
+        self.check = SensorCheck(settings, tally)
+        """The on-line check of the CAN yaw rate's and speed's mapping (its verdicts outlive :meth:`reset`)."""
         self.reset()
 
     def reset(self) -> None:
@@ -163,10 +172,15 @@ class FrontEnd:
         gnss = self.settings.gnss
         self.can = CanBuffer()
         self.clock = EpochClock(gnss.period_s)
-        self.aligner = ClockLearner(gnss.time_offset_s) if gnss.learn_time_offset else None
+        self.learner = ClockLearner(gnss.time_offset_s)
+        """The fits of the receiver's speed over ground against the CAN speed: the time offset learned (applied
+        with ``learn_time_offset``: :attr:`aligner`) and the CAN speed's scale :attr:`check` judges."""
+        self.aligner = self.learner if gnss.learn_time_offset else None
+        self.check.clear()
         self._delay_s = self.settings.can.delay_s
         self.time_offset_s = gnss.time_offset_s
         self.started = False
+        self._fresh = False
         self._t_last = -math.inf
         self._t_epoch = -math.inf
         """The time of the last epoch handed out, on the CAN clock."""
@@ -227,10 +241,12 @@ class FrontEnd:
             return []
         self._check_gap(t)
         value = float(value)
+        if q == "speed":
+            self.learner.add_can_speed(t, value)
+        else:
+            self.check.add_yaw(t, value)
+            value *= self.check.yaw_sign
         store.add(t, value)
-        speed = q == "speed"
-        if speed and self.aligner is not None:
-            self.aligner.add_can_speed(t, value)
         if not self.started:
             return []
         tick = _new_tuple(CanTick, (t, stamp, q, value, q == OUTPUT_QUANTITY))
@@ -270,6 +286,8 @@ class FrontEnd:
         usable = fix.usable(sigmas)
         if fix.valid and not usable:
             self.tally.count("bad_fixes", "valid fix without a usable position or sigma taken as no fix")
+        if fix.valid:
+            self._check(fix)
         self.clock.observe(stamp, newest_can)
         self._check_gap(t)
         if not self.started:
@@ -280,7 +298,8 @@ class FrontEnd:
             self.tally.counts["epochs"] += 1
             self.can.trim(t - max(CAN_KEEP_S, 3.0 * self.period_s))
             self._t_epoch = t
-            return [Epoch(t, self.measure(fix, sigmas), start=True)]
+            fresh, self._fresh = self._fresh, False
+            return [Epoch(t, self.measure(fix, sigmas), start=True, fresh=fresh)]
         events: list[Epoch | CanTick] = self._missed(stamp)
         self.clock.last_epoch = stamp
         self.tally.counts["epochs"] += 1
@@ -326,8 +345,31 @@ class FrontEnd:
         """The fix at its stamped time plus the GNSS time offset applied now."""
         return replace(fix, t=fix.t + self.time_offset_s) if self.time_offset_s else fix
 
+    def _check(self, fix: LocalFix) -> None:
+        """A valid fix (on the CAN clock) to the sensor check, with the learner's newest speed fit."""
+        speed = fix.speed_mps
+        if speed is None or not math.isfinite(speed):
+            speed = self.can["speed"].at(fix.t, self.settings.can.max_gap_s)
+        sign = self.check.yaw_sign
+        self.check.add_fix(fix, math.nan if speed is None else speed)
+        self.check.check_speed(self.learner.newest, fix.t)
+        if self.check.yaw_sign != sign:
+            self._turn_yaw_round()
+
+    def _turn_yaw_round(self) -> None:
+        """The CAN yaw rate's sign was found flipped (:attr:`check`): the samples kept are turned round as the
+        new ones will be, and the estimator starts over at this fix (its state and window hold the wrong turns)."""
+        samples = self.can.samples["yaw_rate"]
+        samples.v[:] = [-v for v in samples.v]
+        self._fresh = True
+        if self.started:
+            self.started = False
+            self.tally.counts["restarts"] += 1
+
     def _on_can_clock(self, fix: LocalFix) -> LocalFix:
         """The fix at its time on the CAN clock: its stamped time plus the GNSS time offset (module docstring)."""
+        if isinstance(fix.t, _NUMBER) and math.isfinite(fix.t):
+            self.learner.add_fix(fix.t, fix.speed_mps if fix.valid else None)
         if self.aligner is not None and isinstance(fix.t, _NUMBER) and math.isfinite(fix.t):
             if fix.valid and fix.speed_mps is None:
                 self.tally.count(
@@ -336,7 +378,6 @@ class FrontEnd:
                     "applied; sensors.gnss.time_offset_s sets it, sumhe calibrate measures it)",
                     self.time_offset_s,
                 )
-            self.aligner.add_fix(fix.t, fix.speed_mps if fix.valid else None)
             step = OFFSET_SLEW * self.period_s
             self.time_offset_s += min(max(self.aligner.offset_s - self.time_offset_s, -step), step)
         return self._moved(fix)

@@ -164,7 +164,9 @@ class MovingHorizonEstimator(StreamEstimator):
         self._collect(wait=True)
         if epoch.start:
             assert epoch.fix is not None  # the front-end starts at a usable fix
-            self._restart()
+            if epoch.fresh:  # the output bounds were learned from CAN data that changed meaning
+                self.envelope = self._new_envelope()
+            self._restart(keep_can_states=not epoch.fresh)
             return self._begin(epoch.fix)
         if epoch.fills:
             assert epoch.fix is not None  # the front-end fills a missed epoch with a usable fix
@@ -201,12 +203,13 @@ class MovingHorizonEstimator(StreamEstimator):
 
     # ---- epochs -----------------------------------------------------------------------------------------------
 
-    def _restart(self) -> None:
-        """Forget the window to start over at a fix, keeping the CAN states of the last one (the fix is not matched
-        against the prediction given up: ``started_over``)."""
+    def _restart(self, keep_can_states: bool = True) -> None:
+        """Forget the window to start over at a fix, keeping the CAN states of the last one unless told not to (the
+        CAN data changed meaning: ``Epoch.fresh``); the fix is not matched against the prediction given up:
+        ``started_over``."""
         self.started_over = True
         md = self.model.n_dynamic
-        theta = self.window.x[-1, md:].copy() if len(self.window) else None
+        theta = self.window.x[-1, md:].copy() if len(self.window) and keep_can_states else None
         self.reset_state()
         self._theta0 = theta
 

@@ -1,0 +1,262 @@
+"""The CAN yaw rate's and speed's mapping checked on line against the receiver: a sign, an axis or a unit the config
+got wrong is said once, at ERROR, naming the key to change.
+
+Other cars' configs get a sensor's convention wrong: an OEM's yaw rate clockwise-positive, a logger's IMU mounted
+another way, a speed in mph read as km/h. The estimators cannot tell a wrong sign from a bad fix: with the yaw
+rate's sign flipped on the shared real drive the MHE ran 13.6 / 63.9 / 481.6 m off in three 30 s outages and said
+only that it kept rejecting fixes and restarting. :class:`SensorCheck` gathers, as the drive goes, the evidence
+``sumhe calibrate`` fits offline (:mod:`sumhe.calibration`), with the same functions
+(:mod:`sumhe.frontend.alignment`):
+
+* the yaw rate: the rate of the receiver's azimuth between consecutive fixes (its heading, else its course over
+  ground above ``MIN_SPEED_MPS``) against the CAN yaw rate over the same interval (:func:`course_lag`), over the
+  last :data:`WINDOW_S`; fitted once the azimuth has turned :data:`MIN_TURN_RAD` there, and again after each
+  further :data:`REFIT_TURN_RAD` (a drive that does not turn costs no fit), until the yaw-rate scale (true = scale
+  x CAN) is told :data:`CHECK_SIGMAS` standard errors from the bounds: the sign flipped (a scale within
+  -:data:`YAW_SCALE_PLAUSIBLE`), not this car's yaw rate (a scale of about 0: another axis; or beyond the bounds:
+  a unit), or fine (the check ends there);
+* the speed: the scale of the receiver's speed over ground against the CAN speed, from the fits of the time-offset
+  learner (:class:`~sumhe.frontend.alignment.ClockLearner`, every 10 s over 300 s): the CAN speed's scale (CAN = k
+  x true, what the estimators' speed-scale state bounds) outside ``1 +- sensors.can.speed_scale_max`` by
+  :data:`CHECK_SIGMAS` standard errors and half a CAN speed quantum over the mean speed (a truncated speed reads up
+  to that much low).
+
+Each finding is logged once, at ERROR, with the config key, the fitted value and its standard error, and counted
+(``yaw_rate_sign_flipped``, ``yaw_rate_not_following``, ``speed_scale_outside``: the estimator's ``stats()``, which
+``sumhe replay`` prints and the daemon's status line carries). The fallbacks: a flipped sign is unambiguous (the
+scale's magnitude plausible, 5 standard errors from it): from the verdict on the front-end turns the yaw rate round
+(:attr:`SensorCheck.yaw_sign`) and the estimator starts over at that fix afresh (``Epoch.fresh``: its CAN states,
+output bounds and consistency scales were learned from the wrong sign); on the shared real drive with ``scale =
+-1`` the MHE's 10/30 s outages after it came out at 2.22/3.26 m (2.42/3.60 mapped right; 128/143 m as mapped). A
+yaw rate that does not follow, or a speed scale out of bounds, has no one correction: the estimators keep running
+on the config as it is, and their estimates through outages stay as wrong as it until it is changed.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from sumhe.frontend.alignment import CHORD_S, MIN_PAIRS, MIN_SPEED_MPS, LagFit, TimeSeries, course_lag, row_array
+from sumhe.frontend.fixes import LocalFix
+from sumhe.frontend.measurements import chord_azimuth
+from sumhe.settings import EstimationSettings
+
+if TYPE_CHECKING:
+    from sumhe.frontend.stream import Tally
+
+WINDOW_S = 600.0
+"""The yaw-rate evidence is the last this many seconds of fixes and CAN yaw rates."""
+MIN_TURN_RAD = math.radians(180.0)
+"""The azimuth must have turned this much within the window before the yaw rate is judged."""
+REFIT_TURN_RAD = math.radians(90.0)
+"""The yaw rate is fitted again after the azimuth turned this much more (without a verdict)."""
+TURN_STEP_S = 1.0
+"""The azimuth's turning is summed over steps of at least this long (s; up to twice it), where its noise adds
+little (0.8 deg a step for a course at 5 m/s with 0.05 m/s of Doppler noise)."""
+CHECK_SIGMAS = 5.0
+"""A verdict needs the fitted scale this many standard errors from the bound it is judged against."""
+YAW_SCALE_PLAUSIBLE = (0.5, 2.0)
+"""A yaw-rate scale (true = scale x CAN) outside these is not this car's yaw rate as mapped (another axis, or a
+unit: deg/s read as rad/s is 57x), as ``sumhe calibrate`` says of it."""
+CHECK_LAGS_S = np.round(np.arange(-1.0, 1.0001, 0.1), 6)
+"""The lags (s) of the azimuth behind the CAN yaw rate tried: the fit needs the scale at the best, not the lag to a
+hundredth."""
+CHORD_JITTER = 0.9
+"""A chord may be this much shorter than ``CHORD_S[0]``: a 1 Hz receiver's stamps jitter by tens of ms, and its
+chords would otherwise span two periods, too far apart to pair (:func:`course_lag`'s ``max_gap_s``)."""
+MIN_SPEED_FIXES = 100
+"""The speed's scale is judged from fits of at least this many moving fixes."""
+
+
+def yaw_verdict(scale: float, std: float) -> str | None:
+    """What a fitted yaw-rate scale (true = scale x CAN) with standard error ``std`` says: ``"ok"``,
+    ``"sign_flipped"``, ``"not_following"``, or None while the evidence is too weak (:data:`CHECK_SIGMAS`,
+    :data:`YAW_SCALE_PLAUSIBLE`)."""
+    if not (math.isfinite(scale) and math.isfinite(std)):
+        return None
+    lo, hi = YAW_SCALE_PLAUSIBLE
+    a, b = scale - CHECK_SIGMAS * std, scale + CHECK_SIGMAS * std
+    if lo < a and b < hi:
+        return "ok"
+    if -hi < a and b < -lo:
+        return "sign_flipped"
+    if (-lo < a and b < lo) or a > hi or b < -hi:
+        return "not_following"
+    return None
+
+
+def speed_scale_outside(fit: LagFit, scale_max: float, quantum_mps: float) -> float | None:
+    """The CAN speed's scale (CAN = k x true) of a fit of the receiver's speed over ground against it
+    (:func:`~sumhe.frontend.alignment.speed_lag`) when it lies outside ``1 +- scale_max`` by :data:`CHECK_SIGMAS`
+    standard errors and half a ``quantum_mps`` over the mean speed (a truncated CAN speed reads up to that much
+    low), else None."""
+    if not (fit.scale > 0 and math.isfinite(fit.scale_std) and fit.level > 0):
+        return None
+    k = 1.0 / fit.scale
+    k_std = fit.scale_std / fit.scale**2
+    margin = scale_max + 0.5 * quantum_mps / fit.level + CHECK_SIGMAS * k_std
+    return k if abs(k - 1.0) > margin else None
+
+
+class SensorCheck:
+    """The on-line check of the CAN yaw rate and speed against the receiver (see the module docstring), for one
+    estimator's front-end: :meth:`add_yaw` per CAN yaw rate, :meth:`add_fix` per valid fix (times on the CAN
+    clock), :meth:`check_speed` with the time-offset learner's newest fit; findings go to ``tally`` (a
+    :class:`~sumhe.frontend.stream.Tally`)."""
+
+    def __init__(self, settings: EstimationSettings, tally: Tally) -> None:
+        self.settings = settings
+        self.tally = tally
+        self.yaw_done = False
+        """A verdict on the yaw rate was reached: nothing more is gathered."""
+        self.yaw_sign = 1.0
+        """-1 once the yaw rate's sign is found flipped: the front-end turns the CAN yaw rate round from then on."""
+        self.speed_done = False
+        self._speed_fit: LagFit | None = None
+        self.clear()
+
+    def clear(self) -> None:
+        """Forget the evidence gathered (a clock jump); the verdicts stay (the config did not change)."""
+        self._yaw = TimeSeries()
+        self._fixes: deque[tuple[float, float, float, float]] = deque()
+        self._turns: deque[tuple[float, float]] = deque()
+        self._turned = 0.0
+        """The azimuth's turning (rad) in :attr:`_turns`, the window's."""
+        self._turned_total = 0.0
+        self._fitted_at = -math.inf
+        self._anchor: tuple[float, float] | None = None
+        self._chord_start: tuple[float, float, float] | None = None
+        self._t0 = math.nan
+
+    def add_yaw(self, t: float, yaw_rps: float) -> None:
+        """A CAN yaw rate (s on the CAN clock, rad/s as mapped)."""
+        if not self.yaw_done:
+            self._yaw.append(t, yaw_rps)
+
+    def add_fix(self, fix: LocalFix, speed_mps: float) -> None:
+        """A valid fix (its time on the CAN clock) and its speed (m/s: over ground, else the CAN's; NaN if
+        neither). Its azimuth: its heading (with ``sensors.gnss.use_heading``), else its course over ground, else
+        the course from the position :data:`CHORD_S` before (:meth:`_chord`)."""
+        if self.yaw_done:
+            return
+        t = fix.t
+        if math.isnan(self._t0):
+            self._t0 = t
+        heading = math.nan if fix.heading_rad is None or not self.settings.gnss.use_heading else fix.heading_rad
+        course = math.nan if fix.course_rad is None else fix.course_rad
+        if not (math.isfinite(heading) or math.isfinite(course)):
+            t, course = self._chord(t, fix.east_m, fix.north_m)
+            if not math.isfinite(course):
+                return
+        self._fixes.append((t, heading, course, speed_mps))
+        self._turn(t, heading if math.isfinite(heading) else course, speed_mps)
+        t_min = t - WINDOW_S
+        while self._fixes[0][0] < t_min:
+            self._fixes.popleft()
+        while self._turns and self._turns[0][0] < t_min:
+            self._turned -= self._turns.popleft()[1]
+        self._yaw.trim(t_min - 2.0, keep=2)
+        if self._turned >= MIN_TURN_RAD and self._turned_total >= self._fitted_at + REFIT_TURN_RAD:
+            self._fitted_at = self._turned_total
+            self._judge_yaw(t)
+
+    def _chord(self, t: float, east_m: float, north_m: float) -> tuple[float, float]:
+        """The middle time (s) and azimuth (rad) of the chord from the fix :data:`CHORD_S` before (its first to
+        second element in seconds) to this one, or ``(t, NaN)`` where none ends here: a receiver that sends no
+        course or heading still turns with its positions (thinned: 10 Hz positions' noise swamps a 0.1 s chord)."""
+        start = self._chord_start
+        if start is not None and t - start[0] < CHORD_JITTER * CHORD_S[0]:
+            return t, math.nan
+        self._chord_start = (t, east_m, north_m)
+        if start is None or t - start[0] > CHORD_S[1]:
+            return t, math.nan
+        chord = chord_azimuth(east_m - start[1], north_m - start[2], 0.0, t - start[0], 0.0)
+        return 0.5 * (t + start[0]), math.nan if chord is None else chord[0]
+
+    def _turn(self, t: float, azimuth: float, speed_mps: float) -> None:
+        """Sum the azimuth's turning over steps of :data:`TURN_STEP_S` to 2 x it while moving."""
+        if not (math.isfinite(azimuth) and abs(speed_mps) > MIN_SPEED_MPS):
+            self._anchor = None
+            return
+        anchor = self._anchor
+        if anchor is None or t - anchor[0] > 2.0 * TURN_STEP_S:
+            self._anchor = (t, azimuth)
+        elif t - anchor[0] >= TURN_STEP_S:
+            turn = abs(math.remainder(azimuth - anchor[1], math.tau))
+            self._turns.append((t, turn))
+            self._turned += turn
+            self._turned_total += turn
+            self._anchor = (t, azimuth)
+
+    def _judge_yaw(self, t: float) -> None:
+        f = row_array(self._fixes)
+        heading = np.count_nonzero(np.isfinite(f[:, 1])) >= MIN_PAIRS
+        azimuth, source = (f[:, 1], "heading") if heading else (f[:, 2], "course (over ground, or between positions)")
+        fit = course_lag(f[:, 0], azimuth, f[:, 3], *self._yaw.columns(), CHECK_LAGS_S, speed_weighted=not heading)
+        if fit is None:
+            return
+        verdict = yaw_verdict(fit.scale, fit.scale_std)
+        if verdict is None:
+            return
+        self.yaw_done = True
+        self._yaw, self._fixes, self._turns = TimeSeries(), deque(), deque()
+        found = (
+            f"scale {fit.scale:.3f} +- {fit.scale_std:.3f} (true = scale x CAN) from the receiver's {source} over "
+            f"{fit.n} pairs of fixes, {math.degrees(self._turned):.0f} deg turned, {t - self._t0:.0f} s into the data"
+        )
+        if verdict == "ok":
+            self.tally.log.info("%s: the CAN yaw rate follows the receiver's azimuth: %s", self.tally.name, found)
+        elif verdict == "sign_flipped":
+            self.yaw_sign = -1.0
+            self.tally.count(
+                "yaw_rate_sign_flipped",
+                "the CAN yaw rate turns against the receiver's azimuth: %s; set scale = -1 (times the scale it has) in "
+                "can.signals.yaw_rate (left turns must read positive). Until then its sign is turned round on line "
+                "from here, and the estimator starts over at this fix (what it estimated before turned the wrong way "
+                "through outages)",
+                found,
+                level=logging.ERROR,
+            )
+        else:
+            self.tally.count(
+                "yaw_rate_not_following",
+                "the CAN yaw rate does not follow the receiver's azimuth: %s; check can.signals.yaw_rate (another axis "
+                "of the sensor? its unit, or scale?). The estimates run on the config as it is: through outages "
+                "their heading is wrong",
+                found,
+                level=logging.ERROR,
+            )
+
+    def check_speed(self, fit: LagFit | None, t: float) -> None:
+        """Judge the CAN speed's scale by ``fit``, the time-offset learner's newest fit (once each), at ``t`` (s,
+        CAN clock)."""
+        if self.speed_done or fit is None or fit is self._speed_fit:
+            return
+        self._speed_fit = fit
+        if math.isnan(self._t0):
+            self._t0 = t
+        if fit.n < MIN_SPEED_FIXES:
+            return
+        can = self.settings.can
+        k = speed_scale_outside(fit, can.speed_scale_max, can.speed_quantum_mps)
+        if k is None:
+            return
+        self.speed_done = True
+        self.tally.count(
+            "speed_scale_outside",
+            "the CAN speed reads %.3f +- %.3f x the receiver's speed over ground (%d fixes, %.0f s into the data), "
+            "outside 1 +- sensors.can.speed_scale_max = %g: check can.signals.speed (its unit, or scale: mph read "
+            "as km/h is 0.621x, km/h as mph 1.609x; sumhe calibrate measures it). The estimates run on the config "
+            "as it is: through outages their distance is off by as much",
+            k,
+            fit.scale_std / fit.scale**2,
+            fit.n,
+            t - self._t0,
+            can.speed_scale_max,
+            level=logging.ERROR,
+        )
