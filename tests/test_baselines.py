@@ -425,8 +425,8 @@ def _imm_through_a_gentle_curve(yaw_rate: float, seconds: float) -> Imm:
     dt = 0.02
     for _ in range(round(seconds / dt)):
         inputs = Inputs(15.0, yaw_rate + rng.normal(0.0, imm.noise.can_yaw_rate_rps), False)
-        imm._predict(dt, inputs)
-        imm._can_update(inputs)
+        imm._update_can(inputs)
+        imm._step(dt)
     return imm
 
 
@@ -785,7 +785,7 @@ def turn_then_outage(speed_period_s: float) -> list[LocalFix | CanSample]:
     return straight_then_turn(20.0, 10.0, 0.2, turn_until=15.0, speed_period_s=speed_period_s, fix_period_s=1.0, seed=5)
 
 
-@pytest.mark.parametrize("filter_class", [Ekf, Ukf, Rts])
+@pytest.mark.parametrize("filter_class", [Ekf, Ukf, Rts, Imm])
 @pytest.mark.parametrize("speed_period_s", [0.02, 0.5])
 def test_the_azimuth_stops_turning_when_the_gyro_does(filter_class: type, speed_period_s: float) -> None:
     """A step turns the azimuth by the CAN yaw rate of its own interval, not by the previous one's: with the CAN
@@ -799,7 +799,7 @@ def test_the_azimuth_stops_turning_when_the_gyro_does(filter_class: type, speed_
     assert math.degrees(kin.wrap_angle(f._mean()[kin.PHI] + 1.0)) == pytest.approx(0.0, abs=0.3)
 
 
-@pytest.mark.parametrize("filter_class", [Ekf, Ukf, Rts])
+@pytest.mark.parametrize("filter_class", [Ekf, Ukf, Rts, Imm])
 def test_a_state_ahead_of_the_can_data_takes_every_yaw_rate_sample(filter_class: type) -> None:
     """Fixes 0.3 s ahead of the CAN data (a GNSS clock behind the CAN clock; ``sensors.can.delay_s`` here), 10 Hz:
     each step to a fix finds the yaw-rate samples of its interval not there yet, and the ticks after it, older than
