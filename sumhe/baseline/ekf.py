@@ -233,49 +233,13 @@ class TimedSpeed(RecursiveEstimator):
         return timed_speed_sigma(fix.speed_sigma_mps, acceleration, learner.sigma_s)
 
 
-class GaussianFilter(LeverCourse, TimedSpeed):
-    """A filter whose belief is a mean ``x`` and a covariance ``P`` (the layout of :mod:`.kinematics`); its noise
-    is its own table's (:meth:`tuned`) unless given. It takes each CAN yaw-rate sample once (``_t_yaw``: the time
-    up to which the samples are taken), before the step through its time where the sample is there when the step
-    is taken (:meth:`_untaken_yaw_rate`); a subclass supplies the time update (:meth:`_step`) and the update with
-    CAN rows (:meth:`_update_can`)."""
+class YawRateBeforeStep(RecursiveEstimator):
+    """A recursive estimator that takes each CAN yaw-rate sample once (``_t_yaw``: the time up to which the samples
+    are taken), before the step through its time where the sample is there when the step is taken
+    (:meth:`_untaken_yaw_rate`; the Kalman family: ``ekf``, ``ukf``, ``rts`` and ``imm``); a subclass supplies the
+    time update (:meth:`_step`) and the update with CAN rows (:meth:`_update_can`)."""
 
-    x: FloatArray
-    P: FloatArray
     _t_yaw: float
-    snapshot_attrs = ("x", "P", "_t_yaw")
-
-    def __init__(self, settings: EstimationSettings | None = None, noise: NoiseSettings | None = None) -> None:
-        settings = settings or EstimationSettings()
-        super().__init__(settings, noise or self.tuned(settings))
-
-    @classmethod
-    def from_config(cls, config: Config) -> GaussianFilter:
-        return cls(config.estimation)
-
-    @staticmethod
-    def tuned(settings: EstimationSettings) -> NoiseSettings:
-        """The noise of its table, ``[estimator.ekf]``."""
-        return settings.estimator.ekf
-
-    def _reset_filter(self) -> None:
-        self.x = np.zeros(self.layout.n)
-        self.P = np.eye(self.layout.n)
-
-    def _start(self, x0: FloatArray, P0: FloatArray) -> None:
-        self.x, self.P = x0.copy(), P0.copy()
-
-    def _inflate(self, kind: str, nu: FloatArray, R: FloatArray) -> None:
-        self.P = inflate(self.P, kind, nu, R)
-
-    def _init_heading(self, phi: float, sigma: float) -> None:
-        self.x, self.P = set_heading(self.x, self.P, phi, sigma)
-
-    def _mean(self) -> FloatArray:
-        return self.x
-
-    def _covariance(self) -> FloatArray:
-        return self.P
 
     def _begin(self, fix: FixMeasurement) -> None:
         """Start at ``fix``: the yaw-rate samples before it are not taken."""
@@ -332,6 +296,48 @@ class GaussianFilter(LeverCourse, TimedSpeed):
             return None
         self._t_yaw = min(t, samples.newest)
         return mean[0]
+
+
+class GaussianFilter(LeverCourse, TimedSpeed, YawRateBeforeStep):
+    """A filter whose belief is a mean ``x`` and a covariance ``P`` (the layout of :mod:`.kinematics`); its noise
+    is its own table's (:meth:`tuned`) unless given. It takes each CAN yaw-rate sample once, before the step
+    through its time (:class:`YawRateBeforeStep`)."""
+
+    x: FloatArray
+    P: FloatArray
+    snapshot_attrs = ("x", "P", "_t_yaw")
+
+    def __init__(self, settings: EstimationSettings | None = None, noise: NoiseSettings | None = None) -> None:
+        settings = settings or EstimationSettings()
+        super().__init__(settings, noise or self.tuned(settings))
+
+    @classmethod
+    def from_config(cls, config: Config) -> GaussianFilter:
+        return cls(config.estimation)
+
+    @staticmethod
+    def tuned(settings: EstimationSettings) -> NoiseSettings:
+        """The noise of its table, ``[estimator.ekf]``."""
+        return settings.estimator.ekf
+
+    def _reset_filter(self) -> None:
+        self.x = np.zeros(self.layout.n)
+        self.P = np.eye(self.layout.n)
+
+    def _start(self, x0: FloatArray, P0: FloatArray) -> None:
+        self.x, self.P = x0.copy(), P0.copy()
+
+    def _inflate(self, kind: str, nu: FloatArray, R: FloatArray) -> None:
+        self.P = inflate(self.P, kind, nu, R)
+
+    def _init_heading(self, phi: float, sigma: float) -> None:
+        self.x, self.P = set_heading(self.x, self.P, phi, sigma)
+
+    def _mean(self) -> FloatArray:
+        return self.x
+
+    def _covariance(self) -> FloatArray:
+        return self.P
 
 
 class Ekf(GaussianFilter):

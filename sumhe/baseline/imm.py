@@ -1,18 +1,27 @@
 """Interacting multiple models (``imm``): two EKF cells on the shared state, a straight and a curved model.
 
 Paper 003's IMM switches between a non-manoeuvring ("straight") and a manoeuvring ("curved") kinematic model of
-the vehicle; the models differ in their dynamics, not only in their noise:
+the vehicle. Both of 003's models carry the vehicle's orientation and its rate (``theta``, ``theta'``, the rate a
+random walk of ``theta''``): the orientation turns by the yaw rate in both, and they differ in the angle of the
+velocity to the vehicle, to first order in the straight model (so that "both straight and mild trajectories fulfill
+the kinematical definition of the model") and to second order in the curved one. The shared state has no such
+angle (its azimuth is the velocity's), so both cells are the shared su5 step, the azimuth turning with the yaw rate
+(``phi' = -omega``, the CAN yaw rate ``omega + b`` measuring it), and they differ in how fast the turning may
+change: the yaw rate's random walk ``yaw_rate_rw`` of the straight model's noise (the EKF's) and the curved
+model's, 4x louder (both scale with the step, so which model predicts a steady yaw rate better does not depend on
+the CAN rate).
 
-* straight (constant velocity and heading): ``east' = v sin phi, north' = v cos phi, phi' = 0``, and the yaw rate
-  is about zero, ``omega_k+1 = w, w ~ N(0, straight_yaw_rate_rps^2)`` (white, not a random walk): the azimuth
-  does not integrate the yaw rate, mild curves are the azimuth's random walk ``heading_rw``;
-* curved (coordinated turn): the shared su5 step, the azimuth turning with the yaw rate (``phi' = -omega``),
-  ``omega`` a random walk, as the EKF.
+The CAN yaw rate is what tells them apart: where the yaw rate changes fast (into and out of a turn) the straight
+cell's yaw-rate innovation leaves its predicted spread, its likelihood (003 eq. 20, ``exp(-d^2/2) / sqrt((2 pi)^M
+|S|)`` with ``d^2 = nu' S^-1 nu``, eq. 19) collapses and the curved model takes over; at a steady yaw rate,
+straight or a gentle bend, the straight cell predicts the CAN data more tightly and is kept. Before, the straight
+cell held its azimuth and drew its yaw rate about zero at every step (white, sigma 0.01 rad/s): a minute-long gentle
+bend (26 deg at 0.0075 rad/s) stayed within that sigma, the straight cell kept the probability (``p_turn``
+0.03-0.07) and an azimuth 10-26 deg off with a sigma of 0.3-0.5 deg, half the fixes after it failed the gate and
+the outages starting there ended hundreds of metres off: on the shared real drive without the receiver's heading
+9.0 / 23.6 / 49.6 m mean in its 10 / 30 / 60 s outages (the EKF 3.2 / 4.6 / 5.9 m), with ``eph`` 8-14 times the
+median error; a cell whose yaw rate is about zero explains a bend's steady CAN yaw rate as the CAN's bias, too.
 
-The CAN yaw rate (``omega + b``, every CAN speed sample) is what tells them apart: in a turn the straight cell's
-innovation ``z - b`` is the turn's yaw rate, its likelihood (003 eq. 20, ``exp(-d^2/2) / sqrt((2 pi)^M |S|)``
-with ``d^2 = nu' S^-1 nu``, eq. 19) collapses and the curved model takes over; on a straight road both predict the
-CAN data alike and the straight cell, whose azimuth ignores the CAN yaw rate's noise and bias error, is kept.
 Model probabilities follow Bayes' rule (eq. 21) after the interaction (mixing) of the cells; the switching is a
 two-state Markov chain, ``Pi[i, j] = P(model j after dt | model i before)``, with mean sojourn times whose 1 s
 transition matrix is paper 002's, trained on real driving data (its Sigma = [[0.9168, 0.0832], [0.2328,
@@ -22,6 +31,14 @@ estimate is the mixture's covariance with the offset of a receiver's heading con
 (:class:`Imm`; the estimates do not change) and with the turn the mixture dropped since the newest position fix
 (:func:`dropped_turn`).
 
+Like the EKF, it takes each CAN yaw-rate sample before the step through its time
+(:class:`~sumhe.baseline.ekf.YawRateBeforeStep`). Taken at the CAN speed tick after the step, the azimuth turned
+through each step at the rate of the interval before it, one CAN speed period late (0.5 s on the shared real drive),
+on past each turn's end: that drive's 60 s outage after a 21 deg turn (at 1470 s) ended 56.0 m off, 13.7 m now, and
+its 10 / 30 / 60 s outages 4.06 / 6.31 / 9.05 -> 3.84 / 4.96 / 6.37 m mean (the EKF's figures); on the realistic
+profile, whose seed-2 drives' CAN yaw rate reads 8.5 % high (a gain the filter does not model), the outages 6.87 ->
+7.01 m, with GPS 3.69 -> 3.74 m, as the EKF's moved with the same change.
+
 Its cells weigh the GNSS data as the other Kalman filters do: a course with the lever arm's error at the mixture's
 yaw rate and speed (:class:`~sumhe.baseline.ekf.LeverCourse`: the model has no antenna offset) and a speed over
 ground with the error of its uncertain time (:class:`~sumhe.baseline.ekf.TimedSpeed`). Without them, on the
@@ -30,15 +47,14 @@ a second of such courses it snapped both cells' azimuth to them (16 deg off, hel
 off after 5 s), and the speed scale took the first acceleration's speed over ground (13 % off at 8 s, 2.5 % at
 30 s: 7-8 m behind with GPS on a highway, 13 m at the end of a 10 s outage).
 
-The dropped turn: a gentle curve leaves the straight model, whose yaw rate drawn about zero explains a noisy CAN
-yaw rate as well, much of the probability (on the shared real drive the curved model's mean probability was 0.26 and
-0.48 at CAN yaw rates of 0.005-0.01 and 0.01-0.02 rad/s, a fifth of the drive's turning), and the mixture, its cells
-drawn together by the interaction at every step, turns by the curved cell's turn times its probability: on that drive
-the turn the mixture so dropped over a 60 s outage reached 0.31 and 0.34 rad, whose cross-track error (``turn x
-speed x duration / 2``: 196 and 246 m) is what the fixes after the outage found (188 and 421 m). The mixture's
+The dropped turn: the mixture, its cells drawn together by the interaction at every step, turns by their turns
+weighted by their probabilities, ``mu_straight x (curved turn - straight turn)`` less than the curved cell where the
+curved model is right. When the straight cell held its azimuth (above), on the shared real drive the turn the
+mixture so dropped over a 60 s outage reached 0.31 and 0.34 rad, whose cross-track error (``turn x speed x duration
+/ 2``: 196 and 246 m) is what the fixes after the outage found (188 and 421 m); both cells now turn by their own yaw
+rate and differ only where the straight cell's lags the curved one's (a turn's start and end). The mixture's
 covariance holds the cells' spread at each step only, and the interaction turns a divergence of one sign, step after
-step, into independent steps of a random walk: the straight cell's azimuth covariance grew by its ``heading_rw``,
-a few mrad, while the azimuth was off by tenths of a radian. The turn the curved model makes and the mixture does
+step, into independent steps of a random walk. The turn the curved model makes and the mixture does
 not is the mixture's error where the curved model is right; it is carried as a considered error (the estimates do
 not change) from one position fix to the next: the azimuth's and the position's it makes along the way moved. Its
 part of the position's variance is a known error's size, not the filter's belief: the error estimate adds it as it
@@ -57,6 +73,7 @@ from sumhe.baseline import kinematics as kin
 from sumhe.baseline.ekf import (
     LeverCourse,
     TimedSpeed,
+    YawRateBeforeStep,
     can_measurement,
     considered,
     considered_part_m2,
@@ -71,7 +88,7 @@ from sumhe.baseline.ekf import (
     set_heading,
 )
 from sumhe.baseline.heading_offset import UsesPositionFixes, heading_offset_variance
-from sumhe.baseline.kinematics import AZIMUTH, OMEGA, PHI, E, FloatArray, N
+from sumhe.baseline.kinematics import AZIMUTH, PHI, E, FloatArray, N
 from sumhe.baseline.stream import Inputs, Pending
 from sumhe.config import Config
 from sumhe.settings import EstimationSettings, NoiseSettings
@@ -84,22 +101,6 @@ def transition_matrix(dt: float, sojourn_s: tuple[float, float]) -> FloatArray:
     """Markov switching probabilities over ``dt`` seconds: ``Pi[i, j]`` = P(model j after | model i before)."""
     leave = [1.0 - math.exp(-dt / s) for s in sojourn_s]
     return np.array([[1.0 - leave[0], leave[0]], [leave[1], 1.0 - leave[1]]])
-
-
-def straight_step(
-    x: FloatArray, dt: float, noise: NoiseSettings, layout: kin.Layout, yaw_rate_sigma: float
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """The straight model's state ``dt`` seconds on, the step's Jacobian and its process noise (as
-    :func:`~sumhe.baseline.ekf.ekf_step`): the su5 step at zero yaw rate (the azimuth held), and the yaw rate drawn
-    anew about zero with sigma ``yaw_rate_sigma`` (rad/s); the other states as the shared model."""
-    x0 = x.copy()
-    x0[OMEGA] = 0.0
-    F = kin.step_jacobian(x0, dt)
-    F[:, OMEGA] = 0.0  # the step ignores the yaw rate ...
-    F[OMEGA, :] = 0.0  # ... which starts again from zero
-    Q = kin.process_noise(dt, noise, layout)
-    Q[OMEGA, OMEGA] = yaw_rate_sigma**2
-    return kin.wrap_state(kin.step(x0, dt)), F, Q
 
 
 def mix(
@@ -136,7 +137,7 @@ def dropped_turn(dropped: FloatArray, moved: FloatArray, turn: float) -> FloatAr
     return out
 
 
-class Imm(UsesPositionFixes, LeverCourse, TimedSpeed):
+class Imm(UsesPositionFixes, LeverCourse, TimedSpeed, YawRateBeforeStep):
     """IMM of a straight and a curved EKF cell (``imm``).
 
     Its error estimate considers the offset of a receiver's heading as the EKF does (:class:`~sumhe.baseline.ekf.
@@ -151,14 +152,13 @@ class Imm(UsesPositionFixes, LeverCourse, TimedSpeed):
     at the starts of the 60 s outages)."""
 
     name = "imm"
-    snapshot_attrs = ("xs", "Ps", "Pts", "mu", "_dropped")
+    snapshot_attrs = ("xs", "Ps", "Pts", "mu", "_dropped", "_t_yaw")
 
     def __init__(
         self,
         settings: EstimationSettings | None = None,
         models: tuple[NoiseSettings, NoiseSettings] | None = None,
         sojourn_s: tuple[float, float] | None = None,
-        straight_yaw_rate_rps: float | None = None,
     ) -> None:
         settings = settings or EstimationSettings()
         table = settings.estimator.imm
@@ -167,10 +167,6 @@ class Imm(UsesPositionFixes, LeverCourse, TimedSpeed):
         if len(sojourn_s) != 2 or not all(math.isfinite(s) and s > 0 for s in sojourn_s):
             raise ValueError(f"sojourn_s: two positive times (s), got {sojourn_s!r}")
         self.sojourn_s = sojourn_s
-        sigma = table.straight_yaw_rate_rps if straight_yaw_rate_rps is None else straight_yaw_rate_rps
-        if not (math.isfinite(sigma) and sigma >= 0):
-            raise ValueError(f"straight_yaw_rate_rps: must be a finite number >= 0, got {sigma!r}")
-        self.straight_yaw_rate_rps = sigma
         super().__init__(settings, self.models[0])
         self._offset_var = heading_offset_variance(self.settings)
 
@@ -200,23 +196,19 @@ class Imm(UsesPositionFixes, LeverCourse, TimedSpeed):
         p = np.maximum(p / p.sum(), MU_MIN)
         self.mu = p / p.sum()
 
-    def _predict(self, dt: float, inputs: Inputs) -> None:
+    def _step(self, dt: float) -> None:
         self.xs, (self.Ps, self.Pts), self.mu = mix(
             self.xs, (self.Ps, self.Pts), self.mu, transition_matrix(dt, self.sojourn_s)
         )
-        before, curved_before = self._mean(), self.xs[1]
-        straight, curved = self.models
-        steps = (
-            straight_step(self.xs[0], dt, straight, self.layout, self.straight_yaw_rate_rps),
-            ekf_step(self.xs[1], dt, curved, self.layout),
-        )
-        for j, (x, F, Q) in enumerate(steps):
+        before, cells_before = self._mean(), list(self.xs)
+        for j, model in enumerate(self.models):
+            x, F, Q = ekf_step(self.xs[j], dt, model, self.layout)
             self.xs[j], self.Ps[j], self.Pts[j] = x, kf_predict(self.Ps[j], F, Q), considered_predict(self.Pts[j], F, Q)
-        turn = kin.state_difference(self.xs[1], curved_before)[PHI]  # the straight cell's azimuth is held
+        turns = [kin.state_difference(x, x0)[PHI] for x, x0 in zip(self.xs, cells_before, strict=True)]
         moved = kin.state_difference(self._mean(), before)
-        self._dropped = dropped_turn(self._dropped, moved, float(self.mu[0] * turn))
+        self._dropped = dropped_turn(self._dropped, moved, float(self.mu[0] * (turns[1] - turns[0])))
 
-    def _can_update(self, inputs: Inputs) -> None:
+    def _update_can(self, inputs: Inputs) -> None:
         loglik = []
         for j in range(len(self.models)):
             measured = can_measurement(self.xs[j], inputs, self.noise, self.layout)

@@ -191,7 +191,7 @@ SEARCH_PARAMETERS: dict[str, tuple[str, ...]] = {
     ),
     "mskf-em": ("pos_rw", "heading_rw", "bias_rw", "scale_rw", "gps_scale", "course_rad"),
     "sr-upf": ("pos_rw", "heading_rw", "bias_rw", "scale_rw", "gps_scale", "course_rad"),
-    "imm": ("straight_yaw_rate_rps", "straight.heading_rw", "straight.pos_rw", "turn.yaw_rate_rw", "turn.heading_rw"),
+    "imm": ("straight.yaw_rate_rw", "straight.heading_rw", "straight.pos_rw", "turn.yaw_rate_rw", "turn.heading_rw"),
 }
 """What the search tunes per estimator (an estimator not tuned yet starts from the EKF's values). ``gtsam-fls``: its
 odometry's model errors and CAN sigmas, the calibration's random walks, the GNSS position, speed-over-ground and course
@@ -210,7 +210,6 @@ SEARCH_BOUNDS: dict[str, tuple[float, float]] = {
     "gps_scale": (0.5, 10.0),
     "sog_scale": (0.5, 10.0),
     "course_rad": (1e-4, 0.2),
-    "straight_yaw_rate_rps": (1e-3, 0.2),
 }
 """Where the search may go, by the parameter's field name (``turn.heading_rw`` is a ``heading_rw``), SI units: what
 real vehicles and receivers allow. A GNSS sigma at most halved (a receiver is not twice as good as it says), CAN
@@ -229,14 +228,13 @@ def candidates(param: str, current: float, factors: Sequence[float] = SEARCH_FAC
 
 
 def start_values(name: str, settings: EstimationSettings | None = None) -> dict[str, Any]:
-    """Where the search of ``name`` starts: the current defaults of its table (for the IMM, its two models, the
-    straight model's yaw-rate sigma and the sojourn times, which are paper 002's and not searched)."""
+    """Where the search of ``name`` starts: the current defaults of its table (for the IMM, its two models and the
+    sojourn times, which are paper 002's and not searched)."""
     table = (settings or EstimationSettings()).estimator
     if name == "imm":
         return {
             "straight": table.imm.straight,
             "turn": table.imm.turn,
-            "straight_yaw_rate_rps": table.imm.straight_yaw_rate_rps,
             "sojourn_straight_s": table.imm.sojourn_straight_s,
             "sojourn_turn_s": table.imm.sojourn_turn_s,
         }
@@ -278,7 +276,6 @@ def build(name: str, settings: EstimationSettings, values: dict[str, Any] | None
             settings,
             models=(values["straight"], values["turn"]),
             sojourn_s=(values["sojourn_straight_s"], values["sojourn_turn_s"]),
-            straight_yaw_rate_rps=values["straight_yaw_rate_rps"],
         )
     if name in PEER_TABLES:  # the registry imports it (GTSAM only when asked for: the optional ``sumhe[peers]``)
         table = dataclasses.replace(getattr(settings.estimator, PEER_TABLES[name]), **values)

@@ -80,9 +80,8 @@ UPF_TUNED = dataclasses.replace(PF_TUNED, pos_rw=0.00078125, bias_rw=2.5e-05)
 stayed; ``docs/baselines.md``)."""
 IMM_STRAIGHT_TUNED = dataclasses.replace(EKF_TUNED, heading_rw=0.0005)
 IMM_TURN_TUNED = dataclasses.replace(EKF_TUNED, heading_rw=0.00025, yaw_rate_rw=0.0375)
-IMM_STRAIGHT_YAW_RATE_RPS = 0.01
-"""The IMM's cells, searched from the EKF's values (``sumhe bench tune search imm``): the curved one is the EKF's
-model, the straight one holds its azimuth and draws its yaw rate about zero with this sigma (rad/s)."""
+"""The IMM's cells, searched from the EKF's values (``sumhe bench tune search imm``): both the EKF's model, the
+curved one's yaw rate a 4x louder random walk."""
 MSKF_TUNED = dataclasses.replace(
     EKF_TUNED,
     pos_rw=0.003125,
@@ -126,19 +125,17 @@ class ParticleSettings:
 @dataclass(frozen=True, slots=True)
 class ImmSettings:
     """``[estimator.imm]``: the straight and curved cells' noise (``[estimator.imm.straight]``,
-    ``[estimator.imm.turn]``; measurement noise, gate and priors come from the straight one), the straight model's
-    yaw-rate sigma about zero (rad/s; its ``yaw_rate_rw`` is not used) and the mean time (s) the vehicle stays in
-    each model: paper 002's transition matrix per 1 s, ``-1 / ln(0.9168)`` and ``-1 / ln(0.7672)``."""
+    ``[estimator.imm.turn]``; measurement noise, gate and priors come from the straight one) and the mean time (s)
+    the vehicle stays in each model: paper 002's transition matrix per 1 s, ``-1 / ln(0.9168)`` and
+    ``-1 / ln(0.7672)``."""
 
     straight: NoiseSettings = field(default_factory=lambda: IMM_STRAIGHT_TUNED)
     turn: NoiseSettings = field(default_factory=lambda: IMM_TURN_TUNED)
-    straight_yaw_rate_rps: float = IMM_STRAIGHT_YAW_RATE_RPS
     sojourn_straight_s: float = -1.0 / math.log(0.9168)
     sojourn_turn_s: float = -1.0 / math.log(0.7672)
 
     def __post_init__(self) -> None:
         positive(self, "sojourn_straight_s", "sojourn_turn_s")
-        non_negative(self, "straight_yaw_rate_rps")
 
     @property
     def sojourn_s(self) -> tuple[float, float]:
