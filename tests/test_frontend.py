@@ -19,7 +19,8 @@ from sumhe.frontend.can import CanBuffer
 from sumhe.frontend.epochs import EpochClock, nominal_period
 from sumhe.frontend.fixes import FixConverter, LocalFix
 from sumhe.frontend.measurements import azimuth_measurement, chord_azimuth, course_sigma, fix_sigmas, gps_speed
-from sumhe.frontend.stream import MAX_DATA_GAP_S, CanTick, Epoch, FrontEnd, Tally
+from sumhe.frontend.stream import MAX_DATA_GAP_S, CanTick, Epoch, FrontEnd
+from sumhe.frontend.tally import Tally
 from sumhe.messages import CanSample, GnssFix
 from sumhe.settings import EstimationSettings, GnssModel, with_changes
 

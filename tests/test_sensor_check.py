@@ -18,7 +18,8 @@ from sumhe.estimator.mhe import MovingHorizonEstimator
 from sumhe.frontend.alignment import LagFit
 from sumhe.frontend.fixes import LocalFix
 from sumhe.frontend.sensor_check import CHECK_SIGMAS, speed_scale_outside, yaw_verdict
-from sumhe.frontend.stream import CanTick, Epoch, FrontEnd, Tally
+from sumhe.frontend.stream import CanTick, Epoch, FrontEnd
+from sumhe.frontend.tally import Tally
 from sumhe.messages import CanSample
 from sumhe.settings import EstimationSettings
 from sumhe.sim import SimSettings, simulate

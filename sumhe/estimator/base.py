@@ -39,7 +39,8 @@ import numpy as np
 
 from sumhe.estimator.uncertainty import InnovationScale, Spread, along, drift_variance, gpsd_errors
 from sumhe.frontend.fixes import LocalFix
-from sumhe.frontend.stream import CanTick, Epoch, FixMeasurement, FrontEnd, Tally
+from sumhe.frontend.stream import CanTick, Epoch, FixMeasurement, FrontEnd
+from sumhe.frontend.tally import Tally
 from sumhe.geo import LocalFrame
 from sumhe.messages import CanSample, Estimate, GpsStatus
 from sumhe.records import quick_init

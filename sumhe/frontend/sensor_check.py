@@ -37,17 +37,14 @@ from __future__ import annotations
 import logging
 import math
 from collections import deque
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from sumhe.frontend.alignment import CHORD_S, MIN_PAIRS, MIN_SPEED_MPS, LagFit, TimeSeries, course_lag, row_array
 from sumhe.frontend.fixes import LocalFix
 from sumhe.frontend.measurements import chord_azimuth
+from sumhe.frontend.tally import Tally
 from sumhe.settings import EstimationSettings
-
-if TYPE_CHECKING:
-    from sumhe.frontend.stream import Tally
 
 WINDOW_S = 600.0
 """The yaw-rate evidence is the last this many seconds of fixes and CAN yaw rates."""
@@ -107,7 +104,7 @@ class SensorCheck:
     """The on-line check of the CAN yaw rate and speed against the receiver (see the module docstring), for one
     estimator's front-end: :meth:`add_yaw` per CAN yaw rate, :meth:`add_fix` per valid fix (times on the CAN
     clock), :meth:`check_speed` with the time-offset learner's newest fit; findings go to ``tally`` (a
-    :class:`~sumhe.frontend.stream.Tally`)."""
+    :class:`~sumhe.frontend.tally.Tally`)."""
 
     def __init__(self, settings: EstimationSettings, tally: Tally) -> None:
         self.settings = settings

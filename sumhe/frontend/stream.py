@@ -35,9 +35,8 @@ samples make an estimate is :data:`OUTPUT_QUANTITY`; a fix arriving after newer 
 
 from __future__ import annotations
 
-import logging
 import math
-from collections import Counter, deque
+from collections import deque
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -47,6 +46,7 @@ from sumhe.frontend.epochs import EpochClock, bad_epoch_time
 from sumhe.frontend.fixes import LocalFix
 from sumhe.frontend.measurements import azimuth_measurement, gps_speed, gps_speed_sigma
 from sumhe.frontend.sensor_check import SensorCheck
+from sumhe.frontend.tally import Tally
 from sumhe.messages import CanSample
 from sumhe.records import quick_init, replace
 from sumhe.settings import EstimationSettings
@@ -68,22 +68,6 @@ OFFSET_SLEW = 0.2
 _NUMBER = (float, int)
 """What ``isinstance`` takes a sample's time and value for: a tuple, built once (``float | int`` in the call builds a
 union per CAN sample)."""
-
-
-class Tally:
-    """Counters of one estimator (its ``stats()``), logged on its module's logger at the 1st, 10th, 100th, ...
-    occurrence of each (at ``level``: a warning unless the caller says otherwise)."""
-
-    def __init__(self, name: str, logger: logging.Logger) -> None:
-        self.name = name
-        self.log = logger
-        self.counts: Counter[str] = Counter()
-
-    def count(self, key: str, msg: str, *args: object, level: int = logging.WARNING) -> None:
-        self.counts[key] += 1
-        n = self.counts[key]
-        if n == 10 ** int(math.log10(n)):
-            self.log.log(level, "%s: " + msg + " (%d so far)", self.name, *args, n)
 
 
 @quick_init

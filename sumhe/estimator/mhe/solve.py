@@ -25,7 +25,7 @@ from sumhe.estimator.mhe.nlp import NlpSolver
 from sumhe.estimator.mhe.problem import SolveResult, WindowProblem, WindowSolver
 from sumhe.estimator.mhe.sqp import SqpSolver
 from sumhe.estimator.mhe.window import Window
-from sumhe.frontend.stream import Tally
+from sumhe.frontend.tally import Tally
 from sumhe.model.su import SuModel
 from sumhe.settings import EstimationSettings
 
