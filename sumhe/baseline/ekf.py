@@ -1,6 +1,6 @@
 """Extended Kalman filter on the shared model: predict at CAN rate, update with CAN speed / yaw rate and GNSS.
 
-The maths is in procedural functions (``kf_predict``, ``considered_update``, after filterpy's
+The maths is in procedural functions (``kf_predict``, ``offset_update``, after filterpy's
 ``kalman_filter.py``), reused by the RTS smoother and the IMM cells; :class:`GaussianFilter` holds a mean and
 covariance and implements the hooks every Gaussian filter shares (start, re-acquisition, heading set-up);
 :class:`Ekf` adds the linearised prediction and updates. Stream handling, gating and re-acquisition are in
@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from sumhe.baseline import kinematics as kin
-from sumhe.baseline.heading_offset import FollowsHeadings, heading_offset_variance
+from sumhe.baseline.heading_offset import OFFSET_CORRELATION_S, FollowsHeadings, heading_offset_variance
 from sumhe.baseline.kinematics import AZIMUTH, OMEGA, PHI, FloatArray, V
 from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
 from sumhe.config import Config
@@ -43,37 +43,65 @@ def joseph(P: FloatArray, K: FloatArray, H: FloatArray, R: FloatArray) -> FloatA
 
 
 def considered(A: FloatArray, corner: float) -> FloatArray:
-    """A square matrix of the state grown by a considered parameter's row and column, zero but the corner."""
+    """A square matrix of the state grown by a parameter's row and column (a receiver heading's offset), zero but the
+    corner."""
     n = len(A)
     out = np.zeros((n + 1, n + 1))
     out[:n, :n], out[n, n] = A, corner
     return out
 
 
-def considered_predict(Pt: FloatArray, F: FloatArray, Q: FloatArray) -> FloatArray:
-    """``Pt`` (the state's covariance grown by a considered parameter's, :func:`considered`) after a step of
-    Jacobian ``F`` and process noise ``Q`` (the parameter's constant)."""
-    return kf_predict(Pt, considered(F, 1.0), considered(Q, 0.0))
+def grown_jacobian(H: FloatArray, sensitivity: float) -> FloatArray:
+    """A measurement's Jacobian ``H`` grown by the column of a parameter it sees ``sensitivity`` times."""
+    return np.hstack([H, np.full((len(H), 1), sensitivity)])
 
 
-def considered_update(
-    x: FloatArray, P: FloatArray, Pt: FloatArray, nu: FloatArray, H: FloatArray, R: FloatArray, sensitivity: float
+def offset_predict(
+    x: FloatArray, offset: float, Pt: FloatArray, dt: float, noise: NoiseSettings, layout: kin.Layout, variance: float
+) -> tuple[FloatArray, float, FloatArray]:
+    """The time update over ``dt`` seconds of a state ``x`` and a receiver heading's ``offset`` (rad) of
+    covariance ``Pt`` (:func:`considered`): the offset a first-order Gauss-Markov process about 0 of stationary
+    ``variance`` (rad^2) and correlation time :data:`~.heading_offset.OFFSET_CORRELATION_S`."""
+    x, F, Q = ekf_step(x, dt, noise, layout)
+    keep = math.exp(-dt / OFFSET_CORRELATION_S)
+    return x, offset * keep, kf_predict(Pt, considered(F, keep), considered(Q, (1.0 - keep * keep) * variance))
+
+
+def sees_offset(kind: str, heading: bool) -> float:
+    """How many times a GNSS measurement of ``kind`` sees a receiver heading's offset: a ``heading`` measures the
+    azimuth plus the offset, a course over ground (the velocity's azimuth) and a position none of it."""
+    return 1.0 if kind == AZIMUTH and heading else 0.0
+
+
+def offset_innovation(
+    x: FloatArray, offset: float, Pt: FloatArray, kind: str, z: FloatArray, R: FloatArray, lag: float, heading: bool
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """One Kalman update with innovation ``nu`` and the gain of ``P`` (Joseph form, so the covariances stay
-    symmetric positive semi-definite): the state (wrapped), ``P`` and ``Pt`` (``P`` grown by a considered parameter
-    the measurement sees ``sensitivity`` times, :func:`considered`; Schmidt's consider covariance)."""
-    K = kalman_gain(P, H, R)
-    m, n = H.shape
-    Kt, Ht = np.zeros((n + 1, m)), np.full((m, n + 1), sensitivity)
-    Kt[:n], Ht[:, :n] = K, H  # the parameter is never updated: its row of the gain is zero
-    x = kin.wrap_state(x + K @ nu)  # x^+ = x^- + K nu
-    return x, joseph(P, K, H, R), joseph(Pt, Kt, Ht, R)
+    """Innovation, its covariance and the Jacobian (:func:`grown_jacobian`) of a GNSS measurement of ``kind`` at
+    the state ``x`` and a receiver heading's ``offset`` of covariance ``Pt`` (:func:`sees_offset`)."""
+    seen = sees_offset(kind, heading)
+    H = grown_jacobian(kin.fix_jacobian(x, kind, lag), seen)
+    nu = kin.residual(kind, z, kin.fix_model(x, kind, lag) + seen * offset)
+    return nu, H @ Pt @ H.T + R, H
 
 
-def considered_part_m2(Pt: FloatArray, P: FloatArray) -> float:
-    """What a considered parameter adds to the position's variance (trace, m^2): ``Pt``'s less ``P``'s."""
-    rows = [kin.E, kin.N]
-    return float(np.trace(Pt[np.ix_(rows, rows)]) - np.trace(P[np.ix_(rows, rows)]))
+def offset_update(
+    x: FloatArray, offset: float, Pt: FloatArray, nu: FloatArray, H: FloatArray, R: FloatArray
+) -> tuple[FloatArray, float, FloatArray]:
+    """One Kalman update of the state ``x`` (wrapped) and the offset, of covariance ``Pt``, with innovation ``nu``
+    (``H``: :func:`grown_jacobian`), Joseph form."""
+    K = kalman_gain(Pt, H, R)
+    dx = K @ nu
+    return kin.wrap_state(x + dx[:-1]), offset + float(dx[-1]), joseph(Pt, K, H, R)
+
+
+def azimuth_from_heading(x: FloatArray, offset: float, Pt: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """``x`` and ``Pt`` with the azimuth just set, uncorrelated, from a heading: the heading less the offset, whose
+    error it takes."""
+    x, Pt, v = x.copy(), Pt.copy(), Pt[-1, -1]
+    x[PHI] = kin.wrap_angle(x[PHI] - offset)
+    Pt[PHI, PHI] += v
+    Pt[PHI, -1] = Pt[-1, PHI] = -v
+    return x, Pt
 
 
 def inflate(P: FloatArray, kind: str, nu: FloatArray, R: FloatArray) -> FloatArray:
@@ -340,28 +368,31 @@ class GaussianFilter(LeverCourse, TimedSpeed, YawRateBeforeStep):
         return self.P
 
 
-class Ekf(GaussianFilter):
-    """Extended Kalman filter (``ekf``): the shared model linearised at the estimate.
+class OffsetFilter(GaussianFilter):
+    """A Gaussian filter that estimates the offset of a receiver's heading where the fixes carry headings (the EKF and
+    the RTS smoother's forward pass; the IMM's cells alike, :class:`~sumhe.baseline.imm.Imm`; the UKF considers it,
+    :class:`~sumhe.baseline.ukf.Ukf`).
 
-    Its error estimate is the covariance ``Pt`` of its own estimate with the offset of a receiver's heading
-    considered (Schmidt's consider covariance: a parameter carried in the covariance, never estimated; the gains are
-    ``P``'s, so the estimates are the filter's as tuned, and the RTS smoother's, which inherits it). A heading (the
-    receiver's body axis) is off the azimuth of the velocity the model moves along by the mounting's and the
-    sideslip's offset, constant over minutes (:func:`~.heading_offset.heading_offset_variance`); a filter that
-    follows the headings carries it into an outage, where it makes an error across the track that grows linearly
-    from the start. On the shared real drive (the logger's GNSS/IMU heading, 1 Hz) the heading less the course over
-    ground on the straights drifts from -0.1 to -0.5 deg over the drive; in its 60 s outages the error across the
-    track grew from 3.1 to 15.6 m rms, linearly (0.25 m/s), while ``P`` said 0.3 deg of azimuth at the outage's
-    start and grew as the bias's ``t^3``: 82.8 % of the removed fixes within ``eph`` (1.61x the median error). With
-    the offset considered: 93.2 % (2.01x); the 10 and 30 s outages 98.9 and 97.4 % (2.10, 2.35x; were 97.8 and 94.1
-    %, 1.78, 1.84x). A course over ground is the velocity's azimuth: no offset (the realistic profile's fixes have
-    courses; its figures do not change). The offset's part of the covariance at a fix (:meth:`considered_m2`) is
-    what the bound allows, which the innovations check both ways
-    (:meth:`~sumhe.estimator.uncertainty.InnovationScale.at_fix_m2`)."""
+    A heading (the receiver's body axis, HDT/THS, or a GNSS/IMU module's) is off the azimuth of the velocity the
+    model moves along by the mounting's and the sideslip's offset (its prior sigma the config's bound read as sigmas,
+    :func:`~.heading_offset.heading_offset_variance`; none where ``estimator.azimuth_offset`` is off). The filter
+    carries it as one more state, ``offset_rad``, beside ``x``: its covariance with the state is ``Pt`` (``P`` is
+    its top-left block), a heading measures the azimuth plus it, the position fixes tell it from the azimuth as the
+    car moves, and it is a first-order Gauss-Markov process of correlation time
+    :data:`~.heading_offset.OFFSET_CORRELATION_S` about 0. A course over ground is the velocity's azimuth: no
+    offset, and where the fixes have no headings the offset is never seen (the realistic profile's: its estimates
+    are those of the filter without it).
 
-    name = "ekf"
+    Taken as a Schmidt consider parameter instead (the gains ``P``'s alone, the offset carried in ``Pt`` but never
+    estimated), the filter followed the shared real drive's headings (the logger's GNSS/IMU heading at 1 Hz, whose
+    offset from the course on the straights moved between -0.1 and -0.5 deg over the drive), its estimates 3-4 m
+    left of the fixes on its straights, and took that into each outage: 3.84 / 4.98 / 6.38 m off the removed fixes
+    in its 10 / 30 / 60 s outages, 2.88 / 3.71 / 4.75 m with the offset estimated (README, "Where it stands", with
+    what a random constant offset and other correlation times gave)."""
+
     Pt: FloatArray
-    snapshot_attrs = ("x", "P", "Pt", "_t_yaw")
+    offset_rad: float = 0.0
+    snapshot_attrs = ("x", "P", "Pt", "offset_rad", "_t_yaw")
 
     def __init__(self, settings: EstimationSettings | None = None, noise: NoiseSettings | None = None) -> None:
         super().__init__(settings, noise)
@@ -369,41 +400,57 @@ class Ekf(GaussianFilter):
 
     def _reset_filter(self) -> None:
         super()._reset_filter()
-        self.Pt = considered(self.P, 0.0)
+        self.offset_rad, self.Pt = 0.0, considered(self.P, 0.0)
 
     def _start(self, x0: FloatArray, P0: FloatArray) -> None:
         super()._start(x0, P0)
-        self.Pt = considered(P0, self._offset_var)
+        self.offset_rad, self.Pt = 0.0, considered(P0, self._offset_var)
+        if self._heading_known and self._heading:
+            self._from_heading()
+            self._marginal()
+
+    def _from_heading(self) -> None:
+        """The azimuth just set from a heading (:func:`azimuth_from_heading`)."""
+        self.x, self.Pt = azimuth_from_heading(self.x, self.offset_rad, self.Pt)
+
+    def _marginal(self) -> None:
+        """``P``, the state's block of ``Pt``."""
+        self.P = self.Pt[:-1, :-1].copy()
 
     def _inflate(self, kind: str, nu: FloatArray, R: FloatArray) -> None:
-        super()._inflate(kind, nu, R)
         self.Pt = inflate(self.Pt, kind, nu, R)
+        self._marginal()
 
     def _init_heading(self, phi: float, sigma: float) -> None:
-        super()._init_heading(phi, sigma)
-        self.Pt = pin(self.Pt, [PHI], np.array([[sigma**2]]))
+        self.x, self.Pt = set_heading(self.x, self.Pt, phi, sigma)
+        if self._heading:
+            self._from_heading()
+        self._marginal()
+
+
+class Ekf(OffsetFilter):
+    """Extended Kalman filter (``ekf``): the shared model linearised at the estimate, the offset of a receiver's
+    heading estimated (:class:`OffsetFilter`)."""
+
+    name = "ekf"
 
     def _step(self, dt: float) -> None:
-        self.x, F, Q = ekf_step(self.x, dt, self.noise, self.layout)
-        self.P, self.Pt = kf_predict(self.P, F, Q), considered_predict(self.Pt, F, Q)
+        self.x, self.offset_rad, self.Pt = offset_predict(
+            self.x, self.offset_rad, self.Pt, dt, self.noise, self.layout, self._offset_var
+        )
+        self._marginal()
 
     def _update_can(self, inputs: Inputs) -> None:
         measured = can_measurement(self.x, inputs, self.noise, self.layout)
         if measured is not None:
-            self._update(*measured, sensitivity=0.0)
+            nu, H, R = measured
+            self._update(nu, grown_jacobian(H, 0.0), R)
 
     def _innovation(self, kind: str, z: FloatArray, R: FloatArray, lag: float) -> Pending:
-        nu, S, H = ekf_innovation(self.x, self.P, kind, z, R, lag)
-        offset = 1.0 if kind == AZIMUTH and self._heading else 0.0  # a heading measures azimuth + offset
-        return Pending(nu, S, lambda: self._update(nu, H, R, offset))
+        nu, S, H = offset_innovation(self.x, self.offset_rad, self.Pt, kind, z, R, lag, self._heading)
+        return Pending(nu, S, lambda: self._update(nu, H, R))
 
-    def _update(self, nu: FloatArray, H: FloatArray, R: FloatArray, sensitivity: float) -> None:
-        """The update with the filter's gain; ``Pt`` with the considered offset, seen ``sensitivity`` times."""
-        self.x, self.P, self.Pt = considered_update(self.x, self.P, self.Pt, nu, H, R, sensitivity)
-
-    def _covariance(self) -> FloatArray:
-        return self.Pt[:-1, :-1]
-
-    def considered_m2(self) -> float:
-        """What the considered offset adds to the position's variance (trace, m^2): ``Pt``'s less ``P``'s."""
-        return considered_part_m2(self.Pt, self.P)
+    def _update(self, nu: FloatArray, H: FloatArray, R: FloatArray) -> None:
+        """The update of the state and the offset (``H``: :func:`grown_jacobian`)."""
+        self.x, self.offset_rad, self.Pt = offset_update(self.x, self.offset_rad, self.Pt, nu, H, R)
+        self._marginal()

@@ -31,6 +31,11 @@ from sumhe.frontend.stream import FixMeasurement
 from sumhe.messages import GpsStatus
 from sumhe.settings import EstimationSettings
 
+OFFSET_CORRELATION_S = 1800.0
+"""The correlation time (s) of a receiver heading's offset where a filter estimates it (:class:`~.ekf.Ekf`): a
+mounting's offset is constant, a sideslip's and a GNSS/IMU module's heading filter's move it over tens of
+minutes."""
+
 
 def heading_offset_variance(settings: EstimationSettings) -> float:
     """The variance (rad^2) of the offset of a receiver's heading from the vehicle's azimuth (mounting, sideslip)
@@ -56,6 +61,10 @@ class FollowsHeadings(RecursiveEstimator):
     (``_heading``; False: a course over ground)."""
 
     _heading: bool = False
+
+    def _begin(self, fix: FixMeasurement) -> None:
+        self._heading = fix.heading
+        super()._begin(fix)
 
     def _angle_update(self, fix: FixMeasurement, lag: float) -> None:
         self._heading = fix.heading

@@ -26,10 +26,9 @@ Model probabilities follow Bayes' rule (eq. 21) after the interaction (mixing) o
 two-state Markov chain, ``Pi[i, j] = P(model j after dt | model i before)``, with mean sojourn times whose 1 s
 transition matrix is paper 002's, trained on real driving data (its Sigma = [[0.9168, 0.0832], [0.2328,
 0.7672]] per 1 s GPS epoch: 11.5 s straight, 3.8 s manoeuvring). Measurement noise, gate and priors come from the
-straight model's :class:`~sumhe.settings.NoiseSettings`; the output is the probability-weighted mean. Its error
-estimate is the mixture's covariance with the offset of a receiver's heading considered as the EKF considers it
-(:class:`Imm`; the estimates do not change) and with the turn the mixture dropped since the newest position fix
-(:func:`dropped_turn`).
+straight model's :class:`~sumhe.settings.NoiseSettings`; the output is the probability-weighted mean. Each cell
+estimates the offset of a receiver's heading as the EKF does (:class:`Imm`). Its error estimate is the mixture's
+covariance with the turn the mixture dropped since the newest position fix (:func:`dropped_turn`).
 
 Like the EKF, it takes each CAN yaw-rate sample before the step through its time
 (:class:`~sumhe.baseline.ekf.YawRateBeforeStep`). Taken at the CAN speed tick after the step, the azimuth turned
@@ -74,21 +73,19 @@ from sumhe.baseline.ekf import (
     LeverCourse,
     TimedSpeed,
     YawRateBeforeStep,
+    azimuth_from_heading,
     can_measurement,
     considered,
-    considered_part_m2,
-    considered_predict,
-    considered_update,
-    ekf_innovation,
-    ekf_step,
     gaussian_loglik,
+    grown_jacobian,
     inflate,
-    kf_predict,
-    pin,
+    offset_innovation,
+    offset_predict,
+    offset_update,
     set_heading,
 )
 from sumhe.baseline.heading_offset import UsesPositionFixes, heading_offset_variance
-from sumhe.baseline.kinematics import AZIMUTH, PHI, E, FloatArray, N
+from sumhe.baseline.kinematics import PHI, E, FloatArray, N
 from sumhe.baseline.stream import Inputs, Pending
 from sumhe.config import Config
 from sumhe.settings import EstimationSettings, NoiseSettings
@@ -104,24 +101,19 @@ def transition_matrix(dt: float, sojourn_s: tuple[float, float]) -> FloatArray:
 
 
 def mix(
-    xs: list[FloatArray], covariances: tuple[list[FloatArray], ...], mu: FloatArray, Pi: FloatArray
-) -> tuple[list[FloatArray], tuple[list[FloatArray], ...], FloatArray]:
-    """The IMM interaction step: mixed initial states and covariances of each cell (each list of ``covariances``
-    mixed alike; a considered parameter's rows beyond the state's, :func:`~sumhe.baseline.ekf.considered`, take no
-    spread of the means) and the predicted probabilities."""
+    xs: list[FloatArray], Ps: list[FloatArray], mu: FloatArray, Pi: FloatArray
+) -> tuple[list[FloatArray], list[FloatArray], FloatArray]:
+    """The IMM interaction step: the mixed initial state and covariance of each cell and the predicted
+    probabilities."""
     c = mu @ Pi  # c_j = sum_i mu_i Pi_ij
     W = mu[:, None] * Pi / c[None, :]  # mixing weights mu_i|j
     out_x: list[FloatArray] = []
-    out_P: tuple[list[FloatArray], ...] = tuple([] for _ in covariances)
+    out_P: list[FloatArray] = []
     for j, ref in enumerate(xs):
         D = [kin.state_difference(x, ref) for x in xs]
         dbar = sum(W[i, j] * D[i] for i in range(len(xs)))
         out_x.append(kin.wrap_state(ref + dbar))
-        spread = [np.outer(D[i] - dbar, D[i] - dbar) for i in range(len(xs))]
-        for Ps, out in zip(covariances, out_P, strict=True):
-            grown = len(Ps[0]) > len(ref)  # a considered parameter's row: no spread
-            cells = range(len(xs))
-            out.append(sum(W[i, j] * (Ps[i] + (considered(spread[i], 0.0) if grown else spread[i])) for i in cells))
+        out_P.append(sum(W[i, j] * (Ps[i] + np.outer(D[i] - dbar, D[i] - dbar)) for i in range(len(xs))))
     return out_x, out_P, c
 
 
@@ -140,19 +132,14 @@ def dropped_turn(dropped: FloatArray, moved: FloatArray, turn: float) -> FloatAr
 class Imm(UsesPositionFixes, LeverCourse, TimedSpeed, YawRateBeforeStep):
     """IMM of a straight and a curved EKF cell (``imm``).
 
-    Its error estimate considers the offset of a receiver's heading as the EKF does (:class:`~sumhe.baseline.ekf.
-    Ekf`: Schmidt's consider covariance, the offset's variance :func:`~.heading_offset.heading_offset_variance`):
-    each cell carries ``Pts[j]``, its covariance ``Ps[j]`` grown by the offset's row, moved by the cell's own step
-    and updated with its own gain (a heading measures the azimuth plus the offset), and the interaction mixes them
-    as it mixes the cells' covariances (the offset's row takes no spread of the means: it is the same in every
-    cell); the gains and likelihoods are ``Ps``'s, so the estimates do not change. Before, it added the offset's
-    part from the way moved since the newest position fix alone (the position at the fix taken as right, the
-    azimuth off by the whole offset), while between fixes the cells follow the headings and the fixes pull them back
-    only in part (:class:`~sumhe.baseline.ukf.Ukf`: on the shared real drive 0.4-3.9 m across the track, 1-sigma,
-    at the starts of the 60 s outages)."""
+    Each cell estimates the offset of a receiver's heading as the EKF does (:class:`~sumhe.baseline.ekf.Ekf`):
+    ``offsets[j]`` beside its state ``xs[j]``, their covariance ``Pts[j]``, a heading measuring the azimuth plus it;
+    the interaction mixes the offsets with the states. Taken as a Schmidt consider parameter instead (the gains
+    without it), the cells followed the headings of the shared real drive as the EKF did, 3.84 / 4.96 / 6.37 m off
+    the removed fixes of its 10 / 30 / 60 s outages (README, "Error estimates")."""
 
     name = "imm"
-    snapshot_attrs = ("xs", "Ps", "Pts", "mu", "_dropped", "_t_yaw")
+    snapshot_attrs = ("xs", "offsets", "Pts", "mu", "_dropped", "_t_yaw")
 
     def __init__(
         self,
@@ -180,14 +167,21 @@ class Imm(UsesPositionFixes, LeverCourse, TimedSpeed, YawRateBeforeStep):
     def _reset_filter(self) -> None:
         self._dropped = np.zeros(self.layout.n)
         self.xs = [np.zeros(self.layout.n) for _ in self.models]
-        self.Ps = [np.eye(self.layout.n) for _ in self.models]
-        self.Pts = [considered(P, 0.0) for P in self.Ps]
+        self.offsets = [0.0 for _ in self.models]
+        self.Pts = [considered(np.eye(self.layout.n), 0.0) for _ in self.models]
         self.mu = np.array(self.sojourn_s) / sum(self.sojourn_s)
 
     def _start(self, x0: FloatArray, P0: FloatArray) -> None:
         self.xs = [x0.copy() for _ in self.models]
-        self.Ps = [P0.copy() for _ in self.models]
+        self.offsets = [0.0 for _ in self.models]
         self.Pts = [considered(P0, self._offset_var) for _ in self.models]
+        if self._heading_known and self._heading:
+            self._from_heading()
+
+    def _from_heading(self) -> None:
+        """Each cell's azimuth just set from a heading (:func:`~sumhe.baseline.ekf.azimuth_from_heading`)."""
+        cells = [azimuth_from_heading(*cell) for cell in zip(self.xs, self.offsets, self.Pts, strict=True)]
+        self.xs, self.Pts = [x for x, _ in cells], [Pt for _, Pt in cells]
 
     def _weigh(self, loglik: list[float]) -> None:
         """Bayes' rule on the model probabilities with each cell's log-likelihood."""
@@ -197,13 +191,18 @@ class Imm(UsesPositionFixes, LeverCourse, TimedSpeed, YawRateBeforeStep):
         self.mu = p / p.sum()
 
     def _step(self, dt: float) -> None:
-        self.xs, (self.Ps, self.Pts), self.mu = mix(
-            self.xs, (self.Ps, self.Pts), self.mu, transition_matrix(dt, self.sojourn_s)
+        grown, self.Pts, self.mu = mix(
+            [np.append(x, o) for x, o in zip(self.xs, self.offsets, strict=True)],
+            self.Pts,
+            self.mu,
+            transition_matrix(dt, self.sojourn_s),
         )
+        self.xs, self.offsets = [g[:-1] for g in grown], [float(g[-1]) for g in grown]
         before, cells_before = self._mean(), list(self.xs)
         for j, model in enumerate(self.models):
-            x, F, Q = ekf_step(self.xs[j], dt, model, self.layout)
-            self.xs[j], self.Ps[j], self.Pts[j] = x, kf_predict(self.Ps[j], F, Q), considered_predict(self.Pts[j], F, Q)
+            self.xs[j], self.offsets[j], self.Pts[j] = offset_predict(
+                self.xs[j], self.offsets[j], self.Pts[j], dt, model, self.layout, self._offset_var
+            )
         turns = [kin.state_difference(x, x0)[PHI] for x, x0 in zip(self.xs, cells_before, strict=True)]
         moved = kin.state_difference(self._mean(), before)
         self._dropped = dropped_turn(self._dropped, moved, float(self.mu[0] * (turns[1] - turns[0])))
@@ -212,43 +211,52 @@ class Imm(UsesPositionFixes, LeverCourse, TimedSpeed, YawRateBeforeStep):
         loglik = []
         for j in range(len(self.models)):
             measured = can_measurement(self.xs[j], inputs, self.noise, self.layout)
-            loglik.append(0.0 if measured is None else self._cell_update(j, *measured, 0.0))
+            if measured is None:
+                loglik.append(0.0)
+                continue
+            nu, H, R = measured
+            loglik.append(self._cell_update(j, nu, grown_jacobian(H, 0.0), R))
         self._weigh(loglik)
 
-    def _cell_update(self, j: int, nu: FloatArray, H: FloatArray, R: FloatArray, sensitivity: float) -> float:
-        """Cell ``j``'s EKF update with innovation ``nu``, its ``Pts[j]`` with the considered offset seen
-        ``sensitivity`` times; returns the update's log-likelihood."""
-        loglik = gaussian_loglik(nu, H @ self.Ps[j] @ H.T + R)
-        self.xs[j], self.Ps[j], self.Pts[j] = considered_update(
-            self.xs[j], self.Ps[j], self.Pts[j], nu, H, R, sensitivity
-        )
+    def _cell_update(self, j: int, nu: FloatArray, H: FloatArray, R: FloatArray) -> float:
+        """Cell ``j``'s EKF update of its state and offset (``H``: :func:`~sumhe.baseline.ekf.grown_jacobian`);
+        returns the update's log-likelihood."""
+        loglik = gaussian_loglik(nu, H @ self.Pts[j] @ H.T + R)
+        self.xs[j], self.offsets[j], self.Pts[j] = offset_update(self.xs[j], self.offsets[j], self.Pts[j], nu, H, R)
         return loglik
 
     def _innovation(self, kind: str, z: FloatArray, R: FloatArray, lag: float) -> Pending:
-        cells = [ekf_innovation(x, P, kind, z, R, lag) for x, P in zip(self.xs, self.Ps, strict=True)]
-        zhats = np.column_stack([kin.fix_model(x, kind, lag) for x in self.xs])
+        cells = [
+            offset_innovation(x, o, Pt, kind, z, R, lag, self._heading)
+            for x, o, Pt in zip(self.xs, self.offsets, self.Pts, strict=True)
+        ]
+        zhats = np.column_stack([kin.residual(kind, z, nu_j) for nu_j, _, _ in cells])  # z - nu: the cells' own
         zhat = kin.measurement_mean(kind, zhats, self.mu)
         dev = kin.residual(kind, zhats, zhat[:, None])
         S = sum(m * (S_j + np.outer(d, d)) for m, (_, S_j, _), d in zip(self.mu, cells, dev.T, strict=True))
         nu = kin.residual(kind, z, zhat)
-        offset = 1.0 if kind == AZIMUTH and self._heading else 0.0  # a heading measures azimuth + offset
 
         def commit() -> None:
-            self._weigh([self._cell_update(j, nu_j, H_j, R, offset) for j, (nu_j, _, H_j) in enumerate(cells)])
+            self._weigh([self._cell_update(j, nu_j, H_j, R) for j, (nu_j, _, H_j) in enumerate(cells)])
 
         return Pending(nu, np.asarray(S), commit)
 
     def _inflate(self, kind: str, nu: FloatArray, R: FloatArray) -> None:
-        self.Ps = [inflate(P, kind, nu, R) for P in self.Ps]
-        self.Pts = [inflate(P, kind, nu, R) for P in self.Pts]
+        self.Pts = [inflate(Pt, kind, nu, R) for Pt in self.Pts]
 
     def _init_heading(self, phi: float, sigma: float) -> None:
-        cells = [set_heading(x, P, phi, sigma) for x, P in zip(self.xs, self.Ps, strict=True)]
-        self.xs, self.Ps = [x for x, _ in cells], [P for _, P in cells]
-        self.Pts = [pin(P, [PHI], np.array([[sigma**2]])) for P in self.Pts]
+        cells = [set_heading(x, Pt, phi, sigma) for x, Pt in zip(self.xs, self.Pts, strict=True)]
+        self.xs, self.Pts = [x for x, _ in cells], [Pt for _, Pt in cells]
+        if self._heading:
+            self._from_heading()
 
     def _mean(self) -> FloatArray:
         return kin.weighted_mean(np.column_stack(self.xs), self.mu)
+
+    @property
+    def offset_rad(self) -> float:
+        """The receiver heading's offset (rad) the cells estimate, weighted."""
+        return float(np.dot(self.mu, self.offsets))
 
     def _position_used(self, z: FloatArray) -> None:
         """A position fix used ends the dropped turn (:func:`dropped_turn`)."""
@@ -260,14 +268,9 @@ class Imm(UsesPositionFixes, LeverCourse, TimedSpeed, YawRateBeforeStep):
         teach, which learns from what it leaves unexplained)."""
         return float(self._dropped[E] ** 2 + self._dropped[N] ** 2)
 
-    def considered_m2(self) -> float:
-        """What the considered offset adds to the position's variance (trace, m^2), as the EKF's
-        (:meth:`~sumhe.baseline.ekf.Ekf.considered_m2`): the cells' ``Pts``'s less their ``Ps``'s, weighted."""
-        return sum(m * considered_part_m2(Pt, P) for m, Pt, P in zip(self.mu, self.Pts, self.Ps, strict=True))
-
     def _covariance(self) -> FloatArray:
-        """The mixture's covariance: the cells' covariances (the heading's offset considered, ``Pts``) and the
-        spread of their means, weighted, and the turn dropped since the newest position fix (:func:`dropped_turn`,
+        """The mixture's covariance: the cells' covariances (their states' blocks of ``Pts``) and the spread of their
+        means, weighted, and the turn dropped since the newest position fix (:func:`dropped_turn`,
         the module docstring)."""
         mean = self._mean()
         spread = kin.weighted_covariance(np.column_stack(self.xs), self.mu, mean)

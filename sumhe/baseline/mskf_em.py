@@ -53,9 +53,9 @@ Where it deviates from 002 and why:
 * no CAN yaw-rate gain state, as ``gtsam-fls`` (``gain0`` is ignored).
 
 Its error estimate is the stages' joint covariance (:func:`joint_step`, the estimates do not change) with the offset
-of a receiver's heading considered as the EKF considers it (:class:`~sumhe.baseline.ekf.Ekf`: Schmidt's consider
-covariance, the offset's variance :func:`~.heading_offset.heading_offset_variance`): the combination takes a heading
-for the azimuth the position stage moves along, so the joint covariance carries the offset as a sixth row
+of a receiver's heading considered (Schmidt's consider covariance, as the UKF has it, :class:`~sumhe.baseline.ukf.
+Ukf`; the offset's variance :func:`~.heading_offset.heading_offset_variance`): the combination takes a heading for
+the azimuth the position stage moves along, so the joint covariance carries the offset as a sixth row
 (:data:`OFFSET_ROW`), constant through the steps, seen by the heading stage's updates with a heading and never
 updated (the estimates, the stages' and the EM's, do not change). Before, it added the offset's part from the way
 moved since the newest position fix alone (the position at the fix taken as right, the azimuth off by the whole
@@ -483,9 +483,9 @@ class MskfEm(FollowsHeadings):
         return T @ self._joint[:OFFSET_ROW, :OFFSET_ROW] @ T.T
 
     def considered_m2(self) -> float:
-        """What the considered offset adds to the position's variance (trace, m^2), as the EKF's
-        (:meth:`~sumhe.baseline.ekf.Ekf.considered_m2`): the offset never updated, its part is ``c c' / sigma^2``,
-        ``c`` the position's covariance with it."""
+        """What the considered offset adds to the position's variance (trace, m^2)
+        (:meth:`~sumhe.estimator.base.StreamEstimator.considered_m2`): the offset never updated, its part is ``c c' /
+        sigma^2``, ``c`` the position's covariance with it."""
         if not self._offset_var:
             return 0.0
         cross = self._joint[[0, 1], OFFSET_ROW]

@@ -8,10 +8,11 @@ forward-backward Kalman smoothing paper 001 compares its SU estimator with. Back
     C_k = P_k|k F_k' (P_k+1|k)^-1
     x_k|N = x_k|k + C_k (x_k+1|N - x_k+1|k)
 
-with ``F_k`` the Jacobian at ``x_k|k``, recomputed. A re-acquisition or a heading set-up resets the filter's
-prior; the smoother does not carry information back across such a step. A restart of the filter (numerical
-failure, data gap, :meth:`reset`) empties the window. A late fix's re-run (:mod:`.stream`) drops the steps after
-the state it restarts from and makes them anew; each estimate returned is tied to the step at its state's time,
+with ``F_k`` the Jacobian at ``x_k|k``, recomputed, on the state's block (``P``): the offset of a receiver's heading the
+forward pass estimates (:class:`~sumhe.baseline.ekf.OffsetFilter`) is not smoothed. A re-acquisition or a heading set-up
+resets the filter's prior; the smoother does not carry information back across such a step. A restart of the filter
+(numerical failure, data gap, :meth:`reset`) empties the window. A late fix's re-run (:mod:`.stream`) drops the steps
+after the state it restarts from and makes them anew; each estimate returned is tied to the step at its state's time,
 which the re-run makes again.
 
 :class:`RtsBatch` (``rts-batch``) is the offline form for replays: ``push`` returns nothing and ``finish()`` the
