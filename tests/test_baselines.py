@@ -689,14 +689,13 @@ def test_a_considered_heading_offset_moves_the_position_across_the_way_moved() -
     assert P[kin.PHI, kin.PHI] == pytest.approx(1e-4)
 
 
-@pytest.mark.parametrize("filter_class", [ParticleFilter, Ukf, MskfEm, SrUpf])
+@pytest.mark.parametrize("filter_class", [ParticleFilter, MskfEm, SrUpf])
 def test_a_headings_offset_is_considered_in_the_covariance_not_in_the_estimate(filter_class: type) -> None:
     """The offset of a heading from the azimuth of the velocity (bounded by ``gnss.azimuth_offset_max_rad``, read
-    as ``r_cap_sigmas`` sigmas: 0.43 deg) is a considered parameter of every filter that follows headings: the
-    estimates are those of the filter without it, and through 10 s of outage at 10 m/s the sigma across the track
-    it adds grows by ``10 s x 10 m/s x sigma`` (the offset is the same all along: sigmas, not variances, add; the
-    Kalman filters, which carry it through their own recursion, by 0.9 of that: their azimuth holds 0.9 of the
-    offset here, the fixes' track the rest); a course over ground has no offset."""
+    as ``r_cap_sigmas`` sigmas: 0.43 deg) is a considered parameter of the filters that follow headings and do not
+    estimate it (the Kalman filters do): the estimates are those of the filter without it, and through 10 s of
+    outage at 10 m/s the sigma across the track it adds grows by ``10 s x 10 m/s x sigma`` (the offset is the same
+    all along: sigmas, not variances, add); a course over ground has no offset."""
     settings = EstimationSettings()
     sigma = math.sqrt(heading_offset_variance(settings))
     assert sigma == pytest.approx(0.03 / 4.0)
@@ -717,7 +716,7 @@ def test_a_headings_offset_is_considered_in_the_covariance_not_in_the_estimate(f
             assert added == pytest.approx([0.0, 0.0], abs=1e-4)
 
 
-@pytest.mark.parametrize("filter_class", [Ukf, MskfEm])
+@pytest.mark.parametrize("filter_class", [MskfEm])
 @pytest.mark.parametrize("heading", [True, False])
 def test_the_kalman_filters_tell_the_part_their_considered_heading_offset_makes_of_their_position_variance(
     filter_class: type, heading: bool
@@ -737,14 +736,14 @@ def test_the_kalman_filters_tell_the_part_their_considered_heading_offset_makes_
     assert off.considered_m2() == pytest.approx(0.0, abs=1e-12)
 
 
-@pytest.mark.parametrize("filter_class", [Ekf, Rts, Imm])
+@pytest.mark.parametrize("filter_class", [Ekf, Rts, Ukf, Imm])
 def test_the_ekf_learns_a_headings_offset_and_follows_the_fixes_not_the_headings(filter_class: type) -> None:
-    """(And the RTS smoother live, and each cell of the IMM.) Every heading 1 deg (2.3 of the offset's prior sigmas) to
-    the right of the way north: the EKF learns the offset from the position fixes within a tenth of a degree in 90 s,
-    its azimuth stays on the way (within 0.05 deg, where the headings say 1 deg) and a 10 s outage that follows ends
-    within 0.1 m of the way; with the offset off (``estimator.azimuth_offset``) it follows the headings, 0.84 deg off,
-    and ends the outage 3.9 m across. Its covariance at the end holds the offset's part (east variance above that of the
-    filter without it)."""
+    """(And the RTS smoother live, the UKF, and each cell of the IMM.) Every heading 1 deg (2.3 of the offset's prior
+    sigmas) to the right of the way north: the EKF learns the offset from the position fixes within a tenth of a degree
+    in 90 s, its azimuth stays on the way (within 0.05 deg, where the headings say 1 deg) and a 10 s outage that follows
+    ends within 0.1 m of the way; with the offset off (``estimator.azimuth_offset``) it follows the headings, 0.84 deg
+    off, and ends the outage 3.9 m across. Its covariance at the end holds the offset's part (east variance above that
+    of the filter without it)."""
     offset = math.radians(1.0)
     settings = EstimationSettings()
     learns, follows = filter_class(settings), filter_class(with_changes(settings, {"estimator.azimuth_offset": False}))
@@ -766,7 +765,7 @@ def test_the_ekf_learns_a_headings_offset_and_follows_the_fixes_not_the_headings
     assert learns._covariance()[kin.E, kin.E] > follows._covariance()[kin.E, kin.E]
 
 
-@pytest.mark.parametrize("filter_class", [Ekf, Imm])
+@pytest.mark.parametrize("filter_class", [Ekf, Ukf, Imm])
 def test_the_ekfs_heading_offset_is_nil_where_the_fixes_have_courses(filter_class: type) -> None:
     """A course over ground is the velocity's azimuth: with courses only the offset is never seen, and the EKF's
     (the IMM's) estimates and covariance are those of the filter without it."""
@@ -778,15 +777,15 @@ def test_the_ekfs_heading_offset_is_nil_where_the_fixes_have_courses(filter_clas
     np.testing.assert_allclose(on._covariance(), off._covariance(), atol=1e-12)
 
 
-@pytest.mark.parametrize("filter_class", [Ukf, MskfEm])
+@pytest.mark.parametrize("filter_class", [MskfEm])
 def test_the_kalman_filters_consider_a_headings_offset_as_far_as_it_moves_their_estimate(filter_class: type) -> None:
     """Following headings north at 10 m/s, then through 10 s of outage: the offset's part of the position's
     variance (the covariance less that of the same filter without the offset considered, and what
     :meth:`considered_m2` tells) is the offset's variance times the square of how far the filter's own estimate
-    moves across the track per rad of an offset of all its headings (here 81 m/rad at the newest fix, 170 at the
-    outage's end; ``mskf-em``, whose position fixes do not correct its azimuth, 113 and 213). Before, the IMM and
-    ``mskf-em`` took the position at the newest fix as right and the azimuth as off by the whole offset: at the
-    fix they added 4e-6 m^2 of east variance (the EKF 0.37 m^2), at the outage's end 0.57 m^2 (the EKF 1.65)."""
+    moves across the track per rad of an offset of all its headings (``mskf-em``, whose position fixes do not
+    correct its azimuth: 113 m/rad at the newest fix, 213 at the outage's end). Before, it took the position at the
+    newest fix as right and the azimuth as off by the whole offset: at the fix it added 4e-6 m^2 of east
+    variance."""
     settings = EstimationSettings()
     variance = heading_offset_variance(settings)
     on, off, shifted = (

@@ -369,9 +369,9 @@ class GaussianFilter(LeverCourse, TimedSpeed, YawRateBeforeStep):
 
 
 class OffsetFilter(GaussianFilter):
-    """A Gaussian filter that estimates the offset of a receiver's heading where the fixes carry headings (the EKF and
-    the RTS smoother's forward pass; the IMM's cells alike, :class:`~sumhe.baseline.imm.Imm`; the UKF considers it,
-    :class:`~sumhe.baseline.ukf.Ukf`).
+    """A Gaussian filter that estimates the offset of a receiver's heading where the fixes carry headings (the EKF, the
+    RTS smoother's forward pass and the UKF, :class:`~sumhe.baseline.ukf.Ukf`; the IMM's cells alike,
+    :class:`~sumhe.baseline.imm.Imm`).
 
     A heading (the receiver's body axis, HDT/THS, or a GNSS/IMU module's) is off the azimuth of the velocity the
     model moves along by the mounting's and the sideslip's offset (its prior sigma the config's bound read as sigmas,

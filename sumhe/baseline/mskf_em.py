@@ -52,21 +52,21 @@ Where it deviates from 002 and why:
   as tuned;
 * no CAN yaw-rate gain state, as ``gtsam-fls`` (``gain0`` is ignored).
 
-Its error estimate is the stages' joint covariance (:func:`joint_step`, the estimates do not change) with the offset
-of a receiver's heading considered (Schmidt's consider covariance, as the UKF has it, :class:`~sumhe.baseline.ukf.
-Ukf`; the offset's variance :func:`~.heading_offset.heading_offset_variance`): the combination takes a heading for
-the azimuth the position stage moves along, so the joint covariance carries the offset as a sixth row
-(:data:`OFFSET_ROW`), constant through the steps, seen by the heading stage's updates with a heading and never
-updated (the estimates, the stages' and the EM's, do not change). Before, it added the offset's part from the way
-moved since the newest position fix alone (the position at the fix taken as right, the azimuth off by the whole
-offset), while between fixes the combined azimuth follows the headings and the fixes pull the position back only in
-part (:class:`~sumhe.baseline.ukf.Ukf`). The position stage's own covariance takes the azimuth's error as white
-noise, ``P_phi g g'`` afresh at every step, while it is one slowly drifting error: over an outage of ``t`` seconds an
-azimuth error at its start moves the position by the way moved times it (variance ``t^2``, the stage alone: ``dt
-t``, ``dt`` the CAN period), the CAN yaw rate's bias integrated twice (``t^4``, the stage alone: ``dt t^3``). The
-joint covariance of ``(east, north, s, phi, b, offset)`` carries the cross-covariance between the stages, moved by
-the same steps and updated with the stages' own gains (Joseph form: the covariance of the errors the filter makes, a
-Schmidt consider covariance of the stages' neglected coupling).
+Its error estimate is the stages' joint covariance (:func:`joint_step`, the estimates do not change) with the offset of
+a receiver's heading considered (Schmidt's consider covariance, where the Kalman filters estimate it,
+:class:`~sumhe.baseline.ekf.OffsetFilter`; the offset's variance :func:`~.heading_offset.heading_offset_variance`): the
+combination takes a heading for the azimuth the position stage moves along, so the joint covariance carries the offset
+as a sixth row (:data:`OFFSET_ROW`), constant through the steps, seen by the heading stage's updates with a heading and
+never updated (the estimates, the stages' and the EM's, do not change). Before, it added the offset's part from the way
+moved since the newest position fix alone (the position at the fix taken as right, the azimuth off by the whole offset),
+while between fixes the combined azimuth follows the headings and the fixes pull the position back only in part
+(README, "Error estimates", `cons18`). The position stage's own covariance takes the azimuth's error as white noise,
+``P_phi g g'`` afresh at every step, while it is one slowly drifting error: over an outage of ``t`` seconds an azimuth
+error at its start moves the position by the way moved times it (variance ``t^2``, the stage alone: ``dt t``, ``dt`` the
+CAN period), the CAN yaw rate's bias integrated twice (``t^4``, the stage alone: ``dt t^3``). The joint covariance of
+``(east, north, s, phi, b, offset)`` carries the cross-covariance between the stages, moved by the same steps and
+updated with the stages' own gains (Joseph form: the covariance of the errors the filter makes, a Schmidt consider
+covariance of the stages' neglected coupling).
 """
 
 from __future__ import annotations

@@ -243,7 +243,7 @@ class StreamEstimator(ABC):
 
     def considered_m2(self) -> float:
         """The part (trace, m^2) of the newest estimate's own position covariance that considered parameters make
-        (carried in the covariance, never estimated: the UKF's receiver heading offset), which the consistency
+        (carried in the covariance, never estimated: ``mskf-em``'s receiver heading offset), which the consistency
         scale at a fix may shrink (:meth:`InnovationScale.at_fix_m2`); none by default."""
         return 0.0
 
