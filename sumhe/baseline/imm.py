@@ -136,7 +136,7 @@ class Imm(UsesPositionFixes, LeverCourse, TimedSpeed, YawRateBeforeStep):
     ``offsets[j]`` beside its state ``xs[j]``, their covariance ``Pts[j]``, a heading measuring the azimuth plus it;
     the interaction mixes the offsets with the states. Taken as a Schmidt consider parameter instead (the gains
     without it), the cells followed the headings of the shared real drive as the EKF did, 3.84 / 4.96 / 6.37 m off
-    the removed fixes of its 10 / 30 / 60 s outages (README, "Error estimates")."""
+    the removed fixes of its 10 / 30 / 60 s outages (README, "Where it stands")."""
 
     name = "imm"
     snapshot_attrs = ("xs", "offsets", "Pts", "mu", "_dropped", "_t_yaw")
