@@ -38,7 +38,7 @@ course or heading gives an azimuth there is no graph: the estimate is the newest
 :mod:`.stream`).
 
 Error estimate: the newest node's joint marginal carried by the odometry (:meth:`GtsamFls._covariance`), with the
-offset of a receiver's heading considered as the EKF and the particle filter consider it
+offset of a receiver's heading considered as the particle filter considers it (the Kalman filters estimate it)
 (:class:`~sumhe.baseline.heading_offset.ConsideredHeadingOffset`, the bound read as sigmas, 0.43 deg; the estimates
 do not change). The azimuth factor
 takes a heading for the velocity's azimuth, so the smoother carries the heading's offset (mounting, sideslip) into an
