@@ -754,6 +754,7 @@ def test_the_ekf_learns_a_headings_offset_and_follows_the_fixes_not_the_headings
             learns.push(shifted)
             follows.push(shifted)
     assert math.degrees(learns.offset_rad) == pytest.approx(1.0, abs=0.1)
+    assert learns.stats()["heading_offset_deg"] == pytest.approx(math.degrees(learns.offset_rad))
     assert math.degrees(kin.wrap_angle(learns._mean()[kin.PHI])) == pytest.approx(0.0, abs=0.05)
     assert math.degrees(kin.wrap_angle(follows._mean()[kin.PHI])) > 0.7
     for s in stream:

@@ -10,6 +10,7 @@ covariance and implements the hooks every Gaussian filter shares (start, re-acqu
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import numpy as np
 
@@ -397,6 +398,10 @@ class OffsetFilter(GaussianFilter):
     def __init__(self, settings: EstimationSettings | None = None, noise: NoiseSettings | None = None) -> None:
         super().__init__(settings, noise)
         self._offset_var = heading_offset_variance(self.settings)
+
+    def stats(self) -> Mapping[str, float | int | str]:
+        """The counters and the heading's offset estimated (``heading_offset_deg``, the heading less the azimuth)."""
+        return {**super().stats(), "heading_offset_deg": math.degrees(self.offset_rad)}
 
     def _reset_filter(self) -> None:
         super()._reset_filter()

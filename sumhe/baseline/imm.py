@@ -162,7 +162,11 @@ class Imm(UsesPositionFixes, LeverCourse, TimedSpeed, YawRateBeforeStep):
         return cls(config.estimation)
 
     def stats(self) -> Mapping[str, float | int | str]:
-        return {**super().stats(), "p_turn": float(self.mu[1])}
+        return {
+            **super().stats(),
+            "p_turn": float(self.mu[1]),
+            "heading_offset_deg": math.degrees(self.offset_rad),  # as the EKF's (OffsetFilter.stats)
+        }
 
     def _reset_filter(self) -> None:
         self._dropped = np.zeros(self.layout.n)
