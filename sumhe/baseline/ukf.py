@@ -96,7 +96,7 @@ class Ukf(OffsetFilter):
 
     def _set(self, mean: FloatArray, cov: FloatArray, offset_var: float) -> None:
         """The state (wrapped) and, where ``mean`` is grown, the offset from ``mean``, their covariance ``cov``;
-        else the offset's variance ``offset_var`` beside the state's."""
+        else the offset's variance ``offset_var`` beside the state's (unused where grown)."""
         mean, cov = kin.wrap_state(mean), 0.5 * (cov + cov.T)
         if len(mean) > len(self.x):
             self.x, self.offset_rad, self.Pt = mean[:-1], float(mean[-1]), cov
@@ -108,13 +108,16 @@ class Ukf(OffsetFilter):
         keep = math.exp(-dt / OFFSET_CORRELATION_S)
         walk = (1.0 - keep * keep) * self._offset_var
         mean, cov = self._block(False)
+        grown = len(mean) > len(self.x)
         X, wm, wc = self._sigma_points(mean, cov)
-        X = kin.step(X, dt) if len(mean) == len(self.x) else np.vstack([kin.step(X[:-1], dt), keep * X[-1]])
+        X = np.vstack([kin.step(X[:-1], dt), keep * X[-1]]) if grown else kin.step(X, dt)
         mean, cov, _ = unscented_transform(X, wm, wc)
         Q = kin.process_noise(dt, self.noise, self.layout)
-        self.offset_rad *= keep
-        grown = len(mean) > len(self.x)
-        self._set(mean, cov + (considered(Q, walk) if grown else Q), keep * keep * self.Pt[-1, -1] + walk)
+        if grown:
+            self._set(mean, cov + considered(Q, walk), 0.0)
+        else:  # the offset decays beside the state
+            self.offset_rad *= keep
+            self._set(mean, cov + Q, keep * keep * self.Pt[-1, -1] + walk)
 
     def _update_can(self, inputs: Inputs) -> None:
         rows, z = can_rows(inputs)
