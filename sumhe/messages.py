@@ -31,10 +31,13 @@ accelerations m/s^2."""
 
 CAN_QUANTITIES: tuple[str, ...] = CanQuantity.__args__  # type: ignore[attr-defined]
 
-GnssQuantity = Literal["lat", "lon", "alt", "accuracy", "speed", "course", "heading", "time", "sats"]
+GnssQuantity = Literal[
+    "lat", "lon", "alt", "accuracy", "speed", "course", "heading", "heading_accuracy", "time", "sats"
+]
 """Quantities a GNSS receiver's CAN frames may provide (``[gps] source = "can"``), as :class:`GnssFix` holds them:
 lat and lon degrees (WGS84), alt m, accuracy m (horizontal 1-sigma), speed m/s (over ground), course (over
-ground) and heading rad clockwise from north, time s (UTC, Unix), sats a count."""
+ground) and heading rad clockwise from north, heading_accuracy rad (the receiver's 1-sigma of its heading), time s
+(UTC, Unix), sats a count."""
 
 GNSS_QUANTITIES: tuple[str, ...] = GnssQuantity.__args__  # type: ignore[attr-defined]
 
@@ -49,6 +52,8 @@ class GnssFix:
     ``t`` is the receive time (s, service clock) when the line carried one, else the fix's UTC time as
     Unix seconds. ``valid`` is False for fixes with no position (GGA quality 0, RMC status V); such a fix
     is never used as a position. ``antenna`` is 1, or 2 for the rear antenna of a two-antenna setup (su7).
+    ``heading_sigma_rad``: the receiver's own 1-sigma of its heading, where it rates it (a GNSS + IMU module's
+    heading accuracy, mapped as ``heading_accuracy``); None elsewhere.
     """
 
     t: float
@@ -68,6 +73,7 @@ class GnssFix:
     sigma_alt_m: float | None = None
     talker: str = ""
     antenna: int = 1
+    heading_sigma_rad: float | None = None
 
 
 @quick_init

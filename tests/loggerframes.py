@@ -39,6 +39,7 @@ BO_ 7 GNSS_MOTION: 6 LOGGER
  SG_ HEADING_VALID : 1|1@1+ (1,0) [0|1] "" Vector__XXX
  SG_ SPEED : 8|16@1+ (0.01,0) [0|655.35] "m/s" Vector__XXX
  SG_ HEADING : 24|16@1+ (0.01,0) [0|655.35] "deg" Vector__XXX
+ SG_ HEADING_ACC : 40|8@1+ (0.1,0) [0|25.5] "deg" Vector__XXX
 
 BO_ 9 IMU: 8 LOGGER
  SG_ IMU_VALID : 0|1@1+ (1,0) [0|1] "" Vector__XXX

@@ -120,6 +120,22 @@ def test_values_out_of_range_are_left_out(quantity, value, expected):
     assert checked_value(quantity, value) == expected
 
 
+def test_heading_accuracy_rates_the_heading_of_its_fix_and_only_a_heading():
+    a = GnssAssembler(MESSAGES, "GNSS_POS", 0.1)
+    rated = a.add(100.0, "GNSS_POS", {"lat": 56.1, "lon": 10.2})
+    rated += a.add(100.001, "GNSS_MOTION", {"heading": 1.0, "heading_accuracy": 0.05})
+    rated += a.add(100.002, "GNSS_TIME", {"time": 95.6})
+    (fix,) = rated
+    assert fix.heading_rad == 1.0 and fix.heading_sigma_rad == 0.05
+    (no_heading,) = [
+        *a.add(101.0, "GNSS_POS", {"lat": 56.1, "lon": 10.2}),
+        *a.add(101.001, "GNSS_MOTION", {"heading": None, "heading_accuracy": 0.05}),
+        *a.add(101.002, "GNSS_TIME", {"time": 96.6}),
+    ]
+    assert no_heading.heading_rad is None and no_heading.heading_sigma_rad is None
+    assert checked_value("heading_accuracy", 0.0) is None and checked_value("heading_accuracy", -0.1) is None
+
+
 def test_bad_values_are_counted_and_a_bad_latitude_leaves_the_fix_invalid():
     a = assembler()
     (fix,) = epoch(a, 100.0, lat=95.0, speed=-3.0)
@@ -133,7 +149,9 @@ def gnss_frames(t: float, valid: int = 1, lat: float = 56.1):
     return [
         encode("GNSS_TIME", t, EPOCH=t - 4.4),
         encode("GNSS_POS", t + 0.001, POS_VALID=valid, ACCURACY=2.0, LAT=lat, LON=10.2),
-        encode("GNSS_MOTION", t + 0.002, SPEED_VALID=valid, HEADING_VALID=valid, SPEED=12.5, HEADING=90.0),
+        encode(
+            "GNSS_MOTION", t + 0.002, SPEED_VALID=valid, HEADING_VALID=valid, SPEED=12.5, HEADING=90.0, HEADING_ACC=2.5
+        ),
     ]
 
 
@@ -147,9 +165,17 @@ def test_decoder_turns_gnss_frames_into_fixes_beside_can_samples():
     assert [f.valid for f in fixes] == [False, True]
     assert fixes[1].lat_deg == pytest.approx(56.1) and fixes[1].speed_mps == pytest.approx(12.5)
     assert fixes[1].heading_rad == pytest.approx(math.pi / 2) and fixes[1].sigma_lat_m == pytest.approx(2.0)
+    assert fixes[1].heading_sigma_rad is None  # not mapped: not read
     assert [s.quantity for s in out if isinstance(s, CanSample)] == ["yaw_rate", "yaw_rate"]
     assert dec.stats.invalid == 4  # the values flagged invalid: lat, lon, speed, heading of the first epoch
     assert dec.gnss is not None and dec.gnss.stats.incomplete == 0
+
+
+def test_decoder_reads_the_heading_accuracy_in_radians_where_mapped():
+    rated = GNSS | {"heading_accuracy": SignalSpec("GNSS_MOTION", "HEADING_ACC", valid="HEADING_VALID")}
+    dec = CanDecoder(logger_db(), {}, gnss=rated)
+    fixes = [s for t in (100.0, 101.0) for f in gnss_frames(t, valid=int(t > 100.5)) for s in dec.decode(f)]
+    assert [f.heading_sigma_rad for f in fixes] == [None, pytest.approx(math.radians(2.5))]
 
 
 def test_gnss_mapping_needs_lat_and_lon():

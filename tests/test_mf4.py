@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import gc
+import math
 import random
+import statistics
 import subprocess
 import sys
 from pathlib import Path
@@ -154,3 +156,18 @@ def test_bulk_mf4_reader_gives_python_cans_frames(tmp_path, source):
 
     ours, theirs = fields(BulkMF4Reader(path)), fields(can.LogReader(path))
     assert len(ours) > 1000 and ours == theirs
+
+
+@pytest.mark.skipif(not REAL_LOGS, reason=f"the real CANedge drive is not in {REAL_DRIVE}")
+def test_real_canedge_module_rates_its_headings_poor_until_it_settles(tmp_path):
+    """Its heading accuracy mapped (``gps.signals.heading_accuracy``), the real drive's first file: the module rates its
+    first headings at degrees, those of its settled minutes near half a degree."""
+    text = (REPO / "configs" / "canedge-obd.toml").read_text()
+    mapping = 'heading_accuracy = { signal = "gnss_attitude.HeadingAccuracy", valid = "AttitudeValid", channel = 2 }\n'
+    config = tmp_path / "rated.toml"
+    config.write_text(text.replace("\n[gps.signals]", f"\n[gps.signals]\n{mapping}", 1))  # its comment moves down
+    drive = RecordedDrive(load_config(config, env={}), REAL_LOGS[:1])
+    rated = [f for f in drive.samples() if isinstance(f, GnssFix) and f.heading_rad is not None]
+    sigmas = [math.degrees(f.heading_sigma_rad) for f in rated if f.heading_sigma_rad is not None]
+    assert len(sigmas) == len(rated) > 300
+    assert max(sigmas[:60]) > 20.0 and 0.3 < statistics.median(sigmas[-200:]) < 1.5

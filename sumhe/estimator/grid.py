@@ -241,6 +241,6 @@ def _angle_output(
         if kk < 0:
             continue
         speed = f.speed_mps if f.speed_mps is not None else float(can_speed[kk])
-        angle = azimuth_measurement(f.course_rad, f.heading_rad, speed, settings.gnss)
+        angle = azimuth_measurement(f.course_rad, f.heading_rad, speed, settings.gnss, f.heading_sigma_rad)
         if angle is not None:
             y[kk, j], avail[kk, j], allow[kk, j] = angle[0], True, k_sig * angle[1] + turn[kk]

@@ -21,7 +21,8 @@ class LocalFix:
     What the receiver said of its accuracy, as it said it: GGA ``quality`` and ``hdop``, GST's 1-sigma errors per
     axis (``gst_sigma_east_m`` from its longitude sigma, ``gst_sigma_north_m`` from its latitude sigma); the
     front-end turns them into the fix's sigma (:func:`~sumhe.frontend.measurements.fix_sigmas`).
-    ``course_rad``/``heading_rad`` clockwise from north.
+    ``course_rad``/``heading_rad`` clockwise from north; ``heading_sigma_rad`` the receiver's 1-sigma of its heading
+    where it rates it (:attr:`~sumhe.messages.GnssFix.heading_sigma_rad`).
     """
 
     t: float
@@ -36,6 +37,7 @@ class LocalFix:
     speed_mps: float | None = None
     course_rad: float | None = None
     heading_rad: float | None = None
+    heading_sigma_rad: float | None = None
     fix: GnssFix | None = field(default=None, compare=False, repr=False)
     frame: LocalFrame | None = field(default=None, compare=False, repr=False)
 
@@ -86,6 +88,7 @@ class FixConverter:
             speed_mps=fix.speed_mps,
             course_rad=fix.course_rad,
             heading_rad=fix.heading_rad,
+            heading_sigma_rad=fix.heading_sigma_rad,
             fix=fix,
             frame=self.frame,
         )

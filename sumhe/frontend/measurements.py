@@ -8,7 +8,8 @@ reads its measurements from here, through :class:`~sumhe.frontend.stream.FrontEn
 * Position, per axis (east, north): the receiver's GST sigmas; else by GGA quality, RTK fixed
   ``sigma_rtk_m``, float ``sigma_float_m``; else HDOP x ``uere_m``; else ``sigma_m``; at least ``resolution_m``
   (:func:`fix_sigmas`).
-* Azimuth: an HDT/THS heading (with ``use_heading``) at ``heading_sigma_rad``; else the course over ground above
+* Azimuth: an HDT/THS heading (with ``use_heading``) at ``heading_sigma_rad``, or at the receiver's rating of it
+  where it rates it worse (:func:`heading_sigma`); else the course over ground above
   ``course_min_speed_mps`` (of the fix's speed, else the CAN speed) at ``hypot(course_sigma_rad,
   speed_sigma_mps / speed)`` (:func:`azimuth_measurement`).
 * Azimuth from the fixes' motion, for receivers that send no course or heading: the chord between two fixes,
@@ -96,15 +97,32 @@ def _scalar(value: Any) -> bool:
 
 
 def azimuth_measurement(
-    course_rad: float | None, heading_rad: float | None, speed_mps: float | None, gnss: GnssModel
+    course_rad: float | None,
+    heading_rad: float | None,
+    speed_mps: float | None,
+    gnss: GnssModel,
+    heading_rated_rad: float | None = None,
 ) -> tuple[float, float, bool] | None:
     """The azimuth a fix measures: (value rad, 1-sigma rad, whether it is a heading), or None. ``speed_mps``: the
-    fix's speed over ground, else the CAN speed (for the course's minimum speed and sigma)."""
+    fix's speed over ground, else the CAN speed (for the course's minimum speed and sigma). A heading's sigma is
+    ``heading_sigma_rad``, or the receiver's own rating of it (``heading_rated_rad``: a GNSS + IMU module's heading
+    accuracy) where that is larger: :func:`heading_sigma`."""
     if gnss.use_heading and _finite(heading_rad):
-        return float(heading_rad), gnss.heading_sigma_rad, True  # type: ignore[arg-type]
+        return float(heading_rad), heading_sigma(heading_rated_rad, gnss), True  # type: ignore[arg-type]
     if _finite(course_rad) and _finite(speed_mps) and speed_mps >= gnss.course_min_speed_mps:  # type: ignore[operator]
         return float(course_rad), float(course_sigma(speed_mps, gnss)), False  # type: ignore[arg-type]
     return None
+
+
+def heading_sigma(rated_rad: float | None, gnss: GnssModel) -> float:
+    """A heading's 1-sigma (rad): ``gnss.heading_sigma_rad``, or the receiver's rating ``rated_rad`` where it is
+    larger. The configured sigma is the floor because below about 0.5 deg a receiver's rating does not order its
+    errors (the shared real drive's GNSS + IMU module: on straight road, headings rated 0.2 deg were off the track by
+    0.3 deg rms, rated 0.5-0.6 deg by 0.3 deg); above it the rating is what tells a converged heading from one the
+    module has not settled yet (rated 2-40 deg in that drive's first minutes, up to 8 deg off, all to one side)."""
+    if rated_rad is None or not rated_rad > gnss.heading_sigma_rad:
+        return gnss.heading_sigma_rad
+    return float(rated_rad)
 
 
 def chord_azimuth(

@@ -373,7 +373,7 @@ class FrontEnd:
         s = self.settings
         can_speed = self.can["speed"].at(fix.t, s.can.max_gap_s)
         speed = fix.speed_mps if fix.speed_mps is not None and math.isfinite(fix.speed_mps) else can_speed
-        angle = azimuth_measurement(fix.course_rad, fix.heading_rad, speed, s.gnss)
+        angle = azimuth_measurement(fix.course_rad, fix.heading_rad, speed, s.gnss, fix.heading_sigma_rad)
         sigma_e, sigma_n = sigmas
         return FixMeasurement(
             t=fix.t,

@@ -123,6 +123,7 @@ _KIND_OF: dict[str, str] = {
     "accuracy": "length",
     "course": "angle",
     "heading": "angle",
+    "heading_accuracy": "angle",
     "time": "time",
     "sats": "count",
 }

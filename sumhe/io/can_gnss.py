@@ -21,9 +21,10 @@ epoch closed before every message of ``M`` arrived is counted ``incomplete`` (it
 Validity and values: the fix is valid when it has ``lat`` and ``lon`` within range and not flagged invalid (a
 mapping's ``valid`` flag signal decoded as 0: the decoder passes None). As for NMEA, an invalid fix carries no
 position, speed, course or heading. A value out of range (latitude beyond +-90 deg, longitude beyond +-180 deg,
-accuracy not positive, a negative speed or satellite count, a time not after 1970, anything not finite) is left
-out and counted (``bad_values``); ``course``/``heading`` are wrapped to [0, 2 pi). ``accuracy`` (horizontal,
-1 sigma) becomes both ``sigma_lat_m`` and ``sigma_lon_m``.
+accuracy or heading accuracy not positive, a negative speed or satellite count, a time not after 1970, anything not
+finite) is left out and counted (``bad_values``); ``course``/``heading`` are wrapped to [0, 2 pi). ``accuracy``
+(horizontal, 1 sigma) becomes both ``sigma_lat_m`` and ``sigma_lon_m``; ``heading_accuracy`` (1 sigma) the fix's
+``heading_sigma_rad``, with a heading only.
 """
 
 from __future__ import annotations
@@ -55,7 +56,7 @@ def checked_value(quantity: str, value: float) -> float | None:
     """``value`` of a GNSS quantity as the fix holds it, or None when it is out of range (module docstring)."""
     if not math.isfinite(value):
         return None
-    if quantity == "accuracy":
+    if quantity in ("accuracy", "heading_accuracy"):
         return value if value > 0.0 else None
     if quantity in ("course", "heading"):
         return value % (2.0 * math.pi)
@@ -155,6 +156,7 @@ def to_fix(t: float, values: Mapping[str, float | None]) -> GnssFix:
         return values.get(quantity) if valid else None
 
     sigma = if_valid("accuracy")
+    heading = if_valid("heading")
 
     return GnssFix(
         t=t,
@@ -167,8 +169,9 @@ def to_fix(t: float, values: Mapping[str, float | None]) -> GnssFix:
         sats=round(sats) if sats is not None else None,
         speed_mps=if_valid("speed"),
         course_rad=if_valid("course"),
-        heading_rad=if_valid("heading"),
+        heading_rad=heading,
         sigma_lat_m=sigma,
         sigma_lon_m=sigma,
         talker=TALKER,
+        heading_sigma_rad=if_valid("heading_accuracy") if heading is not None else None,
     )
