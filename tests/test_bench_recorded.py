@@ -25,6 +25,8 @@ from sumhe.estimator.registry import ESTIMATORS
 from sumhe.sim import SimSettings, simulate, write_drive
 from sumhe.sim.measure import true_antenna
 
+from loggerframes import write_drive as write_logger_drive
+
 
 class OffsetEkf(Ekf):
     """The EKF, saying it learned a GNSS time offset of 0.5 s."""
@@ -78,7 +80,7 @@ def test_without_a_course_the_floor_takes_the_direction_between_fixes():
 
 
 def test_outages_are_placed_while_moving_and_reproducibly(drive_dir):
-    rec = load_recording([str(drive_dir)], None, reference_config())
+    rec = load_recording([str(drive_dir)], None, reference_config)
     bs = RecordedBenchSettings()
     windows = place_outages(rec, 10.0, bs)
     assert windows == place_outages(rec, 10.0, bs)
@@ -89,9 +91,21 @@ def test_outages_are_placed_while_moving_and_reproducibly(drive_dir):
         assert rec.track.speed[inside].mean() >= bs.min_speed_mps
 
 
+def test_the_environments_overrides_reach_the_config_given_not_the_defaults(tmp_path, monkeypatch, capsys):
+    """``SUMHE_...`` overrides are meant for the config in use: ``gps.signals`` set for a CAN-GNSS config had stopped
+    ``sumhe bench --drive ... --config FILE`` at the defaults it never used (``<defaults>: gps.signals: read only
+    with gps.source = 'can'``)."""
+    logs = write_logger_drive(tmp_path, 40.0)
+    rated = '{ signal = "GNSS_MOTION.HEADING_ACC", valid = "HEADING_VALID", channel = 2 }'
+    monkeypatch.setenv("SUMHE_GPS__SIGNALS__HEADING_ACCURACY", rated)
+    args = ["--config", str(tmp_path / "logger.toml"), "--estimators", "dead-reckoning", "--lengths", "10"]
+    assert main(["bench", "--drive", *map(str, logs), *args]) == 0
+    assert "| `dead-reckoning` |" in capsys.readouterr().out
+
+
 def test_an_estimators_learned_time_offset_moves_the_fixes_it_is_compared_with(drive_dir, monkeypatch):
     monkeypatch.setitem(ESTIMATORS, "offset-ekf", (__name__, "OffsetEkf"))
-    rec = load_recording([str(drive_dir)], None, reference_config())
+    rec = load_recording([str(drive_dir)], None, reference_config)
     windows = place_outages(rec, 10.0, RecordedBenchSettings())
     plain, shifted = run_estimator("ekf", rec, windows), run_estimator("offset-ekf", rec, windows)
     assert abs(plain.offset_s) < 0.05 and shifted.offset_s == 0.5  # the simulated fixes are on time
@@ -142,7 +156,7 @@ def test_the_floors_are_scored_against_where_the_antenna_truly_was(tmp_path):
         gps_error_m=0.02,
     )
     write_drive(simulate(settings), tmp_path)
-    rec = load_recording([str(tmp_path)], None, reference_config())
+    rec = load_recording([str(tmp_path)], None, reference_config)
     assert rec.sim is not None and rec.sim.antenna_forward_m == 1.5
     fixes = np.column_stack([rec.fixes.east, rec.fixes.north])
     at = rec.truth.at(rec.fixes.t)
@@ -156,7 +170,7 @@ def test_the_floors_are_scored_against_where_the_antenna_truly_was(tmp_path):
 
 
 def test_without_the_simulators_settings_the_floors_have_no_truth(drive_dir):
-    rec = load_recording([str(drive_dir / "drive.log"), str(drive_dir / "drive.nmea")], None, reference_config())
+    rec = load_recording([str(drive_dir / "drive.log"), str(drive_dir / "drive.nmea")], None, reference_config)
     assert rec.truth is None and rec.sim is None
     vs_fixes, vs_truth = floor_errors(rec, place_outages(rec, 10.0, RecordedBenchSettings()))
     assert vs_truth == {} and all(vs_fixes[name].size for name in FLOORS)

@@ -100,9 +100,11 @@ class Recording:
         return self.samples[-1].t - self.samples[0].t if self.samples else 0.0
 
 
-def load_recording(spec: Sequence[str], config_path: str | None, fallback: Config) -> Recording:
+def load_recording(spec: Sequence[str], config_path: str | None, fallback: Callable[[], Config]) -> Recording:
     """One drive from a folder or log files (see the module docstring), with the config of ``config_path``, else
-    the folder's ``config.toml``, else ``fallback``; ConfigError naming what is missing."""
+    the folder's ``config.toml``, else the one ``fallback`` makes (only then: the environment's overrides,
+    ``SUMHE_...``, are meant for the config in use, and one that only a CAN-GNSS config takes stopped the defaults
+    from loading); ConfigError naming what is missing."""
     paths = [Path(p) for p in spec]
     truth_path = scenario = None
     if len(paths) == 1 and paths[0].is_dir():
@@ -118,7 +120,7 @@ def load_recording(spec: Sequence[str], config_path: str | None, fallback: Confi
         can_logs = [p for p in paths if p.suffix.lower() != ".nmea"]
         nmea_logs = [p for p in paths if p.suffix.lower() == ".nmea"]
         name = paths[0].parent.name or paths[0].name
-    config = load_config(config_path) if config_path else fallback
+    config = load_config(config_path) if config_path else fallback()
     drive = RecordedDrive(config, can_logs, nmea_logs or None)
     samples = list(drive.samples())
     sig = signals_of(drive, samples)

@@ -308,7 +308,7 @@ def run_recorded(args: argparse.Namespace) -> int:
     bs = _with_options(RecordedBenchSettings(), "bench --drive", args, options)
     out = []
     for spec in args.drive:
-        recording = load_recording(spec, args.config, reference_config())
+        recording = load_recording(spec, args.config, reference_config)
         data = summary(recording, run_recording(recording, bs, lambda m: print(m, file=sys.stderr, flush=True)))
         out.append(data)
         for line in markdown(data):
