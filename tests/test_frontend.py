@@ -94,8 +94,8 @@ def test_one_course_and_heading_sigma() -> None:
     assert (angle, heading) == (0.3, False) and sigma == pytest.approx(course_sigma(10.0, gnss))
     assert azimuth_measurement(0.3, None, 1.0, gnss) is None  # below the minimum speed
     assert azimuth_measurement(0.3, None, None, gnss) is None
-    rated = (1.2, gnss.heading_sigma_rad, True)  # a receiver's rating below the configured sigma: the configured
-    assert azimuth_measurement(0.3, 1.2, 10.0, gnss, 0.5 * gnss.heading_sigma_rad) == rated
+    configured = (1.2, gnss.heading_sigma_rad, True)  # a receiver's rating below the configured sigma: the configured
+    assert azimuth_measurement(0.3, 1.2, 10.0, gnss, 0.5 * gnss.heading_sigma_rad) == configured
     assert azimuth_measurement(0.3, 1.2, 10.0, gnss, 0.1) == (1.2, 0.1, True)  # rated worse: its rating
     assert azimuth_measurement(0.3, None, 10.0, gnss, 0.1)[2] is False  # type: ignore[index]  # no heading: course
     no_heading = GnssModel(use_heading=False)
