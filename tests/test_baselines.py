@@ -889,8 +889,8 @@ def test_headings_the_receiver_rates_poor_weigh_as_it_rates_them(name: str) -> N
     """A GNSS + IMU module whose heading has not settled (the shared real drive's first minutes: rated 2-40 deg, up to
     8 deg off, all to one side) says so in its heading accuracy: 10 s of headings 6 deg to the right of the way north,
     rated 6 deg, leave the azimuth within a tenth of a degree or so of the way (the fixes hold it), every fix used;
-    the same headings unrated, at the configured 0.29 deg, turn it by 4 (MHE) to 6.5 deg (EKF), and fixes are rejected (the MHE's
-    solves fail: no trajectory of the window meets both the fixes and such headings)."""
+    the same headings unrated, at the configured 0.29 deg, turn it by 4 (MHE) to 6.5 deg (EKF), and fixes are
+    rejected (the MHE's solves fail: no trajectory of the window meets both the fixes and such headings)."""
 
     def run(rated: bool) -> tuple[float, Mapping[str, object]]:
         est = make_estimator(name, load_config())
