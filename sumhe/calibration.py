@@ -45,6 +45,7 @@ from numpy.typing import NDArray
 from sumhe.config import Config, SignalSpec
 from sumhe.errors import CalibrationError
 from sumhe.frontend.alignment import CHORD_S, MIN_PAIRS, MIN_SPEED_MPS, LagFit, course_lag, speed_lag
+from sumhe.frontend.measurements import heading_sigma
 from sumhe.geo import LocalFrame
 from sumhe.io.quanta import signal_quanta
 from sumhe.io.replay import Paths, RecordedDrive
@@ -87,8 +88,10 @@ YAW_SCALE_PLAUSIBLE = (0.5, 2.0)
 @dataclass(frozen=True, slots=True)
 class DriveSignals:
     """What calibration reads of a drive: the valid fixes (times in s, east/north in m from the first, speed over
-    ground in m/s, course and heading in rad; NaN where a fix lacks one), the CAN speed (m/s) and yaw rate (rad/s)
-    with their times, the CAN speed's quantum (m/s), and counts for the report."""
+    ground in m/s, course and heading in rad; NaN where a fix lacks one; each heading's 1-sigma as the front-end
+    weighs it, :func:`~sumhe.frontend.measurements.heading_sigma`: the receiver's rating where it rates it worse
+    than ``sensors.gnss.heading_sigma_rad``), the CAN speed (m/s) and yaw rate (rad/s) with their times, the CAN
+    speed's quantum (m/s), and counts for the report."""
 
     t_fix: FloatArray
     east: FloatArray
@@ -104,6 +107,8 @@ class DriveSignals:
     fixes: int
     origin_deg: tuple[float, float] = (0.0, 0.0)
     """Latitude and longitude (deg) of the east/north frame's origin: the first valid fix."""
+    heading_sigma: FloatArray | None = None
+    """Each fix's heading's 1-sigma (rad) as the front-end weighs it; None: all alike."""
 
     @property
     def span_s(self) -> float:
@@ -213,6 +218,7 @@ def signals_of(drive: RecordedDrive, samples: Iterable[Sample]) -> DriveSignals:
         gnss_speed=column("speed_mps"),
         course=column("course_rad"),
         heading=column("heading_rad"),
+        heading_sigma=np.array([heading_sigma(f.heading_sigma_rad, config.estimation.gnss) for f in fixes]),
         t_speed=speed[:, 0],
         speed=speed[:, 1],
         t_yaw=yaw[:, 0],
@@ -364,18 +370,19 @@ class _YawFit:
     v_eff_mps: float
 
 
-def _azimuth_series(sig: DriveSignals) -> tuple[FloatArray, FloatArray, str, bool] | None:
-    """Times, azimuths, what they are, and whether they are the antenna's course (lever arm): the receiver's
-    heading, else its course over ground, else the course between fix positions."""
-    for name, values, lever in (
-        ("the receiver's heading", sig.heading, False),
-        ("the receiver's course over ground", sig.course, True),
+def _azimuth_series(sig: DriveSignals) -> tuple[FloatArray, FloatArray, str, bool, FloatArray | None] | None:
+    """Times, azimuths, what they are, whether they are the antenna's course (lever arm), and their sigmas where
+    they differ (a heading's rating): the receiver's heading, else its course over ground, else the course between
+    fix positions."""
+    for name, values, lever, sigma in (
+        ("the receiver's heading", sig.heading, False, sig.heading_sigma),
+        ("the receiver's course over ground", sig.course, True, None),
     ):
         if np.count_nonzero(np.isfinite(values)) >= MIN_PAIRS:
-            return sig.t_fix, values, name, lever
+            return sig.t_fix, values, name, lever, sigma
     t, _, crs = chords(sig.t_fix, sig.east, sig.north)
     if len(t) >= MIN_PAIRS:
-        return t, crs, "the course between fix positions (the fixes carry no course or heading)", True
+        return t, crs, "the course between fix positions (the fixes carry no course or heading)", True, None
     return None
 
 
@@ -385,14 +392,22 @@ def _yaw_fit(sig: DriveSignals) -> _YawFit | None:
     series = _azimuth_series(sig)
     if series is None or len(sig.t_yaw) < 2:
         return None
-    t, azimuth, source, lever = series
+    t, azimuth, source, lever, sigma = series
     speed = np.abs(np.interp(t, sig.t_speed, sig.speed))
     prior = LEVER_PRIOR_M if lever else None
 
     def fit_on(keep: NDArray[np.bool_], scale: float | None) -> LagFit | None:
         azimuths = np.where(keep, azimuth, np.nan)
         return course_lag(
-            t, azimuths, speed, sig.t_yaw, sig.yaw, lever_prior_m=prior, speed_weighted=lever, fixed_scale=scale
+            t,
+            azimuths,
+            speed,
+            sig.t_yaw,
+            sig.yaw,
+            lever_prior_m=prior,
+            speed_weighted=lever,
+            fixed_scale=scale,
+            sigma_rad=sigma,
         )
 
     def fitted(scale: float | None) -> tuple[LagFit, tuple[float, ...]] | None:

@@ -213,6 +213,7 @@ def course_lag(
     lever_prior_m: tuple[float, float] | None = None,
     speed_weighted: bool = False,
     fixed_scale: float | None = None,
+    sigma_rad: ArrayLike | None = None,
 ) -> LagFit | None:
     """The lag of the receiver's course behind the CAN yaw rate: the course's rate between consecutive fixes
     (clockwise) against ``-(yaw - bias) * scale`` averaged over the same interval ``lag`` earlier. ``scale`` is the
@@ -227,7 +228,9 @@ def course_lag(
     hardly varies; ``lever_m`` is the result. Leave it None for a heading (HDT: the body's own azimuth).
     ``speed_weighted``: weigh each pair by its speed squared, as the course's error is the velocity's error over the
     speed (not for a heading, whose error does not shrink with speed). ``fixed_scale``: the scale is not fitted
-    but this (a drive without turns tells the bias at scale 1, not the scale)."""
+    but this (a drive without turns tells the bias at scale 1, not the scale). ``sigma_rad``: each azimuth's 1-sigma
+    (rad; a heading's as the receiver rates it, :func:`~sumhe.frontend.measurements.heading_sigma`): each pair is
+    weighed by the inverse of its rate's variance, ``sigma1^2 + sigma2^2``, beside its speed."""
     tf, crs, spd = np.asarray(t_fix, float), np.asarray(course_rad, float), np.asarray(speed_mps, float)
     tw, w = np.asarray(t_yaw, float), np.asarray(yaw_rps, float)
     lags = np.asarray(lags, float)
@@ -247,6 +250,10 @@ def course_lag(
     rate = -dcrs / (t2 - t1)
     cum = _cumulative(tw, w)
     root_w = 0.5 * (v1 + v2) / np.sqrt(np.mean(np.square(0.5 * (v1 + v2)))) if speed_weighted else np.ones(len(rate))
+    if sigma_rad is not None:
+        sig = np.asarray(sigma_rad, float)
+        inverse = 1.0 / np.sqrt(np.square(sig[:-1][pair][inside]) + np.square(sig[1:][pair][inside]))
+        root_w = root_w * inverse / np.sqrt(np.mean(np.square(inverse)))
 
     def mean(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
         return (np.interp(b, tw, cum) - np.interp(a, tw, cum)) / (b - a)  # type: ignore[no-any-return]
