@@ -178,6 +178,13 @@ def test_decoder_reads_the_heading_accuracy_in_radians_where_mapped():
     assert [f.heading_sigma_rad for f in fixes] == [None, pytest.approx(math.radians(2.5))]
 
 
+def test_a_heading_accuracy_in_metres_is_a_config_error_naming_the_key():
+    with pytest.raises(
+        ConfigError, match=r"gps\.signals\.heading_accuracy: GNSS_POS\.ACCURACY has unit 'm', not an angle"
+    ):
+        CanDecoder(logger_db(), {}, gnss=GNSS | {"heading_accuracy": SignalSpec("GNSS_POS", "ACCURACY")})
+
+
 def test_gnss_mapping_needs_lat_and_lon():
     with pytest.raises(ConfigError, match=r"gps\.signals: lat and lon"):
         CanDecoder(logger_db(), {}, gnss={"lat": GNSS["lat"]})

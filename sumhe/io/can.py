@@ -697,7 +697,10 @@ def _field(message: Message, mapped: _Mapped) -> _Field:
         kind = _KIND_OF[quantity]
         known = ", ".join(_UNITS[kind])
         what = f"unit {unit!r}" if unit else "no unit"
-        raise ConfigError(f"{key}: {spec.name} has {what}, not a {kind} unit; set unit = '...' (one of: {known})")
+        article = "an" if kind[0] in "aeiou" else "a"
+        raise ConfigError(
+            f"{key}: {spec.name} has {what}, not {article} {kind} unit; set unit = '...' (one of: {known})"
+        )
     needs = []
     s = signal
     while s.multiplexer_signal is not None:
