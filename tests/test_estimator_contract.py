@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import heapq
+import itertools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -12,12 +13,14 @@ import numpy as np
 import pytest
 
 from sumhe.config import DatumSettings, GpsSettings, load_config
+from sumhe.errors import ConfigError
 from sumhe.estimator.base import Estimator, StateEstimate, StreamEstimator
 from sumhe.estimator.registry import estimator_names, make_estimator
 from sumhe.frontend.fixes import FixConverter, LocalFix
-from sumhe.frontend.stream import Epoch
+from sumhe.frontend.stream import OUTPUT_QUANTITY, Epoch
 from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample, GnssFix
+from sumhe.settings import with_changes
 from sumhe.sim import Drive, SimSettings, simulate
 
 from estimators import estimator_params
@@ -159,6 +162,52 @@ def test_live_estimators_answer_the_front_ends_events(estimator: Estimator) -> N
                     ticks += 1
     assert epochs == sum(isinstance(s, LocalFix) for s in drive.samples)  # a usable fix first: every one counts
     assert ticks > 300
+
+
+@pytest.mark.parametrize("name", [p.values[0] for p in estimator_params(estimator_names(live_only=True))])
+def test_between_sparse_speed_samples_each_estimator_answers_at_yaw_rate_samples_and_keeps_its_course(name) -> None:
+    """The CAN speed polled at 2 Hz (OBD-II), the yaw rate at 100 Hz: with ``estimator.can_output_hz`` 25 every
+    live estimator answers the yaw-rate ticks the front-end marks, at least 40 ms after the estimate before, with
+    an estimate at the tick, near the truth; its estimates at the speed ticks and the epochs are those of the same
+    drive without them, to the bit (the state moved to a yaw-rate tick is set back)."""
+    drive = synthetic_drive(12.0)
+    speed = [s for s in drive.samples if isinstance(s, CanSample) and s.quantity == "speed"]
+    polled = {id(s) for s in speed[::25]}
+    samples = [s for s in drive.samples if not isinstance(s, CanSample) or s.quantity != "speed" or id(s) in polled]
+    config = load_config()
+    runs = {}
+    for hz in (0.0, 25.0):
+        est = make_estimator(name, with_changes(config, {"estimator.can_output_hz": hz}))
+        assert isinstance(est, StreamEstimator)
+        answered: list[tuple[str, StateEstimate]] = []
+        for sample in samples:
+            for event in est.frontend.push(sample):
+                if isinstance(event, Epoch):
+                    answered.append(("epoch", est.on_epoch(event)))
+                    continue
+                answer = est.on_can(event)
+                assert (answer is not None) == event.output
+                if answer is not None:
+                    assert answer.t in (event.t, event.stamp)
+                    answered.append((event.quantity, answer))
+        runs[hz] = answered
+    without, between = runs[0.0], runs[25.0]
+    assert {kind for kind, _ in without} == {"epoch", OUTPUT_QUANTITY}
+    can = [(kind, e.t) for kind, e in between if kind != "epoch"]
+    since = [t - t_before for (_, t_before), (kind, t) in itertools.pairwise(can) if kind == "yaw_rate"]
+    yaw = [e for kind, e in between if kind == "yaw_rate"]
+    assert len(yaw) > 200 and min(since) >= 0.04 - 1e-9
+    assert np.percentile(errors(drive, yaw), 95) < 1.5
+    kept = [(kind, e) for kind, e in between if kind != "yaw_rate"]
+    assert [(kind, e.t, e.east_m, e.north_m, e.azimuth_rad) for kind, e in kept] == [
+        (kind, e.t, e.east_m, e.north_m, e.azimuth_rad) for kind, e in without
+    ]
+
+
+@pytest.mark.parametrize("value", [-1.0, math.inf, "25 Hz"])
+def test_a_bad_can_output_rate_stops_start_up_naming_the_key(value: object) -> None:
+    with pytest.raises(ConfigError, match=r"command line: estimator\.can_output_hz: "):
+        load_config(overrides={"estimator.can_output_hz": value})
 
 
 def test_nothing_before_the_first_valid_fix(estimator: Estimator) -> None:

@@ -81,7 +81,7 @@ from sumhe.estimator.base import StateEstimate, StreamEstimator
 from sumhe.estimator.uncertainty import Spread
 from sumhe.frontend.fixes import LocalFix
 from sumhe.frontend.measurements import chord_azimuth
-from sumhe.frontend.stream import CanTick, Epoch, FixMeasurement
+from sumhe.frontend.stream import OUTPUT_QUANTITY, CanTick, Epoch, FixMeasurement
 from sumhe.messages import CanSample, GpsStatus
 from sumhe.settings import EstimationSettings, NoiseSettings
 
@@ -342,11 +342,31 @@ class RecursiveEstimator(StreamEstimator):
         return estimate
 
     def on_can(self, tick: CanTick) -> StateEstimate | None:
+        """A CAN speed tick moves the filter to it and updates it with the CAN data there; a yaw-rate tick the
+        front-end marks for an estimate (between sparse speed samples, ``estimator.can_output_hz``) is answered by
+        :meth:`_between`."""
         if not tick.output or not self._started:
             return None
+        if tick.quantity != OUTPUT_QUANTITY:
+            return self._between(tick)
         self._apply_can(tick)
         self.tally.counts["can_updates"] += 1
         return self._report(tick.stamp, self._status, epoch=False)
+
+    def _between(self, tick: CanTick) -> StateEstimate:
+        """The estimate at a yaw-rate tick between speed samples: the filter moved to it with the CAN data so far
+        (the yaw-rate samples since the last speed sample), reported, and set back (the next speed tick moves it on
+        as before); a filter that keeps no snapshots (``snapshot_attrs`` None) reports its state moved there by the
+        model alone (its yaw rate that of the last speed tick)."""
+        if self.snapshot_attrs is None:
+            return self._report(tick.stamp, self._status, epoch=False)
+        saved, t_state = self._snapshot(), self._t_state
+        try:
+            self._advance(tick.t, self._inputs(tick.t))
+            return self._report(tick.stamp, self._status, epoch=False)
+        finally:
+            self._restore(saved)
+            self._t_state = t_state
 
     # ---- hooks ------------------------------------------------------------------------------------------------
 

@@ -29,8 +29,8 @@ Where the inputs still to come belong (each one place): a course that errs by mo
 differs from the heading (sideslip, mounting), is :func:`~sumhe.frontend.measurements.azimuth_measurement`'s; NMEA
 without HDOP or GST falls to ``sensors.gnss.sigma_m`` in :func:`~sumhe.frontend.measurements.fix_sigmas`; sparse,
 quantised CAN speed (OBD-II polling) is the buffer's and the DBC quantum's (:mod:`sumhe.io.quanta`), and which
-samples make an estimate is :data:`OUTPUT_QUANTITY`; a fix arriving after newer CAN data is judged in
-:meth:`FrontEnd._fix` (``MAX_FIX_LAG_S``).
+samples make an estimate is :data:`OUTPUT_QUANTITY`'s and, between them, ``estimator.can_output_hz``'s
+(:attr:`CanTick.output`); a fix arriving after newer CAN data is judged in :meth:`FrontEnd._fix` (``MAX_FIX_LAG_S``).
 """
 
 from __future__ import annotations
@@ -56,7 +56,8 @@ MAX_DATA_GAP_S = 10.0
 MAX_FIX_LAG_S = 1.0
 """Fixes older than this behind the newest CAN data are dropped (counted ``late_fixes``)."""
 OUTPUT_QUANTITY = "speed"
-"""The CAN quantity whose samples the estimators answer with an estimate."""
+"""The CAN quantity whose samples the estimators answer with an estimate (and the other's, between them, at most
+``estimator.can_output_hz`` often: :attr:`CanTick.output`)."""
 CAN_KEEP_S = 2.0
 """CAN samples are kept for this long, or three periods if longer, behind the newest epoch."""
 SAME_EPOCH = 0.25
@@ -111,8 +112,9 @@ class Epoch:
 
 class CanTick(NamedTuple):
     """A CAN sample taken in: ``t`` its measurement time, ``stamp`` its timestamp (s); ``output``: the estimators
-    answer it with an estimate (the CAN-rate output runs at the rate of the ``speed`` samples). A named tuple: one
-    is made per CAN sample."""
+    answer it with an estimate (every ``speed`` sample; a yaw-rate sample where ``estimator.can_output_hz`` is set
+    and the last estimate is at least its period old: between the sparse speed samples of an OBD-II poll, the
+    estimate moved on by the model, not kept). A named tuple: one is made per CAN sample."""
 
     t: float
     stamp: float
@@ -162,6 +164,11 @@ class FrontEnd:
         self.aligner = self.learner if gnss.learn_time_offset else None
         self.check.clear()
         self._delay_s = self.settings.can.delay_s
+        rate = self.settings.estimator.can_output_hz
+        self._between_s = 1.0 / rate if rate > 0 else None
+        """The period (s) of the estimates at yaw-rate samples between the speed samples; None: none there."""
+        self._t_output = -math.inf
+        """The measurement time of the newest CAN sample answered with an estimate."""
         self.time_offset_s = gnss.time_offset_s
         self.started = False
         self._fresh = False
@@ -233,7 +240,11 @@ class FrontEnd:
         store.add(t, value)
         if not self.started:
             return []
-        tick = _new_tuple(CanTick, (t, stamp, q, value, q == OUTPUT_QUANTITY))
+        between = self._between_s
+        output = q == OUTPUT_QUANTITY or (between is not None and t - self._t_output >= between)
+        if output:
+            self._t_output = t
+        tick = _new_tuple(CanTick, (t, stamp, q, value, output))
         clock = self.clock
         t_fix_clock = t - clock.delay_s
         if not clock.missed_due(t_fix_clock):

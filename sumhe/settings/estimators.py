@@ -104,7 +104,9 @@ class EstimatorSettings:
     ``widen_factor`` while a problem is infeasible, 001 algorithm 3.3), what the recursive peers share (the span of
     their stored history, ``late_fix_history_s`` seconds: a fix older than their state within it is put in at its
     own time and the filter re-run, :mod:`sumhe.baseline.stream`; 0 turns it off) and one table per estimator
-    family."""
+    family. ``can_output_hz``: the CAN-rate estimates come at every CAN speed sample and, where the speed samples
+    are sparser than that, also at the yaw-rate samples at least ``1 / can_output_hz`` after the previous estimate
+    (an OBD-II speed polled at 2 Hz beside a 100 Hz yaw rate; 0: at the speed samples only)."""
 
     name: str = "mhe"
     model: str = "su5"
@@ -117,6 +119,7 @@ class EstimatorSettings:
     r_cap_sigmas: float = 4.0
     widen_factor: float = 2.0
     late_fix_history_s: float = 1.5
+    can_output_hz: float = 0.0
     mhe: MheSettings = field(default_factory=MheSettings)
     batch: BatchSettings = field(default_factory=BatchSettings)
     ekf: NoiseSettings = field(default_factory=lambda: EKF_TUNED)
@@ -132,7 +135,7 @@ class EstimatorSettings:
         one_of(self, "model", MODELS)
         one_of(self, "discretisation", DISCRETISATIONS)
         positive(self, "r_cap_sigmas")
-        non_negative(self, "late_fix_history_s")
+        non_negative(self, "late_fix_history_s", "can_output_hz")
         if not self.widen_factor > 1:
             raise ValueError(f"widen_factor: must be > 1, got {self.widen_factor!r}")
 

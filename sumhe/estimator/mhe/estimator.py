@@ -53,7 +53,7 @@ from sumhe.estimator.mhe.propagate import Propagation, advance
 from sumhe.estimator.mhe.solve import WindowSolve
 from sumhe.estimator.mhe.window import Window, plan_window
 from sumhe.frontend.measurements import can_allowance, unmodelled_can_errors
-from sumhe.frontend.stream import SAME_EPOCH, CanTick, Epoch, FixMeasurement
+from sumhe.frontend.stream import OUTPUT_QUANTITY, SAME_EPOCH, CanTick, Epoch, FixMeasurement
 from sumhe.messages import GpsStatus
 from sumhe.model.su import SuModel, output_residuals
 from sumhe.settings import EstimationSettings
@@ -178,7 +178,12 @@ class MovingHorizonEstimator(StreamEstimator):
             self._collect(wait=False)
         if not tick.output or not len(self.window):
             return None
-        return self._estimate(self.propagation.to(tick.t, self.frontend.can), tick.t, self._status, "can")
+        can = self.frontend.can
+        # a speed tick moves the CAN-rate state on; a yaw-rate tick between sparse speed samples is answered from it
+        # without moving it (the steps stay from speed sample to speed sample)
+        move = self.propagation.to if tick.quantity == OUTPUT_QUANTITY else self.propagation.ahead
+        x = move(tick.t, can)
+        return self._estimate(x, tick.t, self._status, "can")
 
     def stats(self) -> Mapping[str, float | int | str]:
         """Counters (epochs, fixes used/rejected, outage epochs, solves, banded solves, widenings, fallbacks,

@@ -1,14 +1,15 @@
 """The MHE's CAN-rate side: a state moved on by the model with the CAN samples of an interval.
 
 Between GNSS epochs the estimate is the newest solution moved on to the newest CAN speed sample
-(:class:`Propagation`); at an epoch, the window's newest state moved to the epoch is the new step's prediction
-(:func:`advance`). The CAN speed is divided by the speed scale, the yaw rate's bias removed and the rest divided
-by its gain (the model's CAN outputs inverted, :func:`~sumhe.model.su.can_motion`). The steps run from speed sample
-to speed sample: the speed trapezoidal between them, the azimuth turned by the yaw rate's mean over the step (both
-ends of the step's trapezoid at that mean). With the mean at the step's end only, the trapezoid of two steps' means
-had turned the azimuth as the yaw rate was half a step before: a quarter of a second behind with an OBD-II speed
-polled at 2 Hz (the CAN-rate track's 95th percentile 3.6 deg off on a simulated urban drive with such a speed, 1.1
-deg with the mean at both ends).
+(:class:`Propagation`; at a yaw-rate sample between sparse speed samples, moved on to it without keeping it); at an
+epoch, the window's newest state moved to the epoch is the new step's prediction (:func:`advance`). The CAN speed
+is divided by the speed scale, the yaw rate's bias removed and the rest divided by its gain (the model's CAN outputs
+inverted, :func:`~sumhe.model.su.can_motion`). The steps run from speed sample to speed sample: the speed
+trapezoidal between them, the azimuth turned by the yaw rate's mean over the step (both ends of the step's
+trapezoid at that mean). With the mean at the step's end only, the trapezoid of two steps' means had turned the
+azimuth as the yaw rate was half a step before: a quarter of a second behind with an OBD-II speed polled at 2 Hz
+(the CAN-rate track's 95th percentile 3.6 deg off on a simulated urban drive with such a speed, 1.1 deg with the
+mean at both ends).
 """
 
 from __future__ import annotations
@@ -65,11 +66,16 @@ class Propagation:
         self.x = advance(self.model, list(x), t, t_to, can, self.max_gap_s) if t_to > t else list(x)
         self.t = max(t, t_to)
 
-    def to(self, t: float, can: CanBuffer) -> list[float]:
-        """The state at ``t`` (s): moved on from the last one (which it becomes), or, for a ``t`` before it (an
-        epoch newer than the CAN data), the model run back without changing it."""
+    def ahead(self, t: float, can: CanBuffer) -> list[float]:
+        """The state at ``t`` (s) moved on from the last one, which stays (an estimate at a yaw-rate sample between
+        the speed samples), or, for a ``t`` before it (an epoch newer than the CAN data), the model run back."""
         if t > self.t:
-            self.x = advance(self.model, self.x, self.t, t, can, self.max_gap_s)
-            self.t = t
-            return self.x
+            return advance(self.model, self.x, self.t, t, can, self.max_gap_s)
         return self.model.transition(self.x, self.x, t - self.t, math)
+
+    def to(self, t: float, can: CanBuffer) -> list[float]:
+        """The state at ``t`` (s) as :meth:`ahead`, which it becomes where ``t`` is after the last one."""
+        x = self.ahead(t, can)
+        if t > self.t:
+            self.x, self.t = x, t
+        return x
