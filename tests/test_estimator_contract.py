@@ -164,8 +164,8 @@ def test_live_estimators_answer_the_front_ends_events(estimator: Estimator) -> N
     assert ticks > 300
 
 
-@pytest.mark.parametrize("name", [p.values[0] for p in estimator_params(estimator_names(live_only=True))])
-def test_between_sparse_speed_samples_each_estimator_answers_at_yaw_rate_samples_and_keeps_its_course(name) -> None:
+@pytest.mark.parametrize("name", estimator_params(live_only=True))
+def test_between_sparse_speed_samples_each_estimator_answers_at_yaw_rate_samples_and_keeps_course(name: str) -> None:
     """The CAN speed polled at 2 Hz (OBD-II), the yaw rate at 100 Hz: with ``estimator.can_output_hz`` 25 every
     live estimator answers the yaw-rate ticks the front-end marks, at least 40 ms after the estimate before, with
     an estimate at the tick, near the truth; its estimates at the speed ticks and the epochs are those of the same
