@@ -10,12 +10,14 @@ import re
 import numpy as np
 import pytest
 
+from sumhe.baseline.ekf import Ekf
 from sumhe.bench.outages import FixCut, mode_shares, outage_errors, outage_windows
 from sumhe.cli import main
+from sumhe.estimator.registry import ESTIMATORS
 from sumhe.geo import LocalFrame
 from sumhe.messages import CanSample, GnssFix
 
-from loggerframes import LOGGER_CONFIG, T0, write_drive
+from loggerframes import LOGGER_CONFIG, SPEED_KMH, T0, write_drive
 
 FRAME = LocalFrame(56.1, 10.2, 0.0)
 
@@ -58,6 +60,20 @@ def test_errors_against_removed_fixes_interpolate_the_estimates():
     assert overall.p95_m == pytest.approx(3.0, abs=1e-3)
 
 
+def test_errors_are_taken_at_the_fixes_time_on_the_estimates_clock():
+    """Fixes stamped 0.5 s after the instant they refer to; the estimator learned that (offset -0.5 s): compared
+    at the stamp the estimates are 5 m ahead along the track, at the stamp less 0.5 s on the truth but for 3 m east.
+    The windows move with the fixes: a fix stamped just inside one is still counted in it."""
+    t = np.arange(0.0, 40.0, 0.5)
+    lat, lon = FRAME.to_geodetic(np.full_like(t, 3.0), 10.0 * t, 0.0)[:, :2].T
+    removed = [fix(tf + 0.5, north=10.0 * tf) for tf in (10.0, 12.0, 14.0)]
+    (on_stamp,), _ = outage_errors([(10.5, 15.0)], removed, t, lat, lon)
+    (w,), overall = outage_errors([(10.5, 15.0)], removed, t, lat, lon, offset_s=-0.5)
+    assert on_stamp.mean_m == pytest.approx(math.hypot(3.0, 5.0), abs=1e-3)
+    assert (w.fixes, w.scored, w.start, w.end) == (3, 3, 10.5, 15.0)
+    assert w.max_m == pytest.approx(3.0, abs=1e-3) and overall.mean_m == pytest.approx(3.0, abs=1e-3)
+
+
 def test_errors_where_estimates_are_too_far_apart_are_not_scored():
     t = np.array([0.0, 5.0])
     lat, lon = FRAME.to_geodetic(np.zeros(2), np.zeros(2), 0.0)[:, :2].T
@@ -93,15 +109,18 @@ def replay(capsys, logs, config, *args):
     return [json.loads(line) for line in captured.out.splitlines()], captured.err
 
 
+def unsolved(estimates: list[dict]) -> list[dict]:
+    """The JSON estimates without their solve times (which vary from run to run)."""
+    return [{k: v for k, v in e.items() if k != "solve_ms"} for e in estimates]
+
+
 def test_replay_of_several_files_equals_the_same_drive_in_one(tmp_path, capsys, logger_drive):
     logs, config = logger_drive
     whole = write_drive(tmp_path / "one", 60.0, files=1)
     split, _ = replay(capsys, logs[::-1], config, "--estimator", "ekf")
     one, err = replay(capsys, whole, config, "--estimator", "ekf")
     assert len(one) > 100
-    assert [{k: v for k, v in e.items() if k != "solve_ms"} for e in split] == [
-        {k: v for k, v in e.items() if k != "solve_ms"} for e in one
-    ]
+    assert unsolved(split) == unsolved(one)
     assert "CAN: 1 files" in err and "GNSS from CAN: 60 fixes (58 valid)" in err
 
 
@@ -118,6 +137,26 @@ def test_replay_with_outages_reports_errors_against_the_removed_fixes(capsys, lo
     assert max(max_m) < 3.0  # exact sensors on a circle: dead reckoning through 10 s stays close
     assert re.search(r"of \d+ epoch estimates 0\.0 % on widened bounds, 0\.0 % solver failures", err)
     assert "estimator: estimator ekf" in err
+
+
+class OffsetEkf(Ekf):
+    """The EKF, saying it learned a GNSS time offset of 0.5 s (the fixes' instant half a second after their stamp)."""
+
+    def stats(self):
+        return {**super().stats(), "gps_time_offset_s": 0.5}
+
+
+def test_replay_compares_the_removed_fixes_at_the_estimators_learned_time_offset(capsys, logger_drive, monkeypatch):
+    """``sumhe replay --outage`` scores as ``sumhe bench --drive`` does: the same estimates, each removed fix taken
+    at its stamp plus the offset the estimator learned (half a second at the drive's speed: metres)."""
+    monkeypatch.setitem(ESTIMATORS, "offset-ekf", (__name__, "OffsetEkf"))
+    logs, config = logger_drive
+    plain, err_plain = replay(capsys, logs, config, "--estimator", "ekf", "--outage", "20+10")
+    moved, err_moved = replay(capsys, logs, config, "--estimator", "offset-ekf", "--outage", "20+10")
+    assert unsolved(plain) == unsolved(moved)
+    mean = [float(re.search(r"^  all: 10 of 10 fixes; mean (\S+),", e, re.M).group(1)) for e in (err_plain, err_moved)]
+    speed = SPEED_KMH / 3.6
+    assert mean[0] < 1.0 and mean[1] == pytest.approx(0.5 * speed, abs=1.0)
 
 
 def test_replay_with_a_bad_outage_is_an_error(capsys, logger_drive):

@@ -2,9 +2,10 @@
 
 A recorded drive rarely comes with a reference trajectory; its own fixes are one wherever the estimator did not
 see them. :class:`FixCut` removes the fixes inside outage windows from a sample stream and keeps them;
-:func:`outage_errors` measures the estimates, interpolated to each removed fix's time, against those fixes;
-:func:`mode_shares` counts how the estimator solved its epochs. Pure: no files, clocks or estimators
-(``sumhe replay --outage`` and the benchmarks share it).
+:func:`outage_errors` measures the estimates, interpolated to each removed fix's time, against those fixes (on the
+estimates' clock: an estimator that learned the GNSS time offset places a fix at its stamped time plus that offset,
+and is compared with it there); :func:`mode_shares` counts how the estimator solved its epochs. Pure: no files,
+clocks or estimators (``sumhe replay --outage``, ``sumhe fleet`` and the benchmarks share it).
 
 Units: seconds (``t`` on the drive's clock), metres, degrees for latitude and longitude.
 """
@@ -84,17 +85,28 @@ def outage_errors(
     est_t: ArrayLike,
     est_lat_deg: ArrayLike,
     est_lon_deg: ArrayLike,
+    offset_s: float = 0.0,
 ) -> tuple[list[OutageErrors], OutageErrors]:
     """The errors of estimates (times ``est_t``, s; WGS84 latitude/longitude, deg) against the valid ``removed``
     fixes of each window, and over all of them. Each fix is compared with the estimate interpolated linearly (in
-    a local east/north frame) to its time (:func:`residuals_at_fixes`)."""
-    t_fix, d_east, d_north, _ = residuals_at_fixes(removed, est_t, est_lat_deg, est_lon_deg)
+    a local east/north frame) to its time plus ``offset_s`` (:func:`residuals_at_fixes`: the estimator's learned
+    GNSS time offset, the fixes' true time on the estimates' clock)."""
+    t_fix, d_east, d_north, _ = residuals_at_fixes(removed, est_t, est_lat_deg, est_lon_deg, offset_s=offset_s)
     errors = np.hypot(d_east, d_north)
-    index = interval_index(t_fix, windows) if t_fix.size else np.zeros(0, dtype=np.intp)
+    index = window_index(t_fix, windows, offset_s)
     per_window = [_errors(start, end, errors[index == i]) for i, (start, end) in enumerate(windows)]
     start = windows[0][0] if windows else math.nan
     end = windows[-1][1] if windows else math.nan
     return per_window, _errors(start, end, errors[index >= 0])
+
+
+def window_index(
+    t_fix: NDArray[np.float64], windows: Sequence[tuple[float, float]], offset_s: float = 0.0
+) -> NDArray[np.intp]:
+    """The window (index into ``windows``; -1: none) of each removed fix's time ``t_fix`` (s) on the estimates'
+    clock (:func:`residuals_at_fixes`: the windows moved by ``offset_s`` as the fixes were)."""
+    moved = [(start + offset_s, end + offset_s) for start, end in windows]
+    return interval_index(t_fix, moved) if t_fix.size else np.zeros(0, dtype=np.intp)
 
 
 def residuals_at_fixes(
@@ -103,13 +115,14 @@ def residuals_at_fixes(
     est_lat_deg: ArrayLike,
     est_lon_deg: ArrayLike,
     extra: Sequence[ArrayLike] = (),
+    offset_s: float = 0.0,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], list[NDArray[np.float64]]]:
-    """The valid ``removed`` fixes' times (s) and the estimates' residuals east and north of them (m: estimate
-    minus fix, the estimates interpolated linearly in a local east/north frame to each fix's time; NaN where no
-    estimates lie on both sides within :data:`MAX_INTERPOLATION_GAP_S`), and each of the per-estimate values
-    ``extra`` interpolated the same way."""
+    """The valid ``removed`` fixes' times plus ``offset_s`` (s: on the estimates' clock) and the estimates'
+    residuals east and north of them (m: estimate minus fix, the estimates interpolated linearly in a local
+    east/north frame to each fix's time on their clock; NaN where no estimates lie on both sides within
+    :data:`MAX_INTERPOLATION_GAP_S`), and each of the per-estimate values ``extra`` interpolated the same way."""
     fixes = [f for f in removed if f.valid and f.lat_deg is not None and f.lon_deg is not None]
-    t_fix = np.array([f.t for f in fixes], dtype=float)
+    t_fix = np.array([f.t + offset_s for f in fixes], dtype=float)
     d_east, d_north = np.full(len(fixes), math.nan), np.full(len(fixes), math.nan)
     values = [np.full(len(fixes), math.nan) for _ in extra]
     t = np.asarray(est_t, dtype=float)

@@ -212,13 +212,11 @@ def run_estimator(name: str, rec: Recording, windows: Sequence[tuple[float, floa
     wall = time.perf_counter() - wall0
     offset = float(pipeline.estimator.stats().get("gps_time_offset_s", 0.0))
     est = np.array(kept, dtype=float).reshape(-1, 6)
-    shifted = [dataclasses.replace(f, t=f.t + offset) for f in cut.removed]
-    moved = [(a + offset, b + offset) for a, b in windows]
-    _, errors = outages.outage_errors(moved, shifted, est[:, 0], est[:, 1], est[:, 2])
+    _, errors = outages.outage_errors(windows, cut.removed, est[:, 0], est[:, 1], est[:, 2], offset)
     t_fix, d_east, d_north, (eph, bound_east, bound_north) = outages.residuals_at_fixes(
-        shifted, est[:, 0], est[:, 1], est[:, 2], (est[:, 3], est[:, 4], est[:, 5])
+        cut.removed, est[:, 0], est[:, 1], est[:, 2], (est[:, 3], est[:, 4], est[:, 5]), offset
     )
-    outage = interval_index(t_fix, moved) if t_fix.size else np.zeros(0, dtype=np.intp)
+    outage = outages.window_index(t_fix, windows, offset)
     calib = calibration(calibration_columns(d_east, d_north, eph, bound_east, bound_north, outage)[outage >= 0])
     truth_errors = np.zeros(0)
     if rec.truth is not None and len(est):

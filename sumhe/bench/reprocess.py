@@ -300,10 +300,12 @@ def replay_drive(
             recorder.flush()  # an interrupted replay keeps what it estimated, as before the batches
     wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     span = last_t - first_t if math.isfinite(first_t) and math.isfinite(last_t) else 0.0
+    stats_after = estimator.stats()
     per_window: Sequence[OutageErrors] = []
     overall = None
-    if cut.windows:
-        per_window, overall = outage_errors(cut.windows, cut.removed, recorder.t, recorder.lat, recorder.lon)
+    if cut.windows:  # on the estimates' clock: at the fixes' stamped times plus the learned GNSS time offset
+        offset = float(stats_after.get("gps_time_offset_s", 0.0))
+        per_window, overall = outage_errors(cut.windows, cut.removed, recorder.t, recorder.lat, recorder.lon, offset)
     ts, ps = pipeline.guard.stats, pipeline.stats
     return DriveSummary(
         estimator=estimator.name,
@@ -323,7 +325,7 @@ def replay_drive(
         solve_p50_ms=recorder.solve_ms.percentile(50.0),
         solve_p99_ms=recorder.solve_ms.percentile(99.0),
         modes=mode_shares(recorder.modes),
-        estimator_stats=counter_deltas(stats_before, estimator.stats()),
+        estimator_stats=counter_deltas(stats_before, stats_after),
         outages=per_window,
         outages_all=overall,
         truth=recorder.truth_errors(),
