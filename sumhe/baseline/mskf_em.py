@@ -60,7 +60,7 @@ as a sixth row (:data:`OFFSET_ROW`), constant through the steps, seen by the hea
 never updated (the estimates, the stages' and the EM's, do not change). Before, it added the offset's part from the way
 moved since the newest position fix alone (the position at the fix taken as right, the azimuth off by the whole offset),
 while between fixes the combined azimuth follows the headings and the fixes pull the position back only in part
-(README, "Error estimates", `cons18`). The position stage's own covariance takes the azimuth's error as white noise,
+(`docs/error-estimates.md`, `cons18`). The position stage's own covariance takes the azimuth's error as white noise,
 ``P_phi g g'`` afresh at every step, while it is one slowly drifting error: over an outage of ``t`` seconds an azimuth
 error at its start moves the position by the way moved times it (variance ``t^2``, the stage alone: ``dt t``, ``dt`` the
 CAN period), the CAN yaw rate's bias integrated twice (``t^4``, the stage alone: ``dt t^3``). The joint covariance of

@@ -301,7 +301,7 @@ class InnovationScale:
       is the mean squared residual over the mean own trace, and the particle filter's trace swings 100-fold, 0.03 to
       2.9 m^2 at the fixes before the outages, while its residuals stay metres; before 14 of the real drive's 19
       10 s outages ``scale tr P0`` was under the recent mean squared residual, two thirds of it at the median; what
-      was tried against it and why it is not landed: README, error estimates). ``s`` is the maximum of the 2-D
+      was tried against it and why it is not landed: docs/error-estimates.md). ``s`` is the maximum of the 2-D
       Gaussian likelihood of the gaps' changes (forgetting in ``memory_s``, on a grid of ``ln s`` over
       [:data:`MIN_GROWTH_SCALE`, :data:`MAX_GROWTH_SCALE`]) under a weak log-normal prior at :attr:`scale`
       (:data:`GROWTH_PRIOR_SD`), so the growth
