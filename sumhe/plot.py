@@ -206,7 +206,7 @@ def plot_replays(tracks: Sequence[Track], out: str | Path, truth: Truth | None =
         ax.grid(alpha=0.3)
         ax.legend(loc="upper left", fontsize=8)
     if axes:
-        axes[-1].set_xlabel("time (s)")
+        axes[-1].set_xlabel("time (s) from the first estimate")
     path = Path(out)
     fig.savefig(path, dpi=100)
     return path
@@ -323,7 +323,11 @@ def plot_outages(
         t, err = track_errors(tr, local_truth, frame)
         ax_err.plot(t - t0, np.maximum(err, 1e-3), **styles[id(tr)])
     ax_err.set_yscale("log")
-    ax_err.set(xlabel="time (s)", ylabel="horizontal error (m)", title="error against the truth (outages shaded)")
+    ax_err.set(
+        xlabel="time (s) from the truth's start",
+        ylabel="horizontal error (m)",
+        title="error against the truth (outages shaded)",
+    )
     ax_err.grid(alpha=0.3, which="both")
     ax_err.legend(loc="upper left", fontsize=8)
     path = Path(out)
