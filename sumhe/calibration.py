@@ -25,8 +25,9 @@ turns (antenna ``l`` ahead of the rear axle) is fitted with the lag (:data:`LEVE
 of motion turns after the body by the sideslip's build-up (``k v``, :data:`SIDESLIP_GRADIENT`), which
 ``can_delay_s`` removes within its uncertainty. A coarse speed quantum (whole km/h from OBD-II) is not random
 error at a steady speed: the scale is fitted by generalised least squares with one random error per quantum step,
-rounded or truncated (:func:`speed_scale_fit`). Standard errors are delete-one-block jackknife estimates over
-:data:`JACKKNIFE_BLOCKS` stretches of the drive (GNSS errors are correlated over seconds), at least the fit's own.
+rounded or truncated (:func:`speed_rounding`, :func:`speed_scale_fit`). Standard errors are delete-one-block
+jackknife estimates over :data:`JACKKNIFE_BLOCKS` stretches of the drive (GNSS errors are correlated over seconds),
+at least the fit's own.
 
 :func:`read_signals` reads the drive (I/O), :func:`calibrate` is pure, :func:`toml_snippet` writes what the
 config accepts.
@@ -46,12 +47,13 @@ from sumhe.config import Config, SignalSpec
 from sumhe.errors import CalibrationError
 from sumhe.frontend.alignment import CHORD_S, MIN_PAIRS, MIN_SPEED_MPS, LagFit, course_lag, speed_lag
 from sumhe.frontend.measurements import heading_sigma
+from sumhe.frontend.sensor_check import rounding_wrong
 from sumhe.geo import LocalFrame
 from sumhe.io.quanta import signal_quanta
 from sumhe.io.replay import Paths, RecordedDrive
 from sumhe.messages import CanSample, GnssFix, Sample
 from sumhe.settings import GnssModel
-from sumhe.settings.sensors import FALLBACK_SPEED_RESOLUTION_MPS
+from sumhe.settings.sensors import COARSE_QUANTUM_MPS, FALLBACK_SPEED_RESOLUTION_MPS
 
 FloatArray = NDArray[np.float64]
 
@@ -63,9 +65,6 @@ MAX_LAG_STD_S = 0.1
 MAX_YAW_SCALE_STD = 0.01
 """A yaw-rate scale with a larger standard error is not determined (the drive hardly turns): one that the
 estimators could start from must be known to a per cent."""
-COARSE_QUANTUM_MPS = 0.1
-"""From this speed quantum on (0.36 km/h) the fit also tries a truncated speed (offset half a quantum): a finer
-quantum's offset is below what a drive's spread of speeds tells apart from the scale."""
 LEVER_PRIOR_M = (1.0, 1.5)
 """Prior (mean, sigma) of the antenna's forward offset from the rear axle (m): roof and dashboard antennas and
 loggers' GNSS modules sit 0-2.5 m ahead of it. It holds the fit where the speed hardly varies."""
@@ -151,8 +150,12 @@ class Calibration:
     notes: tuple[str, ...]
     delay_s: float
     speed_factor: float | None = None
-    """What the mapping's speed ``scale`` is multiplied by: ``speed_scale``, or for a truncated CAN speed the one
-    factor that fits the drive's speeds best (the config has no offset)."""
+    """What the mapping's speed ``scale`` is multiplied by: ``speed_scale``, or where the best fit's offset is
+    not the one ``speed_rounding`` takes, the one factor that fits the drive's speeds best at that one."""
+    speed_rounding: str | None = None
+    """``sensors.can.speed_rounding`` as the drive shows it (``"round"`` or ``"truncate"``); None where the CAN
+    speed's quantum is too fine to tell (below :data:`~sumhe.settings.sensors.COARSE_QUANTUM_MPS`) or the drive
+    does not tell it (:func:`speed_rounding`)."""
 
     def parameters(self) -> dict[str, Parameter]:
         return {key: getattr(self, key) for key in KEYS}
@@ -262,6 +265,17 @@ def speed_scale_fit(
     return best[1], best[2], best[3]
 
 
+def speed_rounding(fit: LagFit, quantum_mps: float) -> str | None:
+    """How a CAN speed of ``fit`` (:func:`~sumhe.frontend.alignment.speed_lag`) is made whole quanta:
+    ``"truncate"`` where it reads half a quantum low on the mean, ``"round"`` where it does not, told apart as the
+    on-line check tells them (:func:`~sumhe.frontend.sensor_check.rounding_wrong`); None for a quantum below
+    :data:`COARSE_QUANTUM_MPS` or while the drive does not tell them apart."""
+    if quantum_mps < COARSE_QUANTUM_MPS:
+        return None
+    truncated = rounding_wrong(fit.reads_low, fit.reads_low_std, quantum_mps / 2.0)
+    return None if truncated is None else "truncate" if truncated else "round"
+
+
 def jackknife_std(
     fit: Callable[[NDArray[np.bool_]], Sequence[float] | None], t: FloatArray, blocks: int = JACKKNIFE_BLOCKS
 ) -> FloatArray | None:
@@ -307,8 +321,11 @@ class _SpeedFit:
     zero_share: float
     lag_std_s: float
     scale_std: float
-    origin_scale: float
-    """The one factor (signed) that fits the drive's speeds best without an offset (= ``scale`` unless truncated)."""
+    rounding: str | None
+    """:func:`speed_rounding` of the whole drive's fit."""
+    factor: float
+    """The one factor (signed) that fits the drive's speeds best as ``rounding`` takes them (half a quantum added
+    where truncated): what the mapping's scale is multiplied by. ``scale`` unless the best fit's offset differs."""
 
 
 def _speed_fit(t: FloatArray, g: FloatArray, sig: DriveSignals, turn_rps: FloatArray | None) -> _SpeedFit | None:
@@ -351,9 +368,11 @@ def _speed_fit(t: FloatArray, g: FloatArray, sig: DriveSignals, turn_rps: FloatA
     sign = -1.0 if negative > 0.5 else 1.0
     lag_std = max(fit.std_s, float(jack[0])) if jack is not None else fit.std_s
     scale_std = max(float(jack[1]), model_std) if jack is not None else math.inf
-    origin = at_lag(everything, 0.0)
-    origin_k = origin[1] if origin is not None else k
-    return _SpeedFit(fit, sign * k, offset, negative, zero, lag_std, scale_std, sign * origin_k)
+    rounding = speed_rounding(fit, q)
+    key_offset = q / 2.0 if rounding == "truncate" else 0.0
+    keyed = full if key_offset == offset else at_lag(everything, key_offset)
+    factor = keyed[1] if keyed is not None else k
+    return _SpeedFit(fit, sign * k, offset, negative, zero, lag_std, scale_std, rounding, sign * factor)
 
 
 @dataclass(frozen=True, slots=True)
@@ -521,7 +540,15 @@ def calibrate(sig: DriveSignals, delay_s: float = 0.0) -> Calibration:
         signs=(speed_sign, yaw_sign),
         notes=tuple(notes),
         delay_s=delay_s,
-        speed_factor=sf.origin_scale if sf is not None and scale.value is not None else None,
+        speed_factor=sf.factor if sf is not None and scale.value is not None else None,
+        speed_rounding=sf.rounding if sf is not None and scale.value is not None else None,
+    )
+
+
+def _untold(lag: LagFit, quantum_mps: float) -> str:
+    return (
+        f"the drive does not tell rounded from truncated apart (the CAN speed reads {lag.reads_low:.3f} +- "
+        f"{lag.reads_low_std:.3f} m/s low on the mean; truncated {quantum_mps / 2:.3f})"
     )
 
 
@@ -558,12 +585,20 @@ def _speed_parameters(
         sf.scale_std,
         f"{source} against the CAN speed at that lag ({lag.n} fixes; the CAN speed {kind} to {q:.3g} m/s steps)",
     )
-    if sf.offset_mps > 0:
+    if sf.rounding == "truncate":
         notes.append(
-            f"the CAN speed is truncated to whole steps of {q:.3g} m/s: true speed = {sf.scale:.4f} x (CAN + "
-            f"{sf.offset_mps:.3g} m/s); the config has no offset, so the mapping gets the one factor that fits this "
-            f"drive's speeds best, {sf.origin_scale:.4f}"
+            f"the CAN speed is truncated to whole steps of {q:.3g} m/s: true speed = {sf.factor:.4f} x (CAN + "
+            f"{q / 2:.3g} m/s); with sensors.can.speed_rounding = 'truncate' (below) the estimators take each CAN "
+            "speed other than 0 at the middle of its step"
         )
+    elif sf.offset_mps > 0:
+        notes.append(
+            f"the CAN speed's steps of {q:.3g} m/s fit best as truncated (true speed = {sf.scale:.4f} x (CAN + "
+            f"{sf.offset_mps:.3g} m/s)), but {_untold(lag, q)}: speed_rounding is left as it is and the mapping gets "
+            f"the one factor that fits the drive's speeds best without the offset, {sf.factor:.4f}"
+        )
+    elif sf.rounding is None and q >= COARSE_QUANTUM_MPS:
+        notes.append(f"the CAN speed's steps of {q:.3g} m/s fit best as rounded, but {_untold(lag, q)}")
     k = abs(sf.scale)
     if not SPEED_SCALE_PLAUSIBLE[0] <= k <= SPEED_SCALE_PLAUSIBLE[1]:
         notes.append(
@@ -727,9 +762,10 @@ def report_lines(cal: Calibration, sig: DriveSignals) -> list[str]:
 
 
 def toml_snippet(cal: Calibration, config: Config) -> str:
-    """The calibration as TOML the config accepts: ``[sensors.gnss] time_offset_s`` and the mapping's ``scale`` of
-    ``can.signals.speed`` and ``yaw_rate`` (the found scale folded into the one the mapping has; the sign included);
-    what has no key (the CAN delays, the bias) as comments."""
+    """The calibration as TOML the config accepts: ``[sensors.gnss] time_offset_s``, ``[sensors.can]
+    speed_rounding`` (for a coarse quantum) and the mapping's ``scale`` of ``can.signals.speed`` and ``yaw_rate``
+    (the found scale folded into the one the mapping has; the sign included); what has no key (the CAN delays, the
+    bias) as comments."""
     lines: list[str] = []
     offset = cal.gps_time_offset_s
     if offset.value is not None:
@@ -748,6 +784,9 @@ def toml_snippet(cal: Calibration, config: Config) -> str:
         lines.append(
             f"# the CAN speed's age minus the yaw rate's: {cal.can_delay_s.value:+.3f} +- {cal.can_delay_s.std:.3f} s"
         )
+    if cal.speed_rounding is not None:
+        how = "towards 0: half a step low on the mean" if cal.speed_rounding == "truncate" else "to the nearest step"
+        lines.append(f'speed_rounding = "{cal.speed_rounding}"  # the CAN speed\'s whole steps, {how}')
     bias = cal.yaw_rate_bias_dps
     scales = {"speed": cal.speed_factor, "yaw_rate": cal.yaw_rate_scale.value}
     if bias.value is not None:

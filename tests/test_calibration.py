@@ -102,7 +102,8 @@ def test_the_output_is_a_config_that_loads_and_merges(known, capsys):
         spec, before = merged.can.signals[quantity], base.can.signals[quantity]
         assert (spec.message, spec.signal) == (before.message, before.signal)
         assert alone.can.signals[quantity].scale == spec.scale
-    assert merged.can.signals["speed"].scale == pytest.approx(0.98, abs=0.01)  # truncated km/h: the best one factor
+    assert merged.can.signals["speed"].scale == pytest.approx(0.98, abs=0.01)
+    assert merged.sensors.can.speed_rounding == "truncate"  # whole km/h, truncated: taken at their middles
     assert merged.can.signals["yaw_rate"].scale == pytest.approx(-1 / 1.08, abs=0.02)  # the IMU's sign kept
     assert ("time_offset_s = 0.3" in out or "time_offset_s = 0.2" in out) and "delay_s" in out
     if time_offset_key():
@@ -249,6 +250,24 @@ def test_speed_scale_fit_tells_rounded_from_truncated_steps():
     assert found == 0.0 and k == pytest.approx(1 / 1.02, rel=0.001)
 
 
+@pytest.mark.parametrize(
+    ("seed", "rounding"),
+    [(2, "round"), (20, None)],  # 20: fits best as truncated by a hair, which the drive does not tell apart
+)
+def test_a_rounded_obd_speed_is_never_written_truncated(tmp_path, seed, rounding):
+    drive = simulate_profile("realistic", seed, scenario="urban", duration_s=600.0)
+    assert (drive.settings.speed_source, drive.settings.obd_rounding) == ("obd", "round")
+    write_drive(drive, tmp_path)
+    config = load_config(tmp_path / "config.toml", env={})
+    cal = calibrate(read_signals(config, tmp_path / "drive.log", tmp_path / "drive.nmea"))
+    assert cal.speed_rounding == rounding
+    truth = comparable_truth(drive.settings, drive.calibration, 0.0)["speed_scale"]
+    assert cal.speed_factor == pytest.approx(truth, rel=0.004)  # the factor as rounded: what the mapping gets
+    snippet = toml_snippet(cal, config)
+    assert "truncate" not in snippet
+    assert any("does not tell rounded from truncated" in n for n in cal.notes) == (rounding is None)
+
+
 def test_the_bias_combines_the_moving_fit_and_the_standstill_by_their_variances():
     # a moving fit of 0.53 +- 0.046 and 44 s at standstill reading 0.463 +- 0.014 (deg/s; a realistic offroad drive
     # whose true bias is 0.466): the standstill carries most of the weight
@@ -332,6 +351,7 @@ def test_the_real_drives_heading_accuracy_narrows_its_yaw_rate_calibration():
         repo / "configs" / "canedge-obd.toml", env={"SUMHE_GPS__SIGNALS__HEADING_ACCURACY": rated_spec}
     )
     alike, rated = (calibrate(read_signals(c, logs)) for c in (plain, mapped))
+    assert alike.speed_rounding == "truncate"  # the OBD-II speed in whole km/h reads 0.14 m/s low
     assert rated.yaw_rate_scale.std < 0.2 * alike.yaw_rate_scale.std
     assert rated.can_delay_s.std < 0.5 * alike.can_delay_s.std  # the yaw rate's lag, less the speed's
     assert rated.yaw_rate_scale.value == pytest.approx(1.0, abs=0.02)

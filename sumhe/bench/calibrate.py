@@ -86,6 +86,9 @@ class DriveResult:
     kind: str
     calibration: Calibration
     truth: dict[str, float]
+    rounding: str | None = None
+    """How the drive's CAN speed was made whole km/h (``sensors.can.speed_rounding``'s words) where it is OBD-II's;
+    None for a broadcast speed (a quantum too fine to tell)."""
 
     def errors(self) -> dict[str, float | None]:
         out: dict[str, float | None] = {}
@@ -105,7 +108,8 @@ def calibrate_drive(scenario: str, seed: int, duration_s: float, directory: Path
     s = drive.settings
     kind = f"{s.speed_source} speed, {s.gps_rate_hz:g} Hz GNSS"
     truth = comparable_truth(s, drive.calibration, delay)
-    return DriveResult(f"{scenario}-{seed}", kind, cal, truth)
+    rounding = ("truncate" if s.obd_rounding == "floor" else "round") if s.speed_source == "obd" else None
+    return DriveResult(f"{scenario}-{seed}", kind, cal, truth, rounding)
 
 
 def run_benchmark(bs: CalibrateBenchSettings, progress: Callable[[str], None] | None = None) -> list[str]:
@@ -138,11 +142,12 @@ def report(results: list[DriveResult], bs: CalibrateBenchSettings) -> list[str]:
         f"({', '.join(bs.scenarios)} x seeds {', '.join(map(str, bs.seeds))}); errors of calibrate against the "
         "simulated parameters, like with like (sumhe/bench/calibrate.py); scales in per cent",
         "",
-        "| drive | kind | " + " | ".join(KEYS) + " |",
-        "|" + "---|" * (len(KEYS) + 2),
+        "| drive | kind | " + " | ".join(KEYS) + " | speed_rounding (simulated) |",
+        "|" + "---|" * (len(KEYS) + 3),
     ]
     for r in results:
-        lines.append(f"| {r.name} | {r.kind} | " + " | ".join(_cell(k, r) for k in KEYS) + " |")
+        rounding = f"{r.calibration.speed_rounding or '-'} ({r.rounding or '-'})"
+        lines.append(f"| {r.name} | {r.kind} | " + " | ".join(_cell(k, r) for k in KEYS) + f" | {rounding} |")
     lines += ["", "| parameter | target | determined | within target | max abs error | median abs error / std |"]
     lines.append("|---|---|---|---|---|---|")
     for key in KEYS:
@@ -156,4 +161,12 @@ def report(results: list[DriveResult], bs: CalibrateBenchSettings) -> list[str]:
         ratios = sorted(abs(e) / s for e, s in found if s and math.isfinite(s))
         median = f"{ratios[len(ratios) // 2]:.1f}" if ratios else "-"
         lines.append(f"| {key} | {target} | {len(found)} of {len(results)} | {within} | {worst} | {median} |")
+    obd = [r for r in results if r.rounding is not None]
+    right = sum(r.calibration.speed_rounding == r.rounding for r in obd)
+    untold = sum(r.calibration.speed_rounding is None for r in obd)
+    lines += [
+        "",
+        f"speed_rounding, on the {len(obd)} drives whose speed is OBD-II's whole km/h: right on {right}, wrong on "
+        f"{len(obd) - right - untold}, not told (no key written) on {untold}",
+    ]
     return lines

@@ -10,6 +10,7 @@ outage steps between them). During the drive :meth:`push` returns nothing: it is
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Mapping
@@ -20,6 +21,7 @@ from sumhe.config import Config
 from sumhe.errors import EstimatorInputError
 from sumhe.estimator.base import StateEstimate
 from sumhe.estimator.batch import SuResult, estimate_batch
+from sumhe.frontend.can import centred_speed, speed_reads_low
 from sumhe.frontend.fixes import LocalFix
 from sumhe.geo import LocalFrame
 from sumhe.messages import CanSample, GnssFix, Sample
@@ -52,6 +54,7 @@ class SuBatch:
 
     def __init__(self, settings: EstimationSettings) -> None:
         self.settings = settings
+        self._reads_low = speed_reads_low(settings.can)
         self.reset()
 
     @classmethod
@@ -72,7 +75,9 @@ class SuBatch:
             if self._frame is None and sample.valid:
                 self._frame = sample.frame
             self._samples.append(sample.fix)
-        elif sample.quantity in ("speed", "yaw_rate"):
+        elif sample.quantity == "speed":
+            self._samples.append(dataclasses.replace(sample, value=centred_speed(sample.value, self._reads_low)))
+        elif sample.quantity == "yaw_rate":
             self._samples.append(sample)
         return []
 

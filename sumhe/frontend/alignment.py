@@ -68,6 +68,11 @@ class LagFit:
     """The standard error of ``scale`` at the lag (:func:`_coefficient_std`; NaN where the scale is not fitted)."""
     level: float = math.nan
     """The mean magnitude of the GNSS quantity fitted (:func:`speed_lag`: the mean speed over ground, m/s)."""
+    reads_low: float = math.nan
+    """How much the CAN quantity reads low at the lag on the mean, fitted beside the scale (:func:`speed_lag`:
+    ``gnss = s * (|can| + reads_low)``, m/s; half a quantum where the CAN speed is truncated); NaN unfitted."""
+    reads_low_std: float = math.nan
+    """The standard error of ``reads_low`` (:func:`_coefficient_std`)."""
 
 
 def _refine(lags: NDArray[np.float64], rss: NDArray[np.float64], n: int, params: int) -> tuple[float, float]:
@@ -122,7 +127,31 @@ def speed_lag(
     early, now, late = (scale_lag * np.abs(np.interp(tf - lag + d, tc, c)) for d in (-SLOPE_S, 0.0, SLOPE_S))
     std = max(std, _correlated_std(g - now, (early - late) / (2.0 * SLOPE_S), _signal_information(early, now, late)))
     scale_std = _coefficient_std([now], g - now, 0) * abs(scale_lag)
-    return LagFit(lag, std, scale_lag, 0.0, rms, len(g), scale_std=scale_std, level=float(np.mean(g)))
+    low, low_std = _reads_low(g, now / scale_lag) if scale_lag > 0 else (math.nan, math.nan)
+    return LagFit(
+        lag,
+        std,
+        scale_lag,
+        0.0,
+        rms,
+        len(g),
+        scale_std=scale_std,
+        level=float(np.mean(g)),
+        reads_low=low,
+        reads_low_std=low_std,
+    )
+
+
+def _reads_low(g: NDArray[np.float64], can: NDArray[np.float64]) -> tuple[float, float]:
+    """How much ``can`` reads low on the mean and its standard error (m/s): ``g = s * (can + low)`` by least
+    squares, the residuals' correlation counted (:func:`_coefficient_std`); the speeds' spread tells the offset
+    from the scale (NaN, inf at one speed)."""
+    ones = np.ones_like(can)
+    (s, b), *_ = np.linalg.lstsq(np.column_stack([can, ones]), g, rcond=None)
+    if not s > 0:
+        return math.nan, math.nan
+    std = _coefficient_std([can, ones], g - s * can - b, 1)
+    return float(b / s), float(std / s)
 
 
 def _signal_information(early: NDArray[np.float64], now: NDArray[np.float64], late: NDArray[np.float64]) -> float:

@@ -14,10 +14,24 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
+from sumhe.settings.sensors import CanModel
+
 CAN_USED = ("speed", "yaw_rate")
 """The CAN quantities the estimators read."""
 TRIM_EVERY = 256
 """The buffer drops old samples once this many have accumulated in front (amortised: no shift per sample)."""
+
+
+def speed_reads_low(can: CanModel) -> float:
+    """How much a CAN speed reads low on the mean (m/s): half its quantum where it is truncated
+    (``sensors.can.speed_rounding``), else 0."""
+    return 0.5 * can.speed_quantum_mps if can.speed_rounding == "truncate" else 0.0
+
+
+def centred_speed(value: float, reads_low: float) -> float:
+    """A CAN speed (m/s) taken at the middle of its quantum: ``reads_low`` added towards its sign; 0 stays 0 (a
+    truncated 0 is mostly a standstill)."""
+    return value + math.copysign(reads_low, value) if value and reads_low else value
 
 
 class Samples:

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 from sumhe.frontend.alignment import ClockLearner
-from sumhe.frontend.can import CAN_USED, CanBuffer
+from sumhe.frontend.can import CAN_USED, CanBuffer, centred_speed, speed_reads_low
 from sumhe.frontend.epochs import EpochClock, bad_epoch_time
 from sumhe.frontend.fixes import LocalFix
 from sumhe.frontend.measurements import azimuth_measurement, gps_speed, gps_speed_sigma
@@ -163,7 +163,9 @@ class FrontEnd:
         with ``learn_time_offset``: :attr:`aligner`) and the CAN speed's scale :attr:`check` judges."""
         self.aligner = self.learner if gnss.learn_time_offset else None
         self.check.clear()
-        self._delay_s = self.settings.can.delay_s
+        can = self.settings.can
+        self._delay_s = can.delay_s
+        self._speed_reads_low = speed_reads_low(can)
         rate = self.settings.estimator.can_output_hz
         self._between_s = 1.0 / rate if rate > 0 else None
         """The period (s) of the estimates at yaw-rate samples between the speed samples; None: none there."""
@@ -233,6 +235,7 @@ class FrontEnd:
         self._check_gap(t)
         value = float(value)
         if q == "speed":
+            value = centred_speed(value, self._speed_reads_low)
             self.learner.add_can_speed(t, value)
         else:
             self.check.add_yaw(t, value)

@@ -9,12 +9,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from sumhe.settings.checks import non_negative, positive
+from sumhe.settings.checks import non_negative, one_of, positive
 
 FALLBACK_SPEED_RESOLUTION_MPS = 0.01
 """The CAN speed's quantum (m/s) when neither ``sensors.can.speed_resolution_mps`` nor a DBC says it."""
 FALLBACK_YAW_RATE_RESOLUTION_RPS = 0.0005
 """The CAN yaw rate's quantum (rad/s) when neither ``sensors.can.yaw_rate_resolution_rps`` nor a DBC says it."""
+COARSE_QUANTUM_MPS = 0.1
+"""From this CAN speed quantum on (0.36 km/h) a truncated speed is told from a rounded one (half a quantum low on
+the mean): a finer quantum's offset is below what a drive's spread of speeds tells apart from the scale."""
+SPEED_ROUNDINGS = ("round", "truncate")
+"""How a CAN speed is made whole quanta (``sensors.can.speed_rounding``): to the nearest, or towards 0."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -121,7 +126,11 @@ class CanModel:
     per sample. ``max_gap_s``: a sample older than this is no longer used. ``delay_s``: a sample measures the
     vehicle this long before its timestamp (a calibration). ``speed_scale_max``, ``yaw_rate_bias_max_rps`` and
     ``yaw_rate_gain_max`` bound the CAN speed's scale error and the yaw rate's bias and gain error (CAN speed =
-    k v, CAN yaw rate = g omega + b).
+    k v, CAN yaw rate = g omega + b). ``speed_rounding``: how the CAN speed is made whole quanta, ``"round"`` (to
+    the nearest) or ``"truncate"`` (towards 0: an OBD-II speed in whole km/h on many cars, up to a quantum low, half
+    a quantum on the mean; each such speed other than 0 is taken at the middle of its quantum,
+    :func:`sumhe.frontend.can.centred_speed`). The on-line sensor check says when the speed reads the other way
+    (:mod:`sumhe.frontend.sensor_check`); ``sumhe calibrate`` measures it.
     """
 
     speed_resolution_mps: float | None = None
@@ -133,8 +142,10 @@ class CanModel:
     speed_scale_max: float = 0.05
     yaw_rate_bias_max_rps: float = 0.02
     yaw_rate_gain_max: float = 0.15
+    speed_rounding: str = "round"
 
     def __post_init__(self) -> None:
+        one_of(self, "speed_rounding", SPEED_ROUNDINGS)
         for name in ("speed_resolution_mps", "yaw_rate_resolution_rps"):
             if getattr(self, name) is not None:
                 positive(self, name)
