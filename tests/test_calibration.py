@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import tomllib
 
-from sumhe.bench.calibrate import TARGETS, comparable_truth, error
+from sumhe.bench.calibrate import TARGETS, CalibrateBenchSettings, DriveResult, comparable_truth, error, report
 from sumhe.calibration import (
     KEYS,
     DriveSignals,
@@ -86,6 +86,21 @@ def test_a_simulated_drive_gives_its_parameters_within_the_targets(known, capsys
         assert 0.0 < result[f"{key}_std"] < tolerance, key
     assert result["can_delay_s"] == pytest.approx(truth["can_delay_s"], abs=3 * result["can_delay_s_std"] + 0.02)
     assert "sign of the CAN speed: ok" in err and "sign of the CAN yaw rate: ok" in err
+
+
+def test_the_benchmark_reports_the_rounding_written_against_the_simulated_one(known, known_signals):
+    drive, _ = known
+    cal = calibrate(known_signals)
+    truth = comparable_truth(drive.settings, drive.calibration, 0.0)
+    results = [
+        DriveResult("known", "obd speed", cal, truth, "truncate"),
+        DriveResult("wrong", "obd", cal, truth, "round"),
+    ]
+    lines = report(results, CalibrateBenchSettings())
+    assert "| truncate (truncate) |" in lines[4] and "| truncate (round) |" in lines[5]
+    assert lines[-1].endswith(
+        "on the 2 drives whose speed is OBD-II's whole km/h: right on 1, wrong on 1, not told (no key written) on 0"
+    )
 
 
 def test_the_output_is_a_config_that_loads_and_merges(known, capsys):
