@@ -13,7 +13,15 @@ import numpy as np
 import pytest
 import tomllib
 
-from sumhe.bench.calibrate import TARGETS, CalibrateBenchSettings, DriveResult, comparable_truth, error, report
+from sumhe.bench.calibrate import (
+    TARGETS,
+    CalibrateBenchSettings,
+    DriveResult,
+    comparable_truth,
+    error,
+    online_rounding,
+    report,
+)
 from sumhe.calibration import (
     KEYS,
     DriveSignals,
@@ -88,18 +96,21 @@ def test_a_simulated_drive_gives_its_parameters_within_the_targets(known, capsys
     assert "sign of the CAN speed: ok" in err and "sign of the CAN yaw rate: ok" in err
 
 
-def test_the_benchmark_reports_the_rounding_written_against_the_simulated_one(known, known_signals):
-    drive, _ = known
+def test_the_benchmark_reports_the_rounding_written_and_said_against_the_simulated_one(known, known_signals):
+    drive, d = known
     cal = calibrate(known_signals)
+    online = online_rounding(load_config(d / "config.toml", env={}), d)
+    assert online == "truncate"  # said 300 s into the drive
     truth = comparable_truth(drive.settings, drive.calibration, 0.0)
     results = [
-        DriveResult("known", "obd speed", cal, truth, "truncate"),
-        DriveResult("wrong", "obd", cal, truth, "round"),
+        DriveResult("known", "obd speed", cal, truth, "truncate", online),
+        DriveResult("wrong", "obd", cal, truth, "round", None),
     ]
     lines = report(results, CalibrateBenchSettings())
-    assert "| truncate (truncate) |" in lines[4] and "| truncate (round) |" in lines[5]
+    assert "| truncate / truncate (truncate) |" in lines[4] and "| truncate / - (round) |" in lines[5]
     assert lines[-1].endswith(
-        "on the 2 drives whose speed is OBD-II's whole km/h: right on 1, wrong on 1, not told (no key written) on 0"
+        "on the 2 drives whose speed is OBD-II's whole km/h: right on 1, wrong on 1, not told (no key written) on 0; "
+        "the on-line check (the config's 'round'): right on 1, wrong on 0, not told on 1"
     )
 
 

@@ -11,6 +11,10 @@ the speed's own age beyond ``delay_s`` (an OBD-II reply's ``obd_delay_s``; 0 for
 the chassis sensors'). The simulator's ``can_delay_s`` is the chassis sensors' age (not observable from GNSS and
 CAN); calibrate's is the speed's age minus the yaw rate's, compared with ``obd_delay_s - can_sensor_delay_s`` on
 OBD drives and 0 on the others. The CAN frames' host timestamps come a few ms after the bus (USB reads) for both.
+
+Where the drive's speed is OBD-II's whole km/h, the speed's rounding is compared too: the one calibrate writes
+(``speed_rounding``) and the one the on-line sensor check says as the drive is replayed (:func:`online_rounding`),
+against the simulator's ``obd_rounding``.
 """
 
 from __future__ import annotations
@@ -21,8 +25,12 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+from sumhe.bench.reprocess import replay_drive
 from sumhe.calibration import KEYS, Calibration, calibrate, read_signals
-from sumhe.config import load_config
+from sumhe.config import Config, load_config
+from sumhe.estimator.registry import make_estimator
+from sumhe.frontend.can import CAN_USED
+from sumhe.io.replay import RecordedDrive
 from sumhe.sim import SimSettings, simulate_profile, write_drive
 from sumhe.sim.production import CONFIG_FILE
 from sumhe.sim.settings import SCENARIO_NAMES
@@ -89,6 +97,9 @@ class DriveResult:
     rounding: str | None = None
     """How the drive's CAN speed was made whole km/h (``sensors.can.speed_rounding``'s words) where it is OBD-II's;
     None for a broadcast speed (a quantum too fine to tell)."""
+    online: str | None = None
+    """What the on-line check said of it over the drive (:func:`online_rounding`); None: not told, or no OBD-II
+    speed."""
 
     def errors(self) -> dict[str, float | None]:
         out: dict[str, float | None] = {}
@@ -109,7 +120,21 @@ def calibrate_drive(scenario: str, seed: int, duration_s: float, directory: Path
     kind = f"{s.speed_source} speed, {s.gps_rate_hz:g} Hz GNSS"
     truth = comparable_truth(s, drive.calibration, delay)
     rounding = ("truncate" if s.obd_rounding == "floor" else "round") if s.speed_source == "obd" else None
-    return DriveResult(f"{scenario}-{seed}", kind, cal, truth, rounding)
+    online = online_rounding(config, directory) if rounding is not None else None
+    return DriveResult(f"{scenario}-{seed}", kind, cal, truth, rounding, online)
+
+
+def online_rounding(config: Config, directory: Path) -> str | None:
+    """What the on-line sensor check says of the CAN speed's rounding over the drive in ``directory``, run as
+    ``sumhe replay`` runs it with ``config`` (``speed_rounding = "round"``, the default) and dead reckoning (the
+    check is the front-end's, alike for every estimator): ``"truncate"`` (said to be truncated), ``"round"``
+    (confirmed), or None (not told by the drive's end)."""
+    drive = RecordedDrive(config, directory / "drive.log", directory / "drive.nmea", quantities=CAN_USED)
+    estimator = make_estimator("dead-reckoning", drive.config)
+    replay_drive(drive, estimator)
+    if estimator.stats().get("speed_rounding_wrong"):
+        return "truncate"
+    return "round" if estimator.frontend.check.rounding_done else None
 
 
 def run_benchmark(bs: CalibrateBenchSettings, progress: Callable[[str], None] | None = None) -> list[str]:
@@ -142,11 +167,11 @@ def report(results: list[DriveResult], bs: CalibrateBenchSettings) -> list[str]:
         f"({', '.join(bs.scenarios)} x seeds {', '.join(map(str, bs.seeds))}); errors of calibrate against the "
         "simulated parameters, like with like (sumhe/bench/calibrate.py); scales in per cent",
         "",
-        "| drive | kind | " + " | ".join(KEYS) + " | speed_rounding (simulated) |",
+        "| drive | kind | " + " | ".join(KEYS) + " | speed_rounding: calibrate / on line (simulated) |",
         "|" + "---|" * (len(KEYS) + 3),
     ]
     for r in results:
-        rounding = f"{r.calibration.speed_rounding or '-'} ({r.rounding or '-'})"
+        rounding = f"{r.calibration.speed_rounding or '-'} / {r.online or '-'} ({r.rounding or '-'})"
         lines.append(f"| {r.name} | {r.kind} | " + " | ".join(_cell(k, r) for k in KEYS) + f" | {rounding} |")
     lines += ["", "| parameter | target | determined | within target | max abs error | median abs error / std |"]
     lines.append("|---|---|---|---|---|---|")
@@ -164,9 +189,12 @@ def report(results: list[DriveResult], bs: CalibrateBenchSettings) -> list[str]:
     obd = [r for r in results if r.rounding is not None]
     right = sum(r.calibration.speed_rounding == r.rounding for r in obd)
     untold = sum(r.calibration.speed_rounding is None for r in obd)
+    told = [r for r in obd if r.online is not None]
+    right_online = sum(r.online == r.rounding for r in told)
     lines += [
         "",
         f"speed_rounding, on the {len(obd)} drives whose speed is OBD-II's whole km/h: right on {right}, wrong on "
-        f"{len(obd) - right - untold}, not told (no key written) on {untold}",
+        f"{len(obd) - right - untold}, not told (no key written) on {untold}; the on-line check (the config's "
+        f"'round'): right on {right_online}, wrong on {len(told) - right_online}, not told on {len(obd) - len(told)}",
     ]
     return lines
