@@ -17,6 +17,7 @@ from sumhe.estimator.batch import model_for, state_box
 from sumhe.estimator.bounds import noise_bounds
 from sumhe.estimator.grid import build_grid
 from sumhe.estimator.mhe import MovingHorizonEstimator
+from sumhe.estimator.mhe.arrival import prior_arrival, theta_drift_variance, theta_information
 from sumhe.estimator.mhe.gate import GATE_RESET_S, REACQUIRE_FIXES, FixGate
 from sumhe.estimator.mhe.newest import grow_box, half_widths
 from sumhe.estimator.mhe.nlp import NlpSolver
@@ -198,6 +199,28 @@ def test_gnss_is_reacquired_within_a_second_after_a_60_s_outage() -> None:
     assert np.mean(errors(drive, [e for e in out if e.t >= back + 2.0])) < 2.0
 
 
+def test_gnss_is_reacquired_when_the_outage_left_the_prediction_turning_away_from_the_fixes() -> None:
+    # a 1 Hz receiver; inside a 40 s outage the CAN yaw rate's bias steps by 0.3 deg/s, so the prediction leaves
+    # the outage 12 deg off and moves away from the fixes by ~7 m a second: its offsets from them grow steadily,
+    # which must count as fixes agreeing (they never agreed as constant offsets, and GNSS stayed locked out)
+    drive = simulate(SimSettings(scenario="highway", seed=5, duration_s=90.0, gps_rate_hz=1.0, outages=((20.0, 40.0),)))
+    t0 = drive.settings.start_unix_s
+    step = math.radians(0.3)
+    stream = [
+        dataclasses.replace(s, value=s.value + step)
+        if isinstance(s, CanSample) and s.quantity == "yaw_rate" and s.t >= t0 + 20.0
+        else s
+        for s in drive_stream(drive)
+    ]
+    est = MovingHorizonEstimator(SETTINGS)
+    out = [e for e in run_stream(est, stream).estimates if e.mode != "can"]
+    back = t0 + 60.0
+    assert est.stats()["reacquired"] == 1 and "gate_resets" not in est.stats()
+    assert min(errors(drive, [e for e in out if back - 1.0 <= e.t < back])) > 50.0  # the outage ended far off
+    assert all(e.gps == "ok" for e in out if e.t >= back + REACQUIRE_FIXES + 1.0)
+    assert np.mean(errors(drive, [e for e in out if e.t >= back + REACQUIRE_FIXES + 5.0])) < 3.0
+
+
 def test_a_multipath_episode_that_begins_as_an_outage_ends_is_left_for_the_good_fixes_after_it() -> None:
     # after a 20 s outage the first 8 s of fixes lie 12 m east (multipath); the wide gate must take them, and the
     # good fixes after them agree with the outage's dead reckoning: re-acquired within a second, not 30 s later
@@ -219,25 +242,33 @@ def test_a_multipath_episode_that_begins_as_an_outage_ends_is_left_for_the_good_
     assert np.mean(errors(drive, after)) < 2.0
 
 
-def test_the_gate_tells_the_end_of_a_multipath_episode_from_its_start() -> None:
-    def fix(t: float, east: float) -> FixMeasurement:
-        return FixMeasurement(t, east, 0.0, 1.0, 1.0, None, 0.01, False, None, 0.1, LocalFix(t=t, valid=True))
+def fix_at(t: float, east: float) -> FixMeasurement:
+    """A fix at ``t`` (s), ``east`` m east of the origin, 1 m sigmas."""
+    return FixMeasurement(t, east, 0.0, 1.0, 1.0, None, 0.01, False, None, 0.1, LocalFix(t=t, valid=True))
 
+
+def gate_after_outage(driven_m: float) -> FixGate:
+    """A gate well into a drive whose azimuth is known, ``driven_m`` (m) after the last fix used."""
+    gate = FixGate(SETTINGS)
+    gate.start(heading_known=True)
+    gate.used_fixes = 100
+    gate.drove(driven_m)
+    return gate
+
+
+def test_the_gate_tells_the_end_of_a_multipath_episode_from_its_start() -> None:
     def run(reentry_east: float, streak_east: float, streak_t: float) -> bool:
         """The outage's dead reckoning at 0; the first fix after it at ``reentry_east`` (the estimate follows it);
         then a streak of fixes at ``streak_east``: whether the gate re-acquires on it."""
-        gate = FixGate(SETTINGS)
-        gate.start(heading_known=True)
-        gate.used_fixes = 100
-        gate.drove(500.0)
-        assert gate.passes(fix(0.0, reentry_east), 0.0, 0.0)
+        gate = gate_after_outage(500.0)
+        assert gate.passes(fix_at(0.0, reentry_east), 0.0, 0.0)
         gate.done(0.0, "ok", True)
         answers = []
         for k in range(REACQUIRE_FIXES):
             gate.drove(0.1)
             t = streak_t + 0.1 * k
-            assert not gate.passes(fix(t, streak_east), reentry_east, 0.0)
-            answers.append(gate.reacquire(fix(t, streak_east), reentry_east, 0.0))
+            assert not gate.passes(fix_at(t, streak_east), reentry_east, 0.0)
+            answers.append(gate.reacquire(fix_at(t, streak_east), reentry_east, 0.0))
             gate.done(t, "rejected", False)
         assert not any(answers[:-1])
         return answers[-1]
@@ -245,6 +276,92 @@ def test_the_gate_tells_the_end_of_a_multipath_episode_from_its_start() -> None:
     assert run(12.0, 0.5, 8.0)  # the fixes taken at the outage's end were the outliers
     assert not run(0.5, 12.5, 8.0)  # good fixes at the outage's end, then multipath
     assert not run(12.0, 0.5, 8.0 + GATE_RESET_S)  # long after the outage: the gate's reset rule applies
+
+
+def test_after_an_outage_the_gate_takes_offsets_growing_steadily_as_agreeing() -> None:
+    def streak(offsets: list[float], driven_m: float, per_fix_m: float = 30.0) -> list[bool]:
+        """1 Hz fixes at 0 east, each ``offset`` m from the prediction: the gate's re-acquisition answers."""
+        gate = gate_after_outage(driven_m)
+        answers = []
+        for k, offset in enumerate(offsets):
+            gate.drove(per_fix_m)
+            assert not gate.passes(fix_at(float(k), 0.0), -offset, 0.0)
+            answers.append(gate.reacquire(fix_at(float(k), 0.0), -offset, 0.0))
+            gate.done(float(k), "rejected", False)
+        return answers
+
+    drifting = [150.0 + 7.0 * k for k in range(REACQUIRE_FIXES)]  # a prediction turning away from the fixes
+    assert streak(drifting, 1500.0) == [False] * (REACQUIRE_FIXES - 1) + [True]
+    jumping = [150.0 + 15.0 * (k % 2) for k in range(REACQUIRE_FIXES)]  # multipath: they do not agree
+    assert not any(streak(jumping, 1500.0))
+    assert not any(streak([0.3 * v for v in drifting], 0.0, 3.0))  # mid-drive: the gate's reset rule applies
+
+
+def test_a_fix_the_solution_does_not_follow_keeps_the_rejection_streak_going() -> None:
+    # after an outage, a window that cannot bend to the fixes takes one but stays 14 m from it, and the gate rejects
+    # the next ones: they still follow the outage; and the time the fixes have not been followed runs on
+    def reacquires(miss_m: float) -> bool:
+        """The outage's dead reckoning at 0, the fix taken at 30 m east; then five more where the estimate ends up
+        ``30 - miss_m`` east of them (their own place: 14 m east of it)."""
+        gate = gate_after_outage(1500.0)
+        assert gate.passes(fix_at(0.0, 30.0), 0.0, 0.0)
+        gate.done(0.0, "ok", True, miss_m)
+        answers = []
+        for k in range(1, REACQUIRE_FIXES + 1):
+            gate.drove(3.0)
+            at = fix_at(0.1 * k, 44.0 - miss_m)
+            assert not gate.passes(at, 30.0 - miss_m, 0.0)
+            answers.append(gate.reacquire(at, 30.0 - miss_m, 0.0))
+            gate.done(0.1 * k, "rejected", False)
+        assert not any(answers[:-1])
+        return answers[-1]
+
+    assert reacquires(14.0)  # not followed: the fixes after it agree, after an outage
+    assert not reacquires(0.5)  # followed, then a multipath episode: the gate's reset rule applies
+
+    def locked_out(miss_m: float) -> bool:
+        """A fix taken every 5 s, ``miss_m`` from the solution, the others rejected, for 31 s."""
+        gate = gate_after_outage(0.0)
+        assert gate.passes(fix_at(0.0, 0.0), 0.0, 0.0)
+        for t in range(1, 32):
+            gate.done(float(t), "ok" if t % 5 == 0 else "rejected", False, miss_m)
+        return gate.locked_out(31.5)
+
+    assert locked_out(14.0) and not locked_out(0.5)
+
+
+def test_theta_information_is_what_the_arrival_cost_holds_on_the_can_states_alone() -> None:
+    rng = np.random.default_rng(7)
+    a = rng.normal(size=(10, 10))
+    weight = a @ a.T + 0.1 * np.eye(10)
+    drift = np.linspace(0.1, 0.5, 5)
+    info = theta_information(weight, 5, drift)
+    # the Schur complement: the inverse of the marginal covariance of the last five states, grown by the drift
+    np.testing.assert_allclose(info, np.linalg.inv(np.linalg.inv(weight)[5:, 5:] + np.diag(drift)), rtol=1e-6)
+    prior = prior_arrival(np.zeros(10), np.full(10, 2.0), 5, info)
+    np.testing.assert_allclose(prior.weight[5:, 5:], info + 0.25 * np.eye(5))
+    np.testing.assert_allclose(prior.weight[:5, :5], 0.25 * np.eye(5))
+
+
+def test_a_restart_keeps_what_was_learned_of_the_can_and_installation_states(drive: Drive, stream: list) -> None:
+    est = MovingHorizonEstimator(SETTINGS)
+    run_stream(est, [s for s in stream if s.t < drive.settings.start_unix_s + 24.0])  # before the outage
+    md = est.model.n_dynamic
+    assert est._arrival is not None
+    since = float(est.window.t[-1] - est.window.t[0])
+    learned = theta_information(
+        est._arrival.weight, md, theta_drift_variance(SETTINGS.estimator.mhe.theta_drift, est._theta_range, since)
+    )
+    theta = est.window.x[-1, md:].copy()
+    t, east, north = float(est.window.t[-1]), *est.window.x[-1, list(est.model.position)]
+    est._restart()  # as the gate's rules do: then start at the newest fix
+    est._begin(dataclasses.replace(fix_at(t + 0.1, float(east)), north_m=float(north)))
+    assert est.started_over and len(est.window) == 1
+    np.testing.assert_allclose(est.window.x[0, md:], theta)
+    weak = np.diag(1.0 / np.square(est._theta_range))
+    np.testing.assert_allclose(est._arrival.weight[md:, md:], weak + learned)
+    told = [est.model.i_bias - md, est.model.i_scale - md, est.model.i_azimuth_offset - md]
+    assert np.all(np.diag(learned)[told] > 10.0 * np.diag(weak)[told])  # 20 s of driving: far more than the prior
 
 
 def test_an_injected_solver_failure_falls_back_to_the_prediction(drive: Drive, stream: list) -> None:

@@ -77,7 +77,7 @@ from sumhe.baseline.kinematics import (
     step,
     step_jacobian,
 )
-from sumhe.estimator.base import StateEstimate, StreamEstimator
+from sumhe.estimator.base import StateEstimate, StreamEstimator, on_a_line
 from sumhe.estimator.uncertainty import Spread
 from sumhe.frontend.fixes import LocalFix
 from sumhe.frontend.measurements import chord_azimuth
@@ -146,24 +146,12 @@ class Gate:
             self._run.clear()
             return "ok"
         self._run.append((t, nu))
-        if not _on_a_line(self._run, REACQUIRE_SPREAD_SIGMAS * sigma):
+        if not on_a_line(self._run, REACQUIRE_SPREAD_SIGMAS * sigma):
             self._run = [(t, nu)]
         if len(self._run) >= REACQUIRE_MIN_FIXES and t - self._run[0][0] >= self.reacquire_s:
             self._run.clear()
             return "reacquire"
         return "rejected"
-
-
-def _on_a_line(run: list[tuple[float, FloatArray]], tolerance: float) -> bool:
-    """Whether innovations (time, vector) lie within ``tolerance`` of their least-squares straight line in time
-    (two always do)."""
-    if len(run) < 3:
-        return True
-    t = np.array([ti for ti, _ in run])
-    v = np.array([vi for _, vi in run])
-    design = np.column_stack([np.ones_like(t), t - t[0]])
-    coef, *_ = np.linalg.lstsq(design, v, rcond=None)
-    return bool(np.max(np.abs(v - design @ coef)) <= tolerance)
 
 
 @dataclass(frozen=True, slots=True)

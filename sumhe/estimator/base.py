@@ -36,6 +36,7 @@ from dataclasses import dataclass
 from typing import ClassVar, Protocol, runtime_checkable
 
 import numpy as np
+from numpy.typing import NDArray
 
 from sumhe.estimator.uncertainty import InnovationScale, Spread, along, drift_variance, gpsd_errors
 from sumhe.frontend.fixes import LocalFix
@@ -416,6 +417,20 @@ def predicted_at(
     trace_a = a.spread.var_east_m2 + a.spread.var_north_m2
     trace_b = b.spread.var_east_m2 + b.spread.var_north_m2
     return mix(a.east_m, b.east_m), mix(a.north_m, b.north_m), mix(trace_a, trace_b)
+
+
+def on_a_line(run: Sequence[tuple[float, NDArray[np.float64]]], tolerance: float) -> bool:
+    """Whether vectors stamped with times (a streak of rejected fixes' offsets from an estimator's prediction) lie
+    within ``tolerance`` (each component) of their least-squares straight line in time; two always do. A prediction
+    dead-reckoned on a wrong speed or azimuth moves away from the fixes steadily, so its offsets agree on a line as
+    constant ones do; a multipath jump's do not."""
+    if len(run) < 3:
+        return True
+    t = np.array([ti for ti, _ in run])
+    v = np.array([vi for _, vi in run])
+    design = np.column_stack([np.ones_like(t), t - t[0]])
+    coef, *_ = np.linalg.lstsq(design, v, rcond=None)
+    return bool(np.max(np.abs(v - design @ coef)) <= tolerance)
 
 
 def horizontal_sigma(spread: Spread | None) -> float | None:

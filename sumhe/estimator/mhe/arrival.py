@@ -48,9 +48,29 @@ class Arrival:
     weight: FloatArray
 
 
-def prior_arrival(x: FloatArray, half_widths: FloatArray, n_dynamic: int) -> Arrival:
-    """The arrival at a start: no box, a weak prior of ``half_widths`` around ``x`` (their inverse squares)."""
-    return Arrival(np.full(n_dynamic, np.inf), x.copy(), x.copy(), np.diag(1.0 / np.square(half_widths)))
+def theta_drift_variance(theta_drift: float, theta_range: FloatArray, dt: float) -> FloatArray:
+    """How far (variance) the CAN states drift in ``dt`` s: ``theta_drift`` of their half-ranges per square-root
+    minute."""
+    return np.square(theta_drift * theta_range) * dt / 60.0
+
+
+def prior_arrival(x: FloatArray, half_widths: FloatArray, n_dynamic: int, kept: FloatArray | None = None) -> Arrival:
+    """The arrival at a start: no box, a weak prior of ``half_widths`` around ``x`` (their inverse squares), plus
+    ``kept``, what was known of the CAN and installation states before a restart (:func:`theta_information`)."""
+    weight = np.diag(1.0 / np.square(half_widths))
+    if kept is not None:
+        weight[n_dynamic:, n_dynamic:] += kept
+    return Arrival(np.full(n_dynamic, np.inf), x.copy(), x.copy(), weight)
+
+
+def theta_information(weight: FloatArray, n_dynamic: int, drift: FloatArray) -> FloatArray:
+    """The information an arrival cost of ``weight`` holds on the CAN and installation states alone (the states after
+    the first ``n_dynamic``: its Schur complement, the dynamic states eliminated), after they drifted by the
+    variances ``drift`` since (:func:`drifted`)."""
+    d, th = slice(0, n_dynamic), slice(n_dynamic, None)
+    w_dd = weight[d, d] + EPS * np.eye(n_dynamic)
+    info = weight[th, th] - weight[th, d] @ np.linalg.solve(w_dd, weight[d, th])
+    return drifted(0.5 * (info + info.T), len(info), drift)
 
 
 def measured_bounds(model: SuModel, win: Window, k: int, theta_range: FloatArray, out_factor: FloatArray) -> FloatArray:
@@ -139,8 +159,9 @@ def arrival_update(
         unknown = ~np.isfinite(alpha)
         grown = F @ np.where(unknown, 0.0, alpha) + 2.0 * q
         alpha = np.where((F[:, unknown] > 0).any(axis=1), np.inf, grown)
-    drift = np.square(theta_drift * theta_range) * float(t[drop] - t[0]) / 60.0
-    prior, weight = reduce(H, g, drop * md, x[drop], nt, drift)
+    prior, weight = reduce(
+        H, g, drop * md, x[drop], nt, theta_drift_variance(theta_drift, theta_range, float(t[drop] - t[0]))
+    )
     return Arrival(alpha, x[drop].copy(), prior, weight)
 
 
@@ -166,7 +187,12 @@ def reduce(
     prior = x_new - linalg.solve(Hr, gr)
     if nt == 0:
         return prior, Hr
-    # the CAN states drift: W <- (W^-1 + E D E')^-1 by Woodbury, D = drift variance
-    E = Hr[:, -nt:]
-    weight = Hr - E @ linalg.solve(Hr[-nt:, -nt:] + np.diag(1.0 / np.maximum(drift, 1e-30)), E.T)
-    return prior, 0.5 * (weight + weight.T)
+    return prior, drifted(Hr, nt, drift)
+
+
+def drifted(weight: FloatArray, nt: int, drift: FloatArray) -> FloatArray:
+    """The information ``weight`` after its last ``nt`` states (the CAN states) drifted by the variances ``drift``:
+    ``W <- (W^-1 + E D E')^-1`` by Woodbury, ``D`` the drift variance."""
+    E = weight[:, -nt:]
+    grown = weight - E @ linalg.solve(weight[-nt:, -nt:] + np.diag(1.0 / np.maximum(drift, 1e-30)), E.T)
+    return 0.5 * (grown + grown.T)
