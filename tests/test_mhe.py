@@ -17,14 +17,16 @@ from sumhe.estimator.batch import model_for, state_box
 from sumhe.estimator.bounds import noise_bounds
 from sumhe.estimator.grid import build_grid
 from sumhe.estimator.mhe import MovingHorizonEstimator
-from sumhe.estimator.mhe.arrival import prior_arrival, theta_drift_variance, theta_information
+from sumhe.estimator.mhe.arrival import measured, prior_arrival, theta_drift_variance, theta_information
 from sumhe.estimator.mhe.gate import GATE_RESET_S, REACQUIRE_FIXES, FixGate
 from sumhe.estimator.mhe.newest import grow_box, half_widths
 from sumhe.estimator.mhe.nlp import NlpSolver
 from sumhe.estimator.mhe.problem import WindowProblem
 from sumhe.estimator.mhe.sqp import SqpSolver
+from sumhe.estimator.mhe.standstill import Stop, bias_at_rest, still_yaw_rates
 from sumhe.estimator.registry import make_estimator
 from sumhe.estimator.uncertainty import Spread
+from sumhe.frontend.can import CanBuffer
 from sumhe.frontend.fixes import LocalFix
 from sumhe.frontend.stream import FixMeasurement
 from sumhe.io.fixtime import stamp_fix
@@ -364,6 +366,99 @@ def test_a_restart_keeps_what_was_learned_of_the_can_and_installation_states(dri
     assert np.all(np.diag(learned)[told] > 10.0 * np.diag(weak)[told])  # 20 s of driving: far more than the prior
 
 
+def test_a_stop_tells_the_arrival_cost_the_yaw_rate_bias_once_the_car_drives_off() -> None:
+    # a 0.6 deg/s gyro bias, 4-5 s at rest at the start, a 15 s outage 7-8 s after the car drove off (1 Hz fixes)
+    seen = {}
+    for rest in (SETTINGS.estimator.mhe.rest_bias_rps, 1e3):  # the default; so wide that a stop tells nothing
+        drive = simulate(
+            SimSettings(scenario="urban", seed=9, duration_s=30.0, yaw_rate_bias_dps=0.6, gps_rate_hz=1.0,
+                        outages=((12.0, 15.0),))
+        )  # fmt: skip
+        est = MovingHorizonEstimator(with_changes(SETTINGS, {"estimator.mhe.rest_bias_rps": rest}))
+        bias: list[tuple[int, float]] = []
+
+        def record(e: StateEstimate, est: MovingHorizonEstimator = est, bias: list = bias) -> None:
+            if e.mode != "can":
+                bias.append((est.tally.counts["stops_used"], math.degrees(est.window.x[-1, est.model.i_bias])))
+
+        out = [e for e in run_stream(est, drive_stream(drive), record).estimates if e.mode != "can"]
+        at_drive_off = next(b for used, b in bias if used)  # the first epoch after the stop was told
+        seen[rest] = at_drive_off, np.max(errors(drive, [e for e in out if e.gps == "outage"]))
+    (told, told_err), (untold, untold_err) = seen.values()
+    assert abs(told - 0.6) < 0.1 and abs(untold) < 0.05  # without the stop nothing has seen the bias yet
+    assert told_err < 0.7 * untold_err
+
+
+def test_the_speed_scale_is_not_learned_from_fixes_placed_at_an_unlearned_time() -> None:
+    # the fixes lie where the car was 0.3 s later; the front-end learns that from the data, the first ~20 s of an
+    # acceleration from standstill with the offset unknown or only partly applied
+    drive = simulate(
+        SimSettings(scenario="highway", seed=4, duration_s=40.0, gps_time_offset_s=-0.3, speed_scale=1.01,
+                    outages=((25.0, 15.0),))
+    )  # fmt: skip
+    est = MovingHorizonEstimator(SETTINGS)
+    scale: list[float] = []
+    on = drive.settings.start_unix_s + 25.0
+
+    def record(e: StateEstimate) -> None:
+        if e.mode != "can" and e.t < on:
+            scale.append(float(est.window.x[-1, est.model.i_scale]))
+
+    out = [e for e in run_stream(est, drive_stream(drive), record).estimates if e.mode != "can"]
+    assert abs(scale[-1] - 1.01) < 0.01  # at the outage's start; 1.028 with the speed over ground taken as timed
+    assert np.max(errors(drive, [e for e in out if e.gps == "outage"])) < 5.0  # 8.4 m
+
+
+def test_an_accelerating_fix_speed_is_weighed_with_the_error_of_its_unlearned_time() -> None:
+    est = MovingHorizonEstimator(SETTINGS)
+    for t in np.arange(0.0, 1.01, 0.01):
+        est.frontend.can["speed"].add(float(t), 2.0 * float(t))  # 2 m/s^2
+    fix = dataclasses.replace(fix_at(1.0, 0.0), speed_mps=2.0, speed_sigma_mps=0.05)
+    assert est.frontend.time_offset_sigma_s == pytest.approx(0.3)  # nothing learned yet
+    assert est._timed(fix).speed_sigma_mps == pytest.approx(math.hypot(0.05, 2.0 * 0.3), rel=1e-6)
+    est.frontend.can["speed"].add(1.5, 2.0)  # a steady speed since 1.0 s
+    assert est._timed(dataclasses.replace(fix, t=1.5)).speed_sigma_mps == pytest.approx(0.05)
+
+
+def test_a_stops_bias_bound_never_falls_below_what_rest_and_motion_may_differ() -> None:
+    can = SETTINGS.can
+    q, sigma, k, rest = can.yaw_rate_quantum_rps, can.yaw_rate_sigma_rps, 3.0, 0.001
+    stop = Stop()
+    stop.add([0.01, 0.01 + q])  # two samples a quantum apart: a resting gyro flickering between two values
+    mean, bound = bias_at_rest(stop, can, k, rest)
+    assert mean == pytest.approx(0.01 + q / 2) and bound == pytest.approx(q / 2 + k * math.hypot(sigma / 2**0.5, rest))
+    stop.add([0.01 + q / 2] * 100_000)
+    assert bias_at_rest(stop, can, k, rest)[1] == pytest.approx(q / 2 + k * rest, rel=1e-3)
+    creeping = Stop()
+    creeping.add([0.0, 0.03, 0.06])  # turning below the speed's quantum: spread far beyond a resting gyro's
+    assert bias_at_rest(creeping, can, k, rest) is None
+    assert bias_at_rest(Stop(), can, k, rest) is None
+
+
+def test_a_step_is_still_when_every_can_speed_in_it_reads_zero() -> None:
+    can = CanBuffer()
+    for t, v in ((0.0, 0.0), (0.5, 0.0), (1.5, 0.0), (2.0, 0.3)):
+        can["speed"].add(t, v)
+    for t in np.arange(0.0, 2.6, 0.1):
+        can["yaw_rate"].add(float(t), 0.01)
+    assert still_yaw_rates(can, 0.0, 1.0, 0.05, 1.0) == [0.01] * 10
+    assert still_yaw_rates(can, 1.0, 2.0, 0.05, 1.0) is None  # moving by its end
+    assert still_yaw_rates(can, 0.6, 1.4, 0.05, 1.0) == [0.01] * 8  # no speed sample in it: the one held
+    assert still_yaw_rates(can, 4.0, 5.0, 0.05, 1.0) is None  # no speed known
+
+
+def test_a_measurement_of_one_state_moves_the_arrival_cost_to_the_least_squares_centre() -> None:
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(4, 4))
+    old = prior_arrival(np.zeros(4), np.ones(4), 4)
+    old = dataclasses.replace(old, weight=a @ a.T + np.eye(4), prior=rng.normal(size=4))
+    new = measured(old, 2, 0.7, 0.1)
+    # the gradient of (z - p)' W (z - p) + ((z_2 - 0.7) / 0.1)^2 vanishes at the new centre
+    grad = old.weight @ (new.prior - old.prior) + np.eye(4)[2] * (new.prior[2] - 0.7) / 0.01
+    np.testing.assert_allclose(grad, 0.0, atol=1e-9)
+    np.testing.assert_allclose(new.weight - old.weight, np.diag([0.0, 0.0, 100.0, 0.0]))
+
+
 def test_an_injected_solver_failure_falls_back_to_the_prediction(drive: Drive, stream: list) -> None:
     # IPOPT allowed one iteration: every solve ends at its iteration limit
     failing = with_changes(
@@ -594,7 +689,7 @@ def test_can_rate_error_grows_smoothly_between_epochs() -> None:
     # the CAN data's bounds over it, then the CAN speed and yaw rate measured at the estimate. With the vehicle's
     # limits for the speed and yaw rate over that part and no update, at a 1 Hz receiver the own trace rose to 112
     # times the epoch's within a second, by up to 19 % from one CAN sample to the next; now at most 1.54 times, by
-    # at most 1 %, never falling (the estimates after the first 10 s, with GPS throughout)
+    # at most 1 % (the estimates after the first 10 s, with GPS throughout)
     drive = simulate(SimSettings(scenario="highway", seed=5, duration_s=40.0, gps_rate_hz=1.0))
     est = MovingHorizonEstimator(SETTINGS)
     own: list[StateEstimate] = []
@@ -619,5 +714,7 @@ def test_can_rate_error_grows_smoothly_between_epochs() -> None:
             steps.append(trace / previous)
         previous = trace
     assert len(ratios) > 1000
-    assert min(ratios) >= 1.0 - 1e-9 and max(ratios) < 2.0
-    assert min(steps) >= 1.0 - 1e-9 and max(steps) < 1.05
+    # below the epoch's by at most 1 %: while the car accelerates before the GNSS time offset is learned, the CAN
+    # speed at an estimate tells more of the speed than the epoch's speed over ground, whose time is uncertain
+    assert min(ratios) >= 0.99 and max(ratios) < 2.0
+    assert min(steps) >= 0.99 and max(steps) < 1.05

@@ -19,7 +19,7 @@ from sumhe.baseline.heading_offset import OFFSET_CORRELATION_S, FollowsHeadings,
 from sumhe.baseline.kinematics import AZIMUTH, OMEGA, PHI, FloatArray, V
 from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
 from sumhe.config import Config
-from sumhe.frontend.can import Samples
+from sumhe.frontend.measurements import can_acceleration, timed_speed_sigma
 from sumhe.frontend.stream import FixMeasurement
 from sumhe.settings import EstimationSettings, NoiseSettings
 
@@ -185,23 +185,6 @@ def gaussian_loglik(nu: FloatArray, S: FloatArray) -> float:
     """log N(nu; 0, S)."""
     _, logdet = np.linalg.slogdet(S)
     return -0.5 * float(nu @ np.linalg.solve(S, nu) + logdet + len(nu) * math.log(2.0 * math.pi))
-
-
-ACCELERATION_SPAN_S = 0.5
-"""The CAN speed's acceleration at a fix is its change over the last this many seconds."""
-
-
-def timed_speed_sigma(sigma_mps: float, acceleration_mps2: float, time_sd_s: float) -> float:
-    """The sigma (m/s) of a speed over ground of sigma ``sigma_mps`` whose time is uncertain by ``time_sd_s`` (s)
-    while the car accelerates at ``acceleration_mps2``: a speed measured at the wrong time differs by the
-    acceleration times the error."""
-    return math.hypot(sigma_mps, acceleration_mps2 * time_sd_s)
-
-
-def can_acceleration(speed: Samples, t: float, max_age_s: float) -> float:
-    """The CAN speed's change over the :data:`ACCELERATION_SPAN_S` before ``t`` (m/s^2; 0 without samples)."""
-    now, before = speed.at(t, max_age_s), speed.at(t - ACCELERATION_SPAN_S, max_age_s)
-    return 0.0 if now is None or before is None else (now - before) / ACCELERATION_SPAN_S
 
 
 def lever_course_sigma(yaw_rate_rps: float, speed_mps: float, lever_m: float, min_speed_mps: float) -> float:

@@ -56,6 +56,10 @@ class Samples:
         i, j = bisect.bisect_right(self.t, t0), bisect.bisect_right(self.t, t1)
         return (sum(self.v[i:j]) / (j - i), j - i) if j > i else None
 
+    def between(self, t0: float, t1: float) -> list[float]:
+        """The values of the samples in (t0, t1]."""
+        return self.v[bisect.bisect_right(self.t, t0) : bisect.bisect_right(self.t, t1)]
+
     def at(self, t: float, max_age: float) -> float | None:
         """The newest sample at or before ``t`` if it is at most ``max_age`` s old, else the next one within it."""
         i = bisect.bisect_right(self.t, t)

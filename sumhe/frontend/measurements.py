@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from sumhe.frontend.can import Samples
 from sumhe.settings import CanModel, GnssModel
 
 GGA_RTK_FIXED = 4
@@ -180,3 +181,20 @@ def unmodelled_can_errors(can_speed_mps: Any, can: CanModel, scale_state: bool, 
     (``speed_scale_max`` x |speed|) or the yaw-rate bias (``yaw_rate_bias_max_rps``)."""
     speed = 0.0 if scale_state else can.speed_scale_max * np.abs(np.nan_to_num(can_speed_mps))
     return speed, 0.0 if bias_state else can.yaw_rate_bias_max_rps
+
+
+ACCELERATION_SPAN_S = 0.5
+"""The CAN speed's acceleration at a fix is its change over the last this many seconds."""
+
+
+def timed_speed_sigma(sigma_mps: float, acceleration_mps2: float, time_sd_s: float) -> float:
+    """The sigma (m/s) of a speed over ground of sigma ``sigma_mps`` whose time is uncertain by ``time_sd_s`` (s)
+    while the car accelerates at ``acceleration_mps2``: a speed measured at the wrong time differs by the
+    acceleration times the error."""
+    return math.hypot(sigma_mps, acceleration_mps2 * time_sd_s)
+
+
+def can_acceleration(speed: Samples, t: float, max_age_s: float) -> float:
+    """The CAN speed's change over the :data:`ACCELERATION_SPAN_S` before ``t`` (m/s^2; 0 without samples)."""
+    now, before = speed.at(t, max_age_s), speed.at(t - ACCELERATION_SPAN_S, max_age_s)
+    return 0.0 if now is None or before is None else (now - before) / ACCELERATION_SPAN_S

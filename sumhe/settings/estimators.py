@@ -33,7 +33,9 @@ class MheSettings:
     """``[estimator.mhe]``: solver, window policy (steps: N, N_B, N_A, N_max, ...), QP, CAN states' drift, gate,
     retries, the output bounds learned from the residuals (``learn_bounds``: over the last ``bound_history`` steps,
     times ``bound_margin``, at most ``bound_max_factor`` times the allowances; ``docs/mhe.md``). ``nlp_max_iter``
-    limits the ``ipopt``/``fatrop`` solvers."""
+    limits the ``ipopt``/``fatrop`` solvers. ``rest_bias_rps``: how far (one sigma, rad/s) the CAN yaw rate's bias
+    at rest may differ from its bias in motion, the floor of a stop's weight as a measurement of the bias
+    (:mod:`sumhe.estimator.mhe.standstill`; a large value leaves stops unused)."""
 
     solver: str = "sqp"
     steps: int = 50
@@ -49,6 +51,7 @@ class MheSettings:
     nlp_max_iter: int = 300
     trapezoid_q: float = 0.1
     theta_drift: float = 0.05
+    rest_bias_rps: float = 0.001
     gate_m: float = 2.0
     gate_drift: float = 0.05
     max_retries: int = 2
@@ -67,7 +70,7 @@ class MheSettings:
             raise ValueError(f"max_steps: must be >= steps ({self.steps}), got {self.max_steps!r}")
         if self.steps_before >= self.steps:
             raise ValueError(f"steps_before: must be below steps ({self.steps}), got {self.steps_before!r}")
-        positive(self, "qp_tol", "trapezoid_q", "theta_drift", "gate_m", "gate_drift")
+        positive(self, "qp_tol", "trapezoid_q", "theta_drift", "rest_bias_rps", "gate_m", "gate_drift")
 
 
 @dataclass(frozen=True, slots=True)

@@ -63,6 +63,18 @@ def prior_arrival(x: FloatArray, half_widths: FloatArray, n_dynamic: int, kept: 
     return Arrival(np.full(n_dynamic, np.inf), x.copy(), x.copy(), weight)
 
 
+def measured(arrival: Arrival, i: int, value: float, bound: float) -> Arrival:
+    """The arrival cost told that its state ``i`` is ``value`` within ``bound`` (a measurement of a CAN state: the
+    yaw-rate bias at a standstill, :mod:`.standstill`): ``W' = W + e e' / bound^2``, the centre that minimises both
+    terms."""
+    weight = arrival.weight.copy()
+    weight[i, i] += 1.0 / bound**2
+    pull = np.zeros(len(weight))
+    pull[i] = (value - arrival.prior[i]) / bound**2
+    prior = arrival.prior + np.linalg.solve(weight, pull)
+    return Arrival(arrival.alpha, arrival.box_centre, prior, weight)
+
+
 def theta_information(weight: FloatArray, n_dynamic: int, drift: FloatArray) -> FloatArray:
     """The information an arrival cost of ``weight`` holds on the CAN and installation states alone (the states after
     the first ``n_dynamic``: its Schur complement, the dynamic states eliminated), after they drifted by the
