@@ -433,11 +433,13 @@ class MovingHorizonEstimator(StreamEstimator):
 
     def _timed(self, fix: FixMeasurement) -> FixMeasurement:
         """``fix`` with its speed over ground's sigma grown by the error of its uncertain time while the car
-        accelerates (:func:`~sumhe.frontend.measurements.timed_speed_sigma`: the GNSS time offset's standard error
-        as the front-end learns it, as the Kalman family weighs it; none where the offset is configured). Without
-        it the speed scale took the speed over ground of the first acceleration from standstill, a few tenths of a
-        second off the CAN speed: on a realistic simulated highway drive (seed 13, offset -0.29 s) the scale ran to
-        its bound (1.05, the truth 1.019) at drive-off and stayed there for the first outage."""
+        accelerates (:func:`~sumhe.frontend.measurements.timed_speed_sigma`, as the Kalman family weighs it): the
+        error of the GNSS time offset the front-end applies
+        (:attr:`~sumhe.frontend.stream.FrontEnd.time_offset_sigma_s`: the clock learner's, and the part of its
+        offset the slew has not applied yet; none where the offset is configured). Without it the speed scale took
+        the speed over ground of the first acceleration from standstill, a few tenths of a second off the CAN
+        speed: on a realistic simulated highway drive (seed 13, fixes 0.29 s off) the scale ran to its bound (1.05,
+        the truth 1.019) at drive-off."""
         time_sigma = self.frontend.time_offset_sigma_s
         if not time_sigma or fix.speed_mps is None:
             return fix

@@ -1,5 +1,5 @@
-"""The CAN yaw rate at a standstill as a measurement of its bias: the MHE's form of the Kalman peers' ``omega = 0``
-row (``docs/mhe.md``).
+"""The CAN yaw rate at a standstill as a measurement of its bias: the MHE's form of the Kalman peers' ``omega = 0`` row
+(``docs/mhe.md``).
 
 A car at rest does not turn, so what its CAN yaw rate reads then is the bias (``g omega + b`` with ``omega = 0``).
 The window cannot see it: at rest no course is measured and the azimuth's change is free. A stop (consecutive GNSS
@@ -8,9 +8,9 @@ measurement of the bias: the mean of its yaw-rate samples, within ``0.5 quantum 
 (``k`` the allowances' sigmas). ``rest`` (``estimator.mhe.rest_bias_rps``) is how far a gyro's bias at rest may
 differ from its bias in motion (vibration, the quantisation's dither): samples counted as independent would make a
 long stop as sure as no gyro is (tried per step: on the shared real drive, whose gyro reads 0.346 +- 0.025 deg/s at
-rest and 0.384 in motion, a 150 s outage's error grew from 26 to 42 m). A stop whose samples spread more than a
-resting gyro's do (``0.5 quantum + 2 sigma``: a car creeping through a turn below the speed's quantum) is not
-used.
+rest and 0.384 in motion, the 30 s outage 20 s after its receiver's cold start ended 42 m off instead of 26 m). A
+stop whose samples spread more than a resting gyro's do (``0.5 quantum + 2 sigma``: a car creeping through a turn
+below the speed's quantum) is not used.
 """
 
 from __future__ import annotations
