@@ -19,7 +19,6 @@ from sumhe.baseline.heading_offset import OFFSET_CORRELATION_S, FollowsHeadings,
 from sumhe.baseline.kinematics import AZIMUTH, OMEGA, PHI, FloatArray, V
 from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
 from sumhe.config import Config
-from sumhe.frontend.measurements import can_acceleration, timed_speed_sigma
 from sumhe.frontend.stream import FixMeasurement
 from sumhe.settings import EstimationSettings, NoiseSettings
 
@@ -228,21 +227,17 @@ class TimedSpeed(RecursiveEstimator):
     family: ``ekf``, ``ukf``, ``rts`` and ``imm``)."""
 
     def _speed_sigma(self, fix: FixMeasurement) -> float:
-        """The speed over ground's sigma with the error of its uncertain time (:func:`timed_speed_sigma`): the
-        standard error of the GNSS time offset the front-end learned,
-        :data:`~sumhe.frontend.alignment.UNLEARNED_TIME_OFFSET_SD_S` until it has
-        (:attr:`~sumhe.frontend.alignment.ClockLearner.sigma_s`; none where it does not learn it: the configured
-        offset is a calibration).
+        """The speed over ground's sigma with the error of its uncertain time
+        (:meth:`~sumhe.frontend.stream.FrontEnd.timed_speed_sigma_mps`: the error of the GNSS time offset the
+        front-end applies, the part of the learned offset its slew has not applied yet included; none where the
+        offset is configured, a calibration). Until 30 Nov 2026 the clock learner's error alone: for the second or
+        two the slew takes to apply each new fit, the speed over ground weighed as if its time were known.
 
         Without it, the speed scale state took the speed over ground of the first acceleration from standstill,
         0.25 s off the CAN speed, for a scale error of up to 13 % with a sigma of 0.3 %, and kept it for minutes
         (its random walk is slow): the speed 0.5 m/s off and the estimate metres behind at the first outages of
         the realistic drives (its scale's error 49 times its sigma, rms over the outages' starts; 18 with it)."""
-        learner = self.frontend.aligner
-        if learner is None:
-            return fix.speed_sigma_mps
-        acceleration = can_acceleration(self.frontend.can["speed"], fix.t, self.settings.can.max_gap_s)
-        return timed_speed_sigma(fix.speed_sigma_mps, acceleration, learner.sigma_s)
+        return self.frontend.timed_speed_sigma_mps(fix)
 
 
 class YawRateBeforeStep(RecursiveEstimator):

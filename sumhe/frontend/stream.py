@@ -44,7 +44,13 @@ from sumhe.frontend.alignment import ClockLearner
 from sumhe.frontend.can import CAN_USED, CanBuffer, centred_speed, speed_reads_low
 from sumhe.frontend.epochs import EpochClock, bad_epoch_time
 from sumhe.frontend.fixes import LocalFix
-from sumhe.frontend.measurements import azimuth_measurement, gps_speed, gps_speed_sigma
+from sumhe.frontend.measurements import (
+    azimuth_measurement,
+    can_acceleration,
+    gps_speed,
+    gps_speed_sigma,
+    timed_speed_sigma,
+)
 from sumhe.frontend.sensor_check import SensorCheck
 from sumhe.frontend.tally import Tally
 from sumhe.messages import CanSample
@@ -194,6 +200,19 @@ class FrontEnd:
         if learner is None:
             return 0.0
         return math.hypot(learner.sigma_s, learner.offset_s - self.time_offset_s)
+
+    def timed_speed_sigma_mps(self, fix: FixMeasurement) -> float:
+        """The sigma (m/s) of ``fix``'s speed over ground with the error of its uncertain time while the car
+        accelerates (:func:`~sumhe.frontend.measurements.timed_speed_sigma` at :attr:`time_offset_sigma_s`, the
+        acceleration the CAN speed's change over the last half second): a speed measured at the wrong instant differs
+        from the CAN speed by the acceleration times the error. Without it the estimators' speed scale took the speed
+        over ground of the first acceleration from standstill: the EKF's up to 13 % off with a sigma of 0.3 %, the
+        MHE's to its bound (1.05 for 1.019) on a realistic simulated highway drive whose fixes were 0.29 s off."""
+        time_sigma = self.time_offset_sigma_s
+        if not time_sigma:
+            return fix.speed_sigma_mps
+        acceleration = can_acceleration(self.can["speed"], fix.t, self.settings.can.max_gap_s)
+        return timed_speed_sigma(fix.speed_sigma_mps, acceleration, time_sigma)
 
     def push(self, sample: object) -> list[Epoch | CanTick]:
         """One sample in (time-ordered), its events out."""

@@ -61,7 +61,7 @@ from sumhe.estimator.mhe.propagate import Propagation, advance
 from sumhe.estimator.mhe.solve import WindowSolve
 from sumhe.estimator.mhe.standstill import Stop, bias_at_rest, still_yaw_rates
 from sumhe.estimator.mhe.window import Window, plan_window
-from sumhe.frontend.measurements import can_acceleration, can_allowance, timed_speed_sigma, unmodelled_can_errors
+from sumhe.frontend.measurements import can_allowance, unmodelled_can_errors
 from sumhe.frontend.stream import OUTPUT_QUANTITY, SAME_EPOCH, CanTick, Epoch, FixMeasurement
 from sumhe.messages import GpsStatus
 from sumhe.model.su import SuModel, output_residuals
@@ -433,19 +433,11 @@ class MovingHorizonEstimator(StreamEstimator):
 
     def _timed(self, fix: FixMeasurement) -> FixMeasurement:
         """``fix`` with its speed over ground's sigma grown by the error of its uncertain time while the car
-        accelerates (:func:`~sumhe.frontend.measurements.timed_speed_sigma`, as the Kalman family weighs it): the
-        error of the GNSS time offset the front-end applies
-        (:attr:`~sumhe.frontend.stream.FrontEnd.time_offset_sigma_s`: the clock learner's, and the part of its
-        offset the slew has not applied yet; none where the offset is configured). Without it the speed scale took
-        the speed over ground of the first acceleration from standstill, a few tenths of a second off the CAN
-        speed: on a realistic simulated highway drive (seed 13, fixes 0.29 s off) the scale ran to its bound (1.05,
-        the truth 1.019) at drive-off."""
-        time_sigma = self.frontend.time_offset_sigma_s
-        if not time_sigma or fix.speed_mps is None:
+        accelerates (:meth:`~sumhe.frontend.stream.FrontEnd.timed_speed_sigma_mps`, as the Kalman family weighs
+        it)."""
+        if fix.speed_mps is None:
             return fix
-        acceleration = can_acceleration(self.frontend.can["speed"], fix.t, self.settings.can.max_gap_s)
-        sigma = timed_speed_sigma(fix.speed_sigma_mps, acceleration, time_sigma)
-        return dataclasses.replace(fix, speed_sigma_mps=sigma)
+        return dataclasses.replace(fix, speed_sigma_mps=self.frontend.timed_speed_sigma_mps(fix))
 
     def _watch_stop(self, t0: float, t1: float) -> None:
         """Collect the CAN yaw rates of a standstill over the step (``t0``, ``t1``]; when the car drives off, tell
