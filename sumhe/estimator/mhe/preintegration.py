@@ -90,13 +90,16 @@ def step_motion(
     (state ``x0``) to the step at ``t1`` (state ``x1``, s): module docstring. The ends' CAN speed and yaw rate are
     ``ends`` (rows: the two ends; columns: speed, yaw rate; NaN for one a step lacks), else the CAN samples
     interpolated there: pass the values the steps' states are fitted to (their CAN outputs), so that the offset
-    adds to the states' own trapezoid exactly what the samples did beyond those values. None where the CAN data has
-    a gap longer than ``sensors.can.max_gap_s`` within the step (the step then keeps the model's transition and the
-    vehicle's bounds)."""
+    adds to the states' own trapezoid exactly what the samples did beyond those values. None where the yaw rate has
+    a gap longer than twice ``sensors.can.max_gap_s`` within the step, or no speed sample lies within that of it
+    (the step then keeps the model's transition and the vehicle's bounds). A speed polled more sparsely (OBD-II at 1
+    Hz: gaps a little over a second) is interpolated between its polls: before 30 Nov 2026 its gaps, too, left such
+    steps without the yaw rate's own turn, and a realistic simulated offroad drive (seed 17) dead-reckoned a slalom
+    of 45-58 deg/s turns 13 deg off in 6 s, where the CAN data integrated alone ends 0.5 deg off."""
     gap = settings.can.max_gap_s
     tv, v = _samples(can, "speed", t0, t1, gap)
     tw, w = _samples(can, "yaw_rate", t0, t1, gap)
-    if not tv or not tw or _widest_gap(t0, tv, t1) > 2.0 * gap or _widest_gap(t0, tw, t1) > 2.0 * gap:
+    if not tv or not tw or _widest_gap(t0, tw, t1) > 2.0 * gap:
         return None
     inner = tw[bisect.bisect_right(tw, t0) : bisect.bisect_left(tw, t1)]
     grid = [t0, *inner, t1]
