@@ -91,11 +91,12 @@ def step_motion(
     ``ends`` (rows: the two ends; columns: speed, yaw rate; NaN for one a step lacks), else the CAN samples
     interpolated there: pass the values the steps' states are fitted to (their CAN outputs), so that the offset
     adds to the states' own trapezoid exactly what the samples did beyond those values. None where the yaw rate has
-    a gap longer than twice ``sensors.can.max_gap_s`` within the step, or no speed sample lies within that of it
-    (the step then keeps the model's transition and the vehicle's bounds). A speed polled more sparsely (OBD-II at 1
-    Hz: gaps a little over a second) is interpolated between its polls: before 30 Nov 2026 its gaps, too, left such
-    steps without the yaw rate's own turn, and a realistic simulated offroad drive (seed 17) dead-reckoned a slalom
-    of 45-58 deg/s turns 13 deg off in 6 s, where the CAN data integrated alone ends 0.5 deg off."""
+    a gap longer than twice ``sensors.can.max_gap_s`` within the step, or no speed sample lies within
+    ``max_gap_s`` of it (the step then keeps the model's transition and the vehicle's bounds). A speed polled more
+    sparsely (OBD-II at 1 Hz: gaps a little over a second) is interpolated between its polls: before 30 Nov 2026
+    its gaps, too, left such steps without the yaw rate's own turn, and a realistic simulated offroad drive (seed
+    17) dead-reckoned a slalom of 45-58 deg/s turns 13 deg off in 6 s, where the CAN data integrated alone ends
+    0.5 deg off."""
     gap = settings.can.max_gap_s
     tv, v = _samples(can, "speed", t0, t1, gap)
     tw, w = _samples(can, "yaw_rate", t0, t1, gap)
