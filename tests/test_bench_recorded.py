@@ -126,6 +126,13 @@ def test_the_command_reports_every_estimator_and_both_floors(drive_dir, tmp_path
         for name, row in length["rows"].items():
             f = row["fixes"]
             assert f["n"] > 0 and 0.0 <= f["mean_m"] <= f["p95_m"] <= f["max_m"], name
+            # each outage's errors: the same fixes, the pooled mean their weighed mean, the pooled max their max
+            each = row["outages"]
+            assert [o["start_s"] for o in each] == length["outages"], name
+            assert sum(o["n"] for o in each) == f["n"], name
+            scored = [o for o in each if o["n"]]
+            weighed = sum(o["n"] * o["mean_m"] for o in scored) / f["n"]
+            assert weighed == pytest.approx(f["mean_m"]) and max(o["max_m"] for o in scored) == f["max_m"], name
         ekf = length["rows"]["ekf"]
         assert ekf["truth"]["n"] > 0 and ekf["truth"]["mean_m"] < 10.0
         assert ekf["widened_share"] == 0.0 and ekf["x_real_time"] > 1.0
@@ -140,6 +147,7 @@ def test_the_command_reports_every_estimator_and_both_floors(drive_dir, tmp_path
         assert c["eph_coverage_low"] <= c["eph_coverage"] <= c["eph_coverage_high"]
     assert "| floor: calibrated dead reckoning |" in printed and "vs truth" in printed
     assert "| removed fix within eph [90 % interval over outages] |" in printed and "| `ekf` |" in printed
+    assert printed.count("| outage start (s) | `ekf` | `dead-reckoning` | floor: dead reckoning |") == 2
     assert (out / "recorded.md").read_text().startswith(f"## {drive_dir.name}")
 
 
@@ -165,12 +173,14 @@ def test_the_floors_are_scored_against_where_the_antenna_truly_was(tmp_path):
     windows = place_outages(rec, 10.0, RecordedBenchSettings(first_s=60.0))
     vs_fixes, vs_truth = floor_errors(rec, windows)
     for name in FLOORS:
-        assert vs_truth[name].size == vs_fixes[name].size > 0
-        assert abs(vs_truth[name].mean() - vs_fixes[name].mean()) < 0.1, name
+        assert len(vs_fixes[name]) == len(vs_truth[name]) == len(windows)  # one array per outage
+        truth, fixes = np.concatenate(vs_truth[name]), np.concatenate(vs_fixes[name])
+        assert truth.size == fixes.size > 0
+        assert abs(truth.mean() - fixes.mean()) < 0.1, name
 
 
 def test_without_the_simulators_settings_the_floors_have_no_truth(drive_dir):
     rec = load_recording([str(drive_dir / "drive.log"), str(drive_dir / "drive.nmea")], None, reference_config)
     assert rec.truth is None and rec.sim is None
     vs_fixes, vs_truth = floor_errors(rec, place_outages(rec, 10.0, RecordedBenchSettings()))
-    assert vs_truth == {} and all(vs_fixes[name].size for name in FLOORS)
+    assert vs_truth == {} and all(np.concatenate(vs_fixes[name]).size for name in FLOORS)

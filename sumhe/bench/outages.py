@@ -94,10 +94,10 @@ def outage_errors(
     t_fix, d_east, d_north, _ = residuals_at_fixes(removed, est_t, est_lat_deg, est_lon_deg, offset_s=offset_s)
     errors = np.hypot(d_east, d_north)
     index = window_index(t_fix, windows, offset_s)
-    per_window = [_errors(start, end, errors[index == i]) for i, (start, end) in enumerate(windows)]
+    per_window = [outage_stats(start, end, errors[index == i]) for i, (start, end) in enumerate(windows)]
     start = windows[0][0] if windows else math.nan
     end = windows[-1][1] if windows else math.nan
-    return per_window, _errors(start, end, errors[index >= 0])
+    return per_window, outage_stats(start, end, errors[index >= 0])
 
 
 def window_index(
@@ -142,7 +142,8 @@ def residuals_at_fixes(
     return t_fix, d_east, d_north, values
 
 
-def _errors(start: float, end: float, errors: np.ndarray) -> OutageErrors:
+def outage_stats(start: float, end: float, errors: np.ndarray) -> OutageErrors:
+    """The :class:`OutageErrors` of the errors (m; NaN: not scored) of the window ``[start, end)``."""
     scored = errors[np.isfinite(errors)]
     return OutageErrors(start, end, int(errors.size), int(scored.size), *mean_p95_max(scored))
 

@@ -18,8 +18,9 @@ antenna truly was at the removed fixes' times (:func:`~sumhe.sim.measure.true_an
 the lever arm applied): each is scored on the point it estimates.
 
 Per length: mean / p95 / max of the errors for each estimator and both floors, the share of epochs on widened
-bounds and of solver failures (:func:`~sumhe.bench.outages.mode_shares`), and x real time (seconds of data over
-seconds of pushing).
+bounds and of solver failures (:func:`~sumhe.bench.outages.mode_shares`), x real time (seconds of data over
+seconds of pushing), the error estimates' calibration, and each outage's mean / max for every estimator and floor
+(which outages an estimator loses, and where every one of them does).
 """
 
 from __future__ import annotations
@@ -177,11 +178,13 @@ def _usable(rec: Recording, start: float, length_s: float, min_speed_mps: float)
 @dataclass(frozen=True)
 class RunOutcome:
     """One estimator on one drive with the outages of one length: the errors (m) against the removed fixes
-    (pooled over the outages) and, with a truth, every estimate's inside them against the truth; its epochs'
-    modes; seconds of data and of pushing; the GNSS time offset its estimates were compared at (s); how its ``eph``
-    and bound box describe its errors against the removed fixes (:func:`~sumhe.bench.metrics.calibration`)."""
+    (pooled over the outages, and each outage's) and, with a truth, every estimate's inside them against the truth;
+    its epochs' modes; seconds of data and of pushing; the GNSS time offset its estimates were compared at (s); how
+    its ``eph`` and bound box describe its errors against the removed fixes
+    (:func:`~sumhe.bench.metrics.calibration`)."""
 
     fix_errors: outages.OutageErrors
+    per_outage: list[outages.OutageErrors]
     truth_errors: np.ndarray
     shares: outages.ModeShares
     span_s: float
@@ -212,7 +215,7 @@ def run_estimator(name: str, rec: Recording, windows: Sequence[tuple[float, floa
     wall = time.perf_counter() - wall0
     offset = float(pipeline.estimator.stats().get("gps_time_offset_s", 0.0))
     est = np.array(kept, dtype=float).reshape(-1, 6)
-    _, errors = outages.outage_errors(windows, cut.removed, est[:, 0], est[:, 1], est[:, 2], offset)
+    per_outage, errors = outages.outage_errors(windows, cut.removed, est[:, 0], est[:, 1], est[:, 2], offset)
     t_fix, d_east, d_north, (eph, bound_east, bound_north) = outages.residuals_at_fixes(
         cut.removed, est[:, 0], est[:, 1], est[:, 2], (est[:, 3], est[:, 4], est[:, 5]), offset
     )
@@ -224,7 +227,8 @@ def run_estimator(name: str, rec: Recording, windows: Sequence[tuple[float, floa
         en = rec.frame.to_enu(est[inside, 1], est[inside, 2])
         at = rec.truth.at(est[inside, 0])
         truth_errors = np.hypot(en[:, 0] - at.east, en[:, 1] - at.north)
-    return RunOutcome(errors, truth_errors, outages.mode_shares(modes.elements()), rec.span_s, wall, offset, calib)
+    shares = outages.mode_shares(modes.elements())
+    return RunOutcome(errors, per_outage, truth_errors, shares, rec.span_s, wall, offset, calib)
 
 
 def _row(est: Estimate) -> tuple[float, ...]:
@@ -238,20 +242,22 @@ def _row(est: Estimate) -> tuple[float, ...]:
 @dataclass(frozen=True)
 class LengthResult:
     """One length on one drive: the outages placed, each estimator's outcome (or its failure), each floor's errors
-    (m) against the removed fixes and, on a simulated drive, against the true antenna (else empty)."""
+    (m, one array per outage) against the removed fixes and, on a simulated drive, against the true antenna (else
+    empty)."""
 
     length_s: float
     windows: list[tuple[float, float]]
     runs: dict[str, RunOutcome | str]
-    floors: dict[str, np.ndarray]
-    floors_truth: dict[str, np.ndarray]
+    floors: dict[str, list[np.ndarray]]
+    floors_truth: dict[str, list[np.ndarray]]
 
 
 def floor_errors(
     rec: Recording, windows: Sequence[tuple[float, float]]
-) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """Both floors' errors (m) at the fixes inside ``windows``, pooled (NaN-free): against the removed fixes, and
-    against the true antenna at their times where the drive is simulated (else no entries)."""
+) -> tuple[dict[str, list[np.ndarray]], dict[str, list[np.ndarray]]]:
+    """Both floors' errors (m) at the fixes inside each of ``windows`` (NaN-free; one array per window, empty
+    where it has no fix): against the removed fixes, and against the true antenna at their times where the drive
+    is simulated (else no entries)."""
     scored = (False, True) if rec.truth is not None and rec.sim is not None else (False,)
     out: dict[bool, dict[str, list[np.ndarray]]] = {key: {name: [] for name in FLOORS} for key in scored}
     f = rec.fixes
@@ -259,6 +265,9 @@ def floor_errors(
         inside = (f.t >= a) & (f.t < b)
         t_eval = f.t[inside]
         if not len(t_eval):
+            for by_name in out.values():
+                for parts in by_name.values():
+                    parts.append(np.zeros(0))
             continue
         refs = {False: np.column_stack([f.east[inside], f.north[inside]])}
         if True in scored:
@@ -269,11 +278,7 @@ def floor_errors(
             for key, ref in refs.items():
                 err = np.hypot(*(pos - ref).T)
                 out[key][name].append(err[np.isfinite(err)])
-    pooled = {
-        key: {name: np.concatenate(parts) if parts else np.zeros(0) for name, parts in by_name.items()}
-        for key, by_name in out.items()
-    }
-    return pooled[False], pooled.get(True, {})
+    return out[False], out.get(True, {})
 
 
 def run_recording(
@@ -301,8 +306,15 @@ def summary(rec: Recording, results: Sequence[LengthResult]) -> dict[str, Any]:
     def stats(values: np.ndarray) -> dict[str, float | int | None]:
         return {"n": int(values.size), **_stats3(*mean_p95_max(values))}
 
+    def per_outage(starts: list[float], errors: Sequence[outages.OutageErrors]) -> list[dict[str, Any]]:
+        return [
+            {"start_s": start, "n": e.scored, "mean_m": _finite(e.mean_m), "max_m": _finite(e.max_m)}
+            for start, e in zip(starts, errors, strict=True)
+        ]
+
     lengths = []
     for r in results:
+        starts = [round(a - rec.t0, 1) for a, _ in r.windows]
         rows: dict[str, Any] = {}
         for name, run in r.runs.items():
             if isinstance(run, str):
@@ -322,18 +334,24 @@ def summary(rec: Recording, results: Sequence[LengthResult]) -> dict[str, Any]:
                 "x_real_time": run.span_s / run.wall_s if run.wall_s > 0 else None,
                 "gps_time_offset_s": run.offset_s,
                 "calibration": {k: _finite(float(v)) for k, v in run.calibration.items()},
+                "outages": per_outage(starts, run.per_outage),
             }
-        for name, errors in r.floors.items():
-            truth_errors = r.floors_truth.get(name)
-            rows[name] = {"fixes": stats(errors), "truth": stats(truth_errors) if truth_errors is not None else None}
-        lengths.append(
-            {
-                "length_s": r.length_s,
-                "outages": [round(a - rec.t0, 1) for a, _ in r.windows],
-                "rows": rows,
+        for name, parts in r.floors.items():
+            truth_parts = r.floors_truth.get(name)
+            rows[name] = {
+                "fixes": stats(_pooled(parts)),
+                "truth": stats(_pooled(truth_parts)) if truth_parts is not None else None,
+                "outages": per_outage(
+                    starts, [outages.outage_stats(a, b, e) for (a, b), e in zip(r.windows, parts, strict=True)]
+                ),
             }
-        )
+        lengths.append({"length_s": r.length_s, "outages": starts, "rows": rows})
     return {"drive": rec.name, "config": rec.config.source, "span_s": rec.span_s, "lengths": lengths}
+
+
+def _pooled(parts: Sequence[np.ndarray]) -> np.ndarray:
+    """Errors of every outage in one array."""
+    return np.concatenate(parts) if len(parts) else np.zeros(0)
 
 
 def _stats3(mean: float, p95: float, mx: float) -> dict[str, float | None]:
@@ -383,7 +401,21 @@ def markdown(data: dict[str, Any]) -> list[str]:
             else:
                 cells += ["–", "–", "–", "–"]
             lines.append("| " + " | ".join(cells) + " |")
-        lines += ["", *calibration_lines(length["rows"]), ""]
+        lines += ["", *calibration_lines(length["rows"]), "", *outage_lines(length), ""]
+    return lines
+
+
+def outage_lines(length: dict[str, Any]) -> list[str]:
+    """Each outage's errors against its removed fixes, mean / max (m), for every estimator and floor (Markdown)."""
+    names = [name for name, row in length["rows"].items() if "outages" in row]
+    head = ["outage start (s)", *(f"`{n}`" if not n.startswith("floor") else n for n in names)]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for i, start in enumerate(length["outages"]):
+        cells = [f"{start:g}"]
+        for name in names:
+            e = length["rows"][name]["outages"][i]
+            cells.append(f"{_num(e['mean_m'])} / {_num(e['max_m'])}")
+        lines.append("| " + " | ".join(cells) + " |")
     return lines
 
 
