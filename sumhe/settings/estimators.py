@@ -30,7 +30,8 @@ MHE_SOLVERS = ("sqp", "ipopt", "fatrop")
 
 @dataclass(frozen=True, slots=True)
 class MheSettings:
-    """``[estimator.mhe]``: solver, window policy (steps: N, N_B, N_A, N_max, ...), QP, CAN states' drift, gate,
+    """``[estimator.mhe]``: solver, window policy (steps: N, N_B, N_A, N_max, ...), QP, the CAN and installation
+    states' drift (``theta_drift``: of their ranges per square-root minute; ``docs/mhe.md``, "Arrival cost"), gate,
     retries, the output bounds learned from the residuals (``learn_bounds``: over the last ``bound_history`` steps,
     times ``bound_margin``, at most ``bound_max_factor`` times the allowances; ``docs/mhe.md``). ``nlp_max_iter``
     limits the ``ipopt``/``fatrop`` solvers. ``rest_bias_rps``: how far (one sigma, rad/s) the CAN yaw rate's bias

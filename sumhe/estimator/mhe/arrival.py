@@ -8,8 +8,9 @@ yaw rate by the CAN allowances and the CAN states' limits), then moved one step 
 set). (2) The arrival cost ``(z_0 - p)' W (z_0 - p)`` of the least-squares objective: the dropped steps' terms
 (their outputs, their state noise and the previous arrival cost), linearised at the solution, with the dropped
 states eliminated (a Schur complement: what an information filter carries). It keeps the correlations a box cannot,
-of the speed scale with the positions above all. The CAN bias and scale may drift by ``estimator.mhe.theta_drift``
-of their ranges per square-root minute.
+of the speed scale with the positions above all. Every CAN and installation state (the yaw-rate bias and gain, the
+speed scale, the receiver's azimuth offset, the antenna's lever arm) may drift by ``estimator.mhe.theta_drift`` of
+its range per square-root minute (``docs/mhe.md``, "Arrival cost": why the gain and the installation too).
 
 :func:`arrival_update` is a pure function of the window, the old :class:`Arrival` and the bounds.
 """
