@@ -9,9 +9,10 @@ reads its measurements from here, through :class:`~sumhe.frontend.stream.FrontEn
   ``sigma_rtk_m``, float ``sigma_float_m``; else HDOP x ``uere_m``; else ``sigma_m``; at least ``resolution_m``
   (:func:`fix_sigmas`).
 * Azimuth: an HDT/THS heading (with ``use_heading``) at ``heading_sigma_rad``, or at the receiver's rating of it
-  where it rates it worse (:func:`heading_sigma`); else the course over ground above
-  ``course_min_speed_mps`` (of the fix's speed, else the CAN speed) at ``hypot(course_sigma_rad,
-  speed_sigma_mps / speed)`` (:func:`azimuth_measurement`).
+  where it rates it worse (:func:`heading_sigma`), or, in the streaming front-end, at what its turn against the CAN
+  yaw rate says where that is worse still (:mod:`~sumhe.frontend.heading_check`; the batch grid leaves it out);
+  else the course over ground above ``course_min_speed_mps`` (of the fix's speed, else the CAN speed) at
+  ``hypot(course_sigma_rad, speed_sigma_mps / speed)`` (:func:`azimuth_measurement`).
 * Azimuth from the fixes' motion, for receivers that send no course or heading: the chord between two fixes,
   turned by half the CAN yaw rate's turn in between, at ``sigma / distance`` (:func:`chord_azimuth`).
 * Speed over ground (Doppler, with ``use_speed``): above ``course_min_speed_mps``, signed like the CAN speed

@@ -10,7 +10,9 @@ is worth and when it counts:
   (:class:`~sumhe.frontend.can.CanBuffer`) every estimator reads its CAN data from;
 * GNSS timing (:class:`~sumhe.frontend.epochs.EpochClock`): the receiver's period, the fixes' delay behind the CAN
   data, the epochs it missed (silence over 1.5 periods: an :class:`Epoch` without a fix, ``missed=True``);
-* each fix's measurements by the one policy of :mod:`sumhe.frontend.measurements` (:class:`FixMeasurement`);
+* each fix's measurements by the one policy of :mod:`sumhe.frontend.measurements` (:class:`FixMeasurement`), a
+  heading weighed down where its turn disagrees with the CAN yaw rate's (:mod:`~sumhe.frontend.heading_check`,
+  counted ``headings_off``);
 * the GNSS time offset: a fix's time is moved by ``sensors.gnss.time_offset_s`` onto the CAN clock, or by the
   offset learned on line (:class:`~sumhe.frontend.alignment.ClockLearner`, ``learn_time_offset``), which the
   applied offset follows by at most ``OFFSET_SLEW`` of a period per fix (epochs stay in order); the learner needs
@@ -44,6 +46,7 @@ from sumhe.frontend.alignment import ClockLearner
 from sumhe.frontend.can import CAN_USED, CanBuffer, centred_speed, speed_reads_low
 from sumhe.frontend.epochs import EpochClock, bad_epoch_time
 from sumhe.frontend.fixes import LocalFix
+from sumhe.frontend.heading_check import HeadingCheck, HeadingFix
 from sumhe.frontend.measurements import (
     azimuth_measurement,
     can_acceleration,
@@ -170,6 +173,9 @@ class FrontEnd:
         self.aligner = self.learner if gnss.learn_time_offset else None
         self.check.clear()
         can = self.settings.can
+        self.headings = HeadingCheck(gnss, can)
+        """The receiver's headings against the CAN yaw rate: headings that turn otherwise weigh as far as they are
+        off (:mod:`~sumhe.frontend.heading_check`)."""
         self._delay_s = can.delay_s
         self._speed_reads_low = speed_reads_low(can)
         rate = self.settings.estimator.can_output_hz
@@ -305,6 +311,8 @@ class FrontEnd:
             self.tally.count("bad_fixes", "valid fix without a usable position or sigma taken as no fix")
         if fix.valid:
             self._check(fix)
+            if usable:
+                self._check_heading(fix)
         self.clock.observe(stamp, newest_can)
         self._check_gap(t)
         if not self.started:
@@ -373,6 +381,18 @@ class FrontEnd:
         if self.check.yaw_sign != sign:
             self._turn_yaw_round()
 
+    def _check_heading(self, fix: LocalFix) -> None:
+        """A usable fix's heading (where it has one and headings are used) to :attr:`headings`, with the CAN yaw
+        rate's turn since the fix before."""
+        heading = fix.heading_rad
+        if heading is None or not math.isfinite(heading) or not self.settings.gnss.use_heading:
+            return
+        yaw = self.can["yaw_rate"]
+        before = self.headings.before
+        mean = yaw.mean(before.t, fix.t) if before is not None else None
+        turn = None if mean is None else mean[0] * (fix.t - before.t)  # type: ignore[union-attr]
+        self.headings.add(HeadingFix(fix.t, heading, yaw.at(fix.t, self.settings.can.max_gap_s)), turn)
+
     def _turn_yaw_round(self) -> None:
         """The CAN yaw rate's sign was found flipped (:attr:`check`): the samples kept are turned round as the
         new ones will be, and the estimator starts over at this fix (its state and window hold the wrong turns)."""
@@ -407,6 +427,8 @@ class FrontEnd:
         can_speed = self.can["speed"].at(fix.t, s.can.max_gap_s)
         speed = fix.speed_mps if fix.speed_mps is not None and math.isfinite(fix.speed_mps) else can_speed
         angle = azimuth_measurement(fix.course_rad, fix.heading_rad, speed, s.gnss, fix.heading_sigma_rad)
+        if angle is not None and angle[2]:
+            angle = angle[0], self._heading_sigma(fix.t, angle[1]), True
         sigma_e, sigma_n = sigmas
         return FixMeasurement(
             t=fix.t,
@@ -421,6 +443,21 @@ class FrontEnd:
             speed_sigma_mps=gps_speed_sigma(s.gnss),
             fix=fix,
         )
+
+    def _heading_sigma(self, t: float, sigma_rad: float) -> float:
+        """A heading's sigma (rad): ``sigma_rad`` (configured or rated), or what :attr:`headings` finds where that
+        is larger (counted ``headings_off``)."""
+        checked = self.headings.sigma_rad(t)
+        if not checked > sigma_rad:
+            return sigma_rad
+        self.tally.count(
+            "headings_off",
+            "the receiver's heading turns otherwise than the CAN yaw rate, by %.1f deg rms (beyond the errors the "
+            "config allows them): its headings weigh at that (not %.2f deg) until they agree again",
+            math.degrees(checked),
+            math.degrees(sigma_rad),
+        )
+        return checked
 
     # ---- timing -----------------------------------------------------------------------------------------------
 
