@@ -1,8 +1,8 @@
 """``sumhe bench [NAME]``: the benchmarks, one sub-benchmark each: ``peers`` (every estimator side by side,
 :mod:`sumhe.bench.peers`; what ``sumhe bench`` without a NAME runs), ``mhe`` (:mod:`sumhe.bench.mhe`),
 ``protocol`` (paper 000's protocol, the same as ``sumhe protocol``), ``fuzz`` (the input decoders on fuzzed
-lines, :mod:`sumhe.bench.fuzz`) and ``tune`` (the peers' noise tuning,
-:mod:`sumhe.bench.tune`).
+lines, :mod:`sumhe.bench.fuzz`), ``compare`` (two results outage by outage, :mod:`sumhe.bench.compare`) and
+``tune`` (the peers' noise tuning, :mod:`sumhe.bench.tune`).
 
 A benchmark prints figures (latency percentiles, errors, speed) and how it ran; it asserts nothing. BLAS is
 pinned to one thread by :func:`sumhe.cli.main` before numpy loads. Adding a benchmark is one line in
@@ -59,6 +59,11 @@ BENCHMARKS: dict[str, tuple[str, str, str]] = {
         "sumhe.commands.bench:add_fuzz_arguments",
         "sumhe.commands.bench:run_fuzz",
     ),
+    "compare": (
+        "two benchmark results (sumhe bench --out) outage by outage: how many got better, how many worse",
+        "sumhe.commands.bench:add_compare_arguments",
+        "sumhe.commands.bench:run_compare",
+    ),
     "tune": (
         "the peers' noise tuning: grid search on training drives, evaluation on test drives",
         "sumhe.bench.tune:add_arguments",
@@ -98,6 +103,54 @@ def run_fuzz(args: argparse.Namespace) -> int:
     report = fuzz.run(args.lines, args.seed, progress=lambda text: print(text, file=sys.stderr, flush=True))
     print("\n".join(fuzz.lines(report, args.seed)))
     return 1 if report.crashes or report.problems else 0
+
+
+def add_compare_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "before", metavar="BEFORE", help="peers.json or recorded.json of sumhe bench --out (or its DIR)"
+    )
+    parser.add_argument("after", nargs="?", metavar="AFTER", help="the same of the run to compare (default: BEFORE)")
+    parser.add_argument(
+        "--estimators",
+        metavar="A[,B]",
+        help="one estimator (in both), or two: A in BEFORE against B in AFTER (default: each estimator in both)",
+    )
+    parser.add_argument("--tolerance", type=float, default=0.05, metavar="M", help="a change smaller is none (m)")
+    parser.add_argument("--top", type=int, default=10, metavar="N", help="the N largest changes listed (default 10)")
+
+
+def run_compare(args: argparse.Namespace) -> int:
+    """``sumhe bench compare``: :mod:`sumhe.bench.compare` on two results (files or the folders holding them)."""
+    import json
+    from pathlib import Path
+
+    from sumhe.bench.compare import compare, lines, outage_errors, pick_names
+    from sumhe.errors import ConfigError
+
+    def read(text: str) -> dict[str, Any]:
+        path = Path(text)
+        if path.is_dir():
+            found = [path / n for n in ("peers.json", "recorded.json") if (path / n).is_file()]
+            if not found:
+                raise ConfigError(f"bench compare: {text}: no peers.json or recorded.json in it")
+            path = found[0]
+        try:
+            return outage_errors(json.loads(path.read_text(encoding="utf-8")))
+        except (OSError, ValueError) as e:
+            raise ConfigError(f"bench compare: {text}: {e}") from e
+
+    before = read(args.before)
+    after = read(args.after) if args.after else before
+    try:
+        pairs = pick_names(before, after, _names(args.estimators or ""))
+    except ValueError as e:
+        raise ConfigError(f"bench compare: {e}") from e
+    for k, (old, new) in enumerate(pairs):
+        print(
+            ("\n" if k else "")
+            + "\n".join(lines(compare(before[old], after[new], (old, new), args.tolerance, args.top)))
+        )
+    return 0
 
 
 def add_mhe_arguments(parser: argparse.ArgumentParser) -> None:
