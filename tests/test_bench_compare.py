@@ -54,7 +54,7 @@ def test_both_kinds_of_result_give_each_outages_mean_error_by_drive_length_and_s
     assert peers["ekf"] == {("d0", 10.0, 20.0): 4.0, ("d2", 10.0, 22.0): 6.0}  # a failed run's outage: none
     recorded = outage_errors(_recorded({"mhe": [1.5, 2.5]}))
     assert recorded == {"mhe": {("car", 10.0, 150.0): 1.5, ("car", 10.0, 270.0): 2.5}}
-    for bad in ({"benchmark": "mhe"}, [1, 2], "text"):
+    for bad in ({"benchmark": "mhe"}, [1, 2], "text", {"placements": [{"drive": "d0"}]}, [{"lengths": [{}]}]):
         with pytest.raises(ValueError, match="not a sumhe bench result"):
             outage_errors(bad)
 

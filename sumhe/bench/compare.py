@@ -31,7 +31,16 @@ RESAMPLES = 2000
 def outage_errors(result: Any) -> dict[str, dict[OutageKey, float]]:
     """Per estimator, each outage's mean error (m) in a benchmark result as ``sumhe bench --out`` writes it: the
     simulated bench's ``peers.json`` (a mapping with ``placements``) or the recorded bench's ``recorded.json`` (a
-    list of drives). ValueError for anything else."""
+    list of drives). ValueError for anything else, a result without the fields it needs too."""
+    try:
+        return _outage_errors(result)
+    except (KeyError, TypeError, AttributeError) as e:
+        raise ValueError(
+            f"not a sumhe bench result (peers.json or recorded.json): a field missing or malformed ({e})"
+        ) from e
+
+
+def _outage_errors(result: Any) -> dict[str, dict[OutageKey, float]]:
     out: dict[str, dict[OutageKey, float]] = {}
     if isinstance(result, Mapping) and isinstance(result.get("placements"), list):
         for p in result["placements"]:
