@@ -7,7 +7,8 @@ one such outage 15 m off instead of 122 m with the drive's GNSS time offset conf
 pairs the outages of two runs (the same drives, the same outages: ``sumhe bench --out`` writes them, the simulated
 bench in ``peers.json``'s ``placements``, the recorded one in ``recorded.json``'s per-outage rows) and says how many
 got better and how many worse beyond a tolerance, how likely that split is without a change (the two-sided sign
-test), the mean change with its interval over the outages (a bootstrap, seeded) and which outages moved most.
+test), the mean change with its interval over the outages (the benches' seeded bootstrap,
+:func:`~sumhe.bench.metrics.mean_interval`) and which outages moved most.
 Pure: plain data in (the JSON as read), plain data out.
 """
 
@@ -21,11 +22,10 @@ from typing import Any
 import numpy as np
 from scipy.stats import binomtest
 
+from sumhe.bench.metrics import mean_interval
+
 OutageKey = tuple[str, float, float]
 """An outage: the drive's name, its length and its start (s from the drive's start)."""
-
-RESAMPLES = 2000
-"""Bootstrap resamples of the outages for the mean change's interval."""
 
 
 def outage_errors(result: Any) -> dict[str, dict[OutageKey, float]]:
@@ -101,9 +101,7 @@ def split(label: str, before: np.ndarray, after: np.ndarray, tolerance_m: float,
     better, worse = int(np.sum(diff < -tolerance_m)), int(np.sum(diff > tolerance_m))
     p = binomtest(better, better + worse).pvalue if better + worse else 1.0
     if n:
-        rng = np.random.default_rng(seed)
-        means = diff[rng.integers(0, n, size=(RESAMPLES, n))].mean(axis=1)
-        low, high = (float(v) for v in np.percentile(means, [5.0, 95.0]))
+        low, high = mean_interval(diff, np.arange(n), seed)
         ratios = after[before > 0] / before[before > 0]
         ratio = float(np.median(ratios)) if len(ratios) else math.nan
         return Split(label, n, better, worse, float(before.mean()), float(after.mean()), float(diff.mean()), low,

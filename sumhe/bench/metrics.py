@@ -67,19 +67,25 @@ def calibration_columns(
     return np.column_stack([np.hypot(de, dn), np.asarray(eph, dtype=float), ratio, np.maximum(be, bn), groups])
 
 
-def coverage_interval(inside: ArrayLike, group: ArrayLike, seed: int = 0) -> tuple[float, float]:
-    """The :data:`COVERAGE_INTERVAL` of the share of ``inside`` (booleans) over :data:`BOOTSTRAP_DRAWS` resamples
-    of the groups with replacement (a cluster bootstrap: the spread a drive of as many such groups would show);
-    NaN, NaN when empty. Seeded: the same figures every run."""
-    hit = np.asarray(inside, dtype=bool)
-    if hit.size == 0:
+def mean_interval(values: ArrayLike, group: ArrayLike, seed: int = 0) -> tuple[float, float]:
+    """The :data:`COVERAGE_INTERVAL` of the mean of ``values`` over :data:`BOOTSTRAP_DRAWS` resamples of the groups
+    with replacement (a cluster bootstrap: the spread a drive of as many such groups would show); NaN, NaN when
+    empty. Seeded: the same figures every run."""
+    v = np.asarray(values, dtype=float)
+    if v.size == 0:
         return math.nan, math.nan
     _, index = np.unique(np.asarray(group, dtype=float), return_inverse=True)
-    size, hits = np.bincount(index), np.bincount(index, weights=hit)
+    size, sums = np.bincount(index), np.bincount(index, weights=v)
     draws = np.random.default_rng(seed).multinomial(len(size), np.full(len(size), 1.0 / len(size)), BOOTSTRAP_DRAWS)
-    shares = (draws @ hits) / (draws @ size)
-    low, high = np.percentile(shares, COVERAGE_INTERVAL)
+    means = (draws @ sums) / (draws @ size)
+    low, high = np.percentile(means, COVERAGE_INTERVAL)
     return float(low), float(high)
+
+
+def coverage_interval(inside: ArrayLike, group: ArrayLike, seed: int = 0) -> tuple[float, float]:
+    """The :data:`COVERAGE_INTERVAL` of the share of ``inside`` (booleans) over the groups resampled
+    (:func:`mean_interval`)."""
+    return mean_interval(np.asarray(inside, dtype=bool), group, seed)
 
 
 def calibration(columns: ArrayLike) -> dict[str, float | int]:
