@@ -114,3 +114,6 @@ def test_the_command_reads_files_or_their_folders_and_names_what_is_wrong(
     assert "bad.json" in capsys.readouterr().err
     assert main(["bench", "compare", str(new), "--estimators", "pf"]) != 0
     assert "'pf' is not in the before result" in capsys.readouterr().err
+    for option in ("--top", "--tolerance"):
+        assert main(["bench", "compare", str(new), option, "-1"]) != 0
+        assert f"{option}: must be 0 or more" in capsys.readouterr().err

@@ -139,6 +139,9 @@ def run_compare(args: argparse.Namespace) -> int:
         except (OSError, ValueError) as e:
             raise ConfigError(f"bench compare: {text}: {e}") from e
 
+    for name, value in (("--tolerance", args.tolerance), ("--top", args.top)):
+        if not value >= 0:
+            raise ConfigError(f"bench compare: {name}: must be 0 or more, got {value!r}")
     before = read(args.before)
     after = read(args.after) if args.after else before
     try:
