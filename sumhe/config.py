@@ -52,6 +52,10 @@ class SignalSpec:
     frames of that bus channel (as the log or interface names it: ``1``, ``"can0"``; compared as text), for logs
     of several buses whose ids repeat; None takes the frames of every channel. ``valid`` names a signal of the
     same message that flags the value: the value is used only when that signal is non-zero.
+
+    A yaw rate may instead come from a 3-axis IMU mounted any way: ``rates`` names its three angular-rate signals
+    and ``accelerations`` its three accelerometer signals, all of ``message`` (``signal`` is then empty); the yaw
+    rate is the angular rate about the up direction the accelerometer finds (:class:`sumhe.io.can.VerticalRate`).
     """
 
     message: str
@@ -60,10 +64,12 @@ class SignalSpec:
     unit: str | None = None
     channel: str | None = None
     valid: str | None = None
+    rates: tuple[str, ...] = ()
+    accelerations: tuple[str, ...] = ()
 
     @property
     def name(self) -> str:
-        return f"{self.message}.{self.signal}"
+        return f"{self.message}.{'/'.join(self.rates) if self.rates else self.signal}"
 
 
 BUS_OWN_KEYS = {
@@ -345,20 +351,34 @@ def _positive(obj: object, *names: str) -> None:
 
 
 _SIGNAL_KEYS = ("signal", "scale", "unit", "channel", "valid")
+_IMU_KEYS = ("message", "rates", "accelerations")
+IMU_QUANTITY = "yaw_rate"
+"""The one quantity a 3-axis IMU's signals may give (``rates`` and ``accelerations``: :class:`SignalSpec`)."""
 
 
-def _parse_signal(value: Any, key: str) -> SignalSpec:
+def _parse_signal(value: Any, key: str, imu: bool) -> SignalSpec:
+    """One quantity's spec; ``imu``: whether the quantity may come from a 3-axis IMU's signals."""
     if isinstance(value, str):
         value = {"signal": value}
     if not isinstance(value, Mapping):
         raise ValueError(f"{key}: expected 'MESSAGE.SIGNAL' or a table with 'signal'")
-    unknown = set(value) - set(_SIGNAL_KEYS)
+    known = _SIGNAL_KEYS + _IMU_KEYS if imu else _SIGNAL_KEYS
+    unknown = set(value) - set(known)
     if unknown:
-        raise ValueError(f"{key}.{sorted(unknown)[0]}: unknown key ({', '.join(_SIGNAL_KEYS)})")
-    name = value.get("signal")
-    if not isinstance(name, str) or name.count(".") != 1 or "" in name.split("."):
-        raise ValueError(f"{key}: expected 'MESSAGE.SIGNAL', got {name!r}")
-    message, signal = name.split(".")
+        raise ValueError(f"{key}.{sorted(unknown)[0]}: unknown key ({', '.join(known)})")
+    rates: tuple[str, ...] = ()
+    accelerations: tuple[str, ...] = ()
+    if set(_IMU_KEYS) & set(value):
+        if "signal" in value:
+            raise ValueError(f"{key}: either signal or message, rates and accelerations (a 3-axis IMU), not both")
+        message = _signal_name(value.get("message"), f"{key}.message", "the IMU's message")
+        rates, accelerations = (_imu_signals(value.get(k), f"{key}.{k}") for k in _IMU_KEYS[1:])
+        signal = ""
+    else:
+        name = value.get("signal")
+        if not isinstance(name, str) or name.count(".") != 1 or "" in name.split("."):
+            raise ValueError(f"{key}: expected 'MESSAGE.SIGNAL', got {name!r}")
+        message, signal = name.split(".")
     scale = value.get("scale", 1.0)
     if isinstance(scale, bool) or not isinstance(scale, int | float) or scale == 0:
         raise ValueError(f"{key}.scale: must be a non-zero number")
@@ -368,7 +388,24 @@ def _parse_signal(value: Any, key: str) -> SignalSpec:
     valid = value.get("valid")
     if valid is not None and (not isinstance(valid, str) or not valid or "." in valid):
         raise ValueError(f"{key}.valid: expected the name of a signal of {message}, got {valid!r}")
-    return SignalSpec(message, signal, float(scale), unit, _parse_channel(value.get("channel"), key), valid)
+    channel = _parse_channel(value.get("channel"), key)
+    return SignalSpec(message, signal, float(scale), unit, channel, valid, rates, accelerations)
+
+
+def _signal_name(name: Any, key: str, what: str) -> str:
+    if not isinstance(name, str) or not name or "." in name:
+        raise ValueError(f"{key}: expected the name of {what}, got {name!r}")
+    return name
+
+
+def _imu_signals(names: Any, key: str) -> tuple[str, ...]:
+    """Three signal names of the IMU's message (x, y, z: any right-handed order of the device's axes)."""
+    if not isinstance(names, list | tuple) or len(names) != 3:
+        raise ValueError(f"{key}: expected a list of the three axes' signals of the message, got {names!r}")
+    out = tuple(_signal_name(n, key, "a signal of the message") for n in names)
+    if len(set(out)) != 3:
+        raise ValueError(f"{key}: three different signals needed, got {list(out)}")
+    return out
 
 
 def _parse_channel(channel: Any, key: str) -> str | None:
@@ -450,7 +487,8 @@ def build_section(cls: type, table: Mapping[str, Any], section: str, base: Any =
             for q in value:
                 if q not in quantities:
                     raise ValueError(f"{full}.{q}: unknown quantity (known: {', '.join(quantities)})")
-            kwargs[key] = {q: _parse_signal(v, f"{full}.{q}") for q, v in value.items()}
+            imu = cls is CanSettings
+            kwargs[key] = {q: _parse_signal(v, f"{full}.{q}", imu and q == IMU_QUANTITY) for q, v in value.items()}
         elif dataclasses.is_dataclass(hints[key]):
             if not isinstance(value, Mapping):
                 raise ValueError(f"{full}: expected a table")

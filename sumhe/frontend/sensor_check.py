@@ -258,7 +258,8 @@ class SensorCheck:
             self.tally.count(
                 "yaw_rate_not_following",
                 "the CAN yaw rate does not follow the receiver's azimuth: %s; check can.signals.yaw_rate (another axis "
-                "of the sensor? its unit, or scale?). The estimates run on the config as it is: through outages "
+                "of the sensor? an IMU's three rates and accelerations map to the rate about up; its unit, or "
+                "scale?). The estimates run on the config as it is: through outages "
                 "their heading is wrong",
                 found,
                 level=logging.ERROR,

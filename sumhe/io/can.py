@@ -4,7 +4,8 @@ Pure decoding, no bus I/O: the live source (:mod:`sumhe.io.can_source`), the log
 command share :class:`CanDecoder`. The decoder is built once from the DBCs, ``can.signals`` and (with
 ``gps.source = "can"``) ``gps.signals``: each quantity's unit factor to SI is resolved at construction from the
 DBC's unit string (or the spec's ``unit`` override), times the spec's ``scale``; frames whose id (on their bus
-channel) is not in use are dropped by one dict lookup before any decoding.
+channel) is not in use are dropped by one dict lookup before any decoding. A yaw rate mapped to a 3-axis IMU's six
+signals is its angular rate about the up direction (:mod:`sumhe.io.imu`).
 
 Multiplexed messages (e.g. OBD-II mode 01 replies, multiplexed by PID): the multiplexer is decoded first; a
 frame whose multiplexer selects none of the mapped signals (another PID, or one the DBC does not know) carries
@@ -43,10 +44,11 @@ import cantools
 from cantools.database.can import Database, Message, Signal
 from cantools.database.utils import create_encode_decode_formats
 
-from sumhe.config import Config, SignalSpec, load_config
+from sumhe.config import IMU_QUANTITY, Config, SignalSpec, load_config
 from sumhe.errors import ConfigError, SourceError, printable
 from sumhe.io.can_gnss import GnssAssembler
 from sumhe.io.checksum import is_intact, rolling_counter
+from sumhe.io.imu import VerticalRate
 from sumhe.messages import CAN_QUANTITIES, GNSS_QUANTITIES, CanSample, GnssFix, Sample
 
 log = logging.getLogger(__name__)
@@ -241,7 +243,8 @@ _Condition = tuple[tuple[str, frozenset[int]], ...]
 @dataclass(frozen=True, slots=True)
 class _Field:
     """One mapped quantity of a message: its signal, factor to SI (times the spec's scale), flag signal, whether
-    it is a GNSS quantity (for the :class:`GnssAssembler`) and the multiplexer values that carry it."""
+    it is a GNSS quantity (for the :class:`GnssAssembler`) and the multiplexer values that carry it; or, for a yaw
+    rate from a 3-axis IMU, the :class:`~sumhe.io.imu.VerticalRate` that makes it of the IMU's signals."""
 
     name: str
     """``can.signals.<quantity>`` or ``gps.signals.<quantity>``."""
@@ -251,6 +254,12 @@ class _Field:
     valid: str | None
     gnss: bool
     needs: _Condition
+    vertical: VerticalRate | None = None
+
+    @property
+    def signals(self) -> tuple[str, ...]:
+        """The signals it reads (its flag signal aside)."""
+        return self.vertical.signals if self.vertical is not None else (self.signal,)
 
 
 @dataclass(slots=True)
@@ -389,7 +398,8 @@ class CanDecoder:
         top = next((s.name for s in muxes if s.multiplexer_signal is None), None)
         known = {i for s in message.signals if s.multiplexer_signal == top for i in s.multiplexer_ids or ()}
         gnss = any(f.gnss for f in fields)
-        used = _in_use(message, {f.signal for f in fields} | {f.valid for f in fields if f.valid is not None})
+        names = {n for f in fields for n in f.signals} | {f.valid for f in fields if f.valid is not None}
+        used = _in_use(message, names)
         self._routes[key] = _Route(
             message.name,
             message,
@@ -412,6 +422,11 @@ class CanDecoder:
             {"can_id": frame_id, "can_mask": 0x1FFFFFFF if extended else 0x7FF, "extended": extended}
             for frame_id, extended in sorted(ids)
         ]
+
+    def imu_up(self) -> dict[str, tuple[float, float, float] | None]:
+        """Per quantity from a 3-axis IMU (``can.signals.yaw_rate``): the up direction found so far, a unit vector
+        in the IMU's axes as its ``accelerations`` list them (None while there is none)."""
+        return {f.name: f.vertical.up() for r in self._routes.values() for f in r.fields if f.vertical is not None}
 
     def message_names(self) -> dict[str, str]:
         """CAN quantity -> name of the message that carries it."""
@@ -446,14 +461,21 @@ class CanDecoder:
         per_quantity = self.stats.per_quantity
         used = False
         for f in fields:
-            raw = values.get(f.signal)
-            if raw is None:  # a multiplexed signal absent from this frame
-                continue
+            if f.vertical is None:
+                raw = values.get(f.signal)
+                if raw is None:  # a multiplexed signal absent from this frame
+                    continue
             if f.valid is not None and not values.get(f.valid):
                 self.stats.invalid += 1
                 if f.gnss:
                     gnss[f.quantity] = None
                 continue
+            if f.vertical is not None:
+                raw = f.vertical(values)
+                if raw is None:
+                    self.stats.decode_errors += 1
+                    self._warn("%s: the IMU's accelerations point no one way: no up, no yaw rate", f.name)
+                    continue
             value = float(raw) * f.factor
             if not math.isfinite(value):
                 self.stats.decode_errors += 1
@@ -683,14 +705,24 @@ def _field(message: Message, mapped: _Mapped) -> _Field:
     known_quantities = GNSS_QUANTITIES if mapped.gnss else CAN_QUANTITIES
     if quantity not in known_quantities:
         raise ConfigError(f"{key}: unknown quantity (known: {', '.join(known_quantities)})")
-    try:
-        signal = message.get_signal_by_name(spec.signal)
-    except KeyError as e:
-        known = ", ".join(s.name for s in message.signals)
-        raise ConfigError(f"{key}: no signal {spec.signal!r} in message {spec.message} ({known})") from e
-    if spec.valid is not None and spec.valid not in {s.name for s in message.signals}:
-        known = ", ".join(s.name for s in message.signals)
-        raise ConfigError(f"{key}.valid: no signal {spec.valid!r} in message {spec.message} ({known})")
+    if spec.rates and (mapped.gnss or quantity != IMU_QUANTITY):
+        raise ConfigError(f"{key}: rates and accelerations (a 3-axis IMU) give can.signals.{IMU_QUANTITY} only")
+    if spec.valid is not None:
+        _signal_of(message, spec.valid, f"{key}.valid")
+    vertical = None
+    if spec.rates:
+        if message.is_multiplexed():
+            raise ConfigError(f"{key}: {message.name} is multiplexed: an IMU's six signals come in one frame")
+        signal = _signal_of(message, spec.rates[0], f"{key}.rates")
+        units = {_signal_of(message, name, f"{key}.rates").unit for name in spec.rates}
+        if spec.unit is None and len(units) > 1:
+            raise ConfigError(f"{key}.rates: the signals' units differ ({', '.join(sorted(map(str, units)))})")
+        units = {_signal_of(message, name, f"{key}.accelerations").unit for name in spec.accelerations}
+        if len(units) > 1:  # only the direction counts, not the unit: one unit for the three
+            raise ConfigError(f"{key}.accelerations: the signals' units differ ({', '.join(sorted(map(str, units)))})")
+        vertical = VerticalRate(spec.rates, spec.accelerations)
+    else:
+        signal = _signal_of(message, spec.signal, key)
     unit = spec.unit if spec.unit is not None else signal.unit
     factor = si_factor(unit, quantity)
     if factor is None:
@@ -706,7 +738,18 @@ def _field(message: Message, mapped: _Mapped) -> _Field:
     while s.multiplexer_signal is not None:
         needs.append((s.multiplexer_signal, frozenset(s.multiplexer_ids or ())))
         s = message.get_signal_by_name(s.multiplexer_signal)
-    return _Field(mapped.name, quantity, spec.signal, factor * spec.scale, spec.valid, mapped.gnss, tuple(needs))
+    return _Field(
+        mapped.name, quantity, spec.signal, factor * spec.scale, spec.valid, mapped.gnss, tuple(needs), vertical
+    )
+
+
+def _signal_of(message: Message, name: str, key: str) -> Signal:
+    """The signal ``name`` of ``message``; ConfigError naming ``key`` and the message's signals if it has none."""
+    try:
+        return message.get_signal_by_name(name)
+    except KeyError as e:
+        known = ", ".join(s.name for s in message.signals)
+        raise ConfigError(f"{key}: no signal {name!r} in message {message.name} ({known})") from e
 
 
 @dataclass

@@ -30,12 +30,16 @@ def signal_quanta(config: Config) -> dict[str, float]:
     out = {}
     for quantity, spec in mapped.items():
         key = f"{config.source}: can.signals.{quantity}"
-        signal = _find_signal(dbs, spec.message, spec.signal)
-        if signal is None:
-            raise ConfigError(f"{key}: {spec.name} is not in the DBC")
-        factor = si_factor(spec.unit if spec.unit is not None else signal.unit, quantity)
-        if factor is not None:
-            out[quantity] = abs(float(signal.scale) * factor * spec.scale)
+        quanta = []
+        for name in spec.rates or (spec.signal,):  # an IMU's yaw rate: its rate signals' coarsest
+            signal = _find_signal(dbs, spec.message, name)
+            if signal is None:
+                raise ConfigError(f"{key}: {spec.message}.{name} is not in the DBC")
+            factor = si_factor(spec.unit if spec.unit is not None else signal.unit, quantity)
+            if factor is not None:
+                quanta.append(abs(float(signal.scale) * factor * spec.scale))
+        if quanta:
+            out[quantity] = max(quanta)
     return out
 
 
