@@ -10,6 +10,8 @@ from pathlib import Path
 import cantools
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from sumhe.calibration import _spec_toml, imu_note
 from sumhe.config import SignalSpec, load_config
@@ -303,3 +305,14 @@ def test_calibrate_names_the_imus_up_its_tilt_from_the_nearest_axis_and_the_rate
     )
     steep = (0.0, math.sin(math.radians(30)), math.cos(math.radians(30)))
     assert imu_note(steep, ACCELERATIONS, RATES).endswith("(30.0 deg from +AZ); the CAN yaw rate is the rate about up")
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.lists(st.binary(max_size=12), max_size=40))
+def test_any_payloads_give_finite_yaw_rates_or_counted_errors_never_a_crash(payloads):
+    dec = CanDecoder(imu_db(), {"yaw_rate": spec(valid="VALID")})
+    frames = [frame(0.01 * k, 10, data, channel=2) for k, data in enumerate(payloads)]
+    rates = yaw_rates(dec, frames)
+    assert all(math.isfinite(r) and abs(r) <= 10.24 * math.sqrt(3) * DEG for r in rates)
+    s = dec.stats
+    assert len(rates) == s.decoded and s.decoded + s.invalid + s.decode_errors + s.long_frames == len(payloads)
