@@ -49,7 +49,7 @@ from sumhe.frontend.alignment import CHORD_S, MIN_PAIRS, MIN_SPEED_MPS, LagFit, 
 from sumhe.frontend.measurements import heading_sigma
 from sumhe.frontend.sensor_check import rounding_wrong
 from sumhe.geo import LocalFrame
-from sumhe.io.imu import AXIS_TILT_DEG
+from sumhe.io.imu import Mounting
 from sumhe.io.quanta import signal_quanta
 from sumhe.io.replay import Paths, RecordedDrive
 from sumhe.messages import CanSample, GnssFix, Sample
@@ -109,12 +109,8 @@ class DriveSignals:
     """Latitude and longitude (deg) of the east/north frame's origin: the first valid fix."""
     heading_sigma: FloatArray | None = None
     """Each fix's heading's 1-sigma (rad) as the front-end weighs it; None: all alike."""
-    imu_up: tuple[float, float, float] | None = None
-    """With the yaw rate from a 3-axis IMU: the up direction its accelerometer found (a unit vector in its axes)."""
-    imu_axes: tuple[str, ...] = ()
-    """The IMU's acceleration signals, in the order of ``imu_up``."""
-    imu_rates: tuple[str, ...] = ()
-    """Its angular-rate signals, in the same order."""
+    imu: Mounting | None = None
+    """With the yaw rate from a 3-axis IMU: how the IMU sits, as its accelerometer found it."""
 
     @property
     def span_s(self) -> float:
@@ -221,8 +217,7 @@ def signals_of(drive: RecordedDrive, samples: Iterable[Sample]) -> DriveSignals:
     quantum = signal_quanta(drive.config).get("speed") or (
         drive.config.sensors.can.speed_resolution_mps or FALLBACK_SPEED_RESOLUTION_MPS
     )
-    yaw_spec = config.can.signals.get("yaw_rate")
-    imu_up = drive.decoder.imu_up().get("can.signals.yaw_rate") if drive.decoder is not None else None
+    imu = drive.decoder.imu_mountings().get("can.signals.yaw_rate") if drive.decoder is not None else None
     return DriveSignals(
         t_fix=np.array([f.t for f in fixes]),
         east=enu[:, 0],
@@ -238,9 +233,7 @@ def signals_of(drive: RecordedDrive, samples: Iterable[Sample]) -> DriveSignals:
         speed_quantum_mps=float(quantum),
         fixes=total,
         origin_deg=(frame.lat0_deg, frame.lon0_deg),
-        imu_up=imu_up,
-        imu_axes=yaw_spec.accelerations if yaw_spec is not None else (),
-        imu_rates=yaw_spec.rates if yaw_spec is not None else (),
+        imu=imu,
     )
 
 
@@ -520,7 +513,7 @@ def _quantum(values: FloatArray) -> float:
 def calibrate(sig: DriveSignals, delay_s: float = 0.0) -> Calibration:
     """The installation parameters of one drive (see the module docstring); ``delay_s`` is the config's
     ``[sensors.can] delay_s`` (s)."""
-    notes = [imu_note(sig.imu_up, sig.imu_axes, sig.imu_rates)] if sig.imu_up is not None else []
+    notes = [sig.imu.describe()] if sig.imu is not None else []
     moving_fixes = int(np.count_nonzero(np.abs(sig.gnss_speed) > MIN_SPEED_MPS))
     if moving_fixes >= MIN_PAIRS:
         t_g, g, g_source = sig.t_fix, sig.gnss_speed, "the receiver's speed over ground"
@@ -719,17 +712,6 @@ def _relative_delay(sf: _SpeedFit | None, yf: _YawFit | None, notes: list[str]) 
         "[sensors.can] delay_s holds one age for every CAN quantity; GNSS and CAN observe only how the ages differ"
     )
     return Parameter(delay, math.sqrt(variance), how)
-
-
-def imu_note(up: tuple[float, float, float], axes: Sequence[str], rates: Sequence[str]) -> str:
-    """The up direction of an IMU (in its ``axes``, accelerations) whose yaw rate is taken about up, its tilt from
-    the nearest axis, and which rate that makes the yaw rate (:mod:`sumhe.io.imu`)."""
-    nearest = max(range(3), key=lambda i: abs(up[i]))
-    sign = "+" if up[nearest] > 0 else "-"
-    tilt = math.degrees(math.acos(min(1.0, abs(up[nearest]))))
-    parts = " ".join(f"{u:+.3f} {name}" for u, name in zip(up, axes, strict=True))
-    how = f"{sign}{rates[nearest]} (within {AXIS_TILT_DEG:g} deg)" if tilt <= AXIS_TILT_DEG else "the rate about up"
-    return f"the IMU's up: {parts} ({tilt:.1f} deg from {sign}{axes[nearest]}); the CAN yaw rate is {how}"
 
 
 # ---- the config snippet --------------------------------------------------------------------------------------------

@@ -55,7 +55,7 @@ class SignalSpec:
 
     A yaw rate may instead come from a 3-axis IMU mounted any way: ``rates`` names its three angular-rate signals
     and ``accelerations`` its three accelerometer signals, all of ``message`` (``signal`` is then empty); the yaw
-    rate is the angular rate about the up direction the accelerometer finds (:class:`sumhe.io.can.VerticalRate`).
+    rate is the angular rate about the up direction the accelerometer finds (:class:`sumhe.io.imu.VerticalRate`).
     """
 
     message: str
@@ -399,7 +399,7 @@ def _signal_name(name: Any, key: str, what: str) -> str:
 
 
 def _imu_signals(names: Any, key: str) -> tuple[str, ...]:
-    """Three signal names of the IMU's message (x, y, z: any right-handed order of the device's axes)."""
+    """Three signal names of the IMU's message: its three axes, in the order the other list names them."""
     if not isinstance(names, list | tuple) or len(names) != 3:
         raise ValueError(f"{key}: expected a list of the three axes' signals of the message, got {names!r}")
     out = tuple(_signal_name(n, key, "a signal of the message") for n in names)

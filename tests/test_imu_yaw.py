@@ -13,11 +13,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sumhe.calibration import _spec_toml, imu_note
+from sumhe.calibration import DriveSignals, _spec_toml, calibrate
 from sumhe.config import SignalSpec, load_config
 from sumhe.errors import ConfigError
 from sumhe.io.can import CanDecoder, load_dbc, read_logs
-from sumhe.io.imu import VerticalRate
+from sumhe.io.imu import Mounting, VerticalRate
 from sumhe.io.quanta import signal_quanta
 from sumhe.messages import CanSample
 
@@ -92,7 +92,7 @@ def drive(mount: np.ndarray) -> list:
 
 
 def imu_up(decoder: CanDecoder) -> np.ndarray:
-    return np.array(decoder.imu_up()["can.signals.yaw_rate"])
+    return np.array(decoder.imu_mountings()["can.signals.yaw_rate"].up)
 
 
 @pytest.mark.parametrize(
@@ -169,7 +169,7 @@ def test_accelerations_that_point_no_one_way_give_no_yaw_rate_counted_and_logged
     dead = [imu_frame(0.1 * k, np.eye(3), np.zeros(3), rate) for k in range(2)]
     with caplog.at_level(logging.WARNING, logger="sumhe.io.can"):
         assert yaw_rates(dec, dead) == []
-    assert dec.stats.decode_errors == 2 and dec.imu_up() == {"can.signals.yaw_rate": None}
+    assert dec.stats.decode_errors == 2 and dec.imu_mountings() == {"can.signals.yaw_rate": None}
     assert "can.signals.yaw_rate: the IMU's accelerations point no one way" in caplog.text
     swinging = [imu_frame(1.0 + 0.1 * k, np.eye(3), np.array([0.0, 0.0, G * (-1) ** k]), rate) for k in range(20)]
     assert len(yaw_rates(dec, swinging)) == 1  # the first alone points one way
@@ -295,16 +295,22 @@ def test_the_real_loggers_imu_points_its_x_axis_up_and_its_yaw_rate_is_that_axis
     assert up[0] > 0 and 2 < math.degrees(math.acos(up[0])) < 8
 
 
-def test_calibrate_names_the_imus_up_its_tilt_from_the_nearest_axis_and_the_rate_it_takes():
+def test_the_mounting_names_up_its_tilt_from_the_nearest_axis_and_the_rate_taken():
     tilted = (math.cos(math.radians(5)), 0.0, math.sin(math.radians(5)))
-    assert imu_note(tilted, ACCELERATIONS, RATES) == (
-        "the IMU's up: +0.996 AX +0.000 AY +0.087 AZ (5.0 deg from +AX); the CAN yaw rate is +WX (within 10 deg)"
+    assert Mounting(tilted, True, RATES, ACCELERATIONS).describe() == (
+        "the IMU's up: +0.996 AX +0.000 AY +0.087 AZ (5.0 deg from +AX); the yaw rate is +WX alone"
     )
-    assert imu_note((0.0, -1.0, 0.0), ACCELERATIONS, RATES).endswith(
-        "(0.0 deg from -AY); the CAN yaw rate is -WY (within 10 deg)"
-    )
-    steep = (0.0, math.sin(math.radians(30)), math.cos(math.radians(30)))
-    assert imu_note(steep, ACCELERATIONS, RATES).endswith("(30.0 deg from +AZ); the CAN yaw rate is the rate about up")
+    on_its_side = Mounting((0.0, -1.0, 0.0), True, RATES, ACCELERATIONS).describe()
+    assert on_its_side.endswith("(0.0 deg from -AY); the yaw rate is -WY alone")
+    steep = Mounting((0.0, math.sin(math.radians(30)), math.cos(math.radians(30))), False, RATES, ACCELERATIONS)
+    assert steep.describe().endswith("(30.0 deg from +AZ); the yaw rate is the rate about up")
+
+
+def test_calibrate_names_how_the_imu_sits():
+    """``sumhe calibrate``'s first note, from the drive's decoder."""
+    mounting = Mounting((1.0, 0.0, 0.0), True, RATES, ACCELERATIONS)
+    signals = DriveSignals(*([np.zeros(0)] * 10), speed_quantum_mps=0.1, fixes=0, imu=mounting)
+    assert calibrate(signals).notes[0] == mounting.describe()
 
 
 @settings(max_examples=80, deadline=None)

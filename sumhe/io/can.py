@@ -48,7 +48,7 @@ from sumhe.config import IMU_QUANTITY, Config, SignalSpec, load_config
 from sumhe.errors import ConfigError, SourceError, printable
 from sumhe.io.can_gnss import GnssAssembler
 from sumhe.io.checksum import is_intact, rolling_counter
-from sumhe.io.imu import VerticalRate
+from sumhe.io.imu import Mounting, VerticalRate
 from sumhe.messages import CAN_QUANTITIES, GNSS_QUANTITIES, CanSample, GnssFix, Sample
 
 log = logging.getLogger(__name__)
@@ -423,10 +423,12 @@ class CanDecoder:
             for frame_id, extended in sorted(ids)
         ]
 
-    def imu_up(self) -> dict[str, tuple[float, float, float] | None]:
-        """Per quantity from a 3-axis IMU (``can.signals.yaw_rate``): the up direction found so far, a unit vector
-        in the IMU's axes as its ``accelerations`` list them (None while there is none)."""
-        return {f.name: f.vertical.up() for r in self._routes.values() for f in r.fields if f.vertical is not None}
+    def imu_mountings(self) -> dict[str, Mounting | None]:
+        """Per quantity from a 3-axis IMU (``can.signals.yaw_rate``): how the IMU sits, as found so far (None while
+        its accelerations point no one way)."""
+        return {
+            f.name: f.vertical.mounting() for r in self._routes.values() for f in r.fields if f.vertical is not None
+        }
 
     def message_names(self) -> dict[str, str]:
         """CAN quantity -> name of the message that carries it."""

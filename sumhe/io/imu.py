@@ -16,8 +16,8 @@ the yaw rate is the component of the angular-rate vector along the up direction:
 * where up is within :data:`AXIS_TILT_DEG` of one of the device's axes, that axis's rate alone (with its sign) is
   the yaw rate: so close, an accelerometer's offset (consumer MEMS parts specify zero-g offsets up to 40-80 mg:
   2-5 deg) cannot be told from a tilt, and the component would take in up to a sixth of the other two gyros'
-  biases, which wander; the axis alone loses at most 1.5 % of the yaw rate's scale, which the estimators' gain state
-  (``sensors.can.yaw_rate_gain_max``, 15 %) learns.
+  biases, which wander; the axis alone loses at most 2 % of the yaw rate's scale (at 11 deg, the band's edge), which
+  the estimators' gain state (``sensors.can.yaw_rate_gain_max``, 15 %) learns.
 
 Beyond that a tilt of the device in the car is taken out (the car's own attitude on the road, its grade and roll,
 stays in, as in a yaw-rate sensor fixed to the body). An IMU whose accelerometer reads the other way (gravity as -g
@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 COHERENCE = 0.8
@@ -43,6 +44,28 @@ a step in the yaw rate's scale and bias)."""
 AXIS_BAND_DEG = 1.0
 _JOIN_COS = math.cos(math.radians(AXIS_TILT_DEG - AXIS_BAND_DEG))
 _LEAVE_COS = math.cos(math.radians(AXIS_TILT_DEG + AXIS_BAND_DEG))
+
+
+@dataclass(frozen=True, slots=True)
+class Mounting:
+    """How an IMU sits, as its accelerometer found it: ``up`` (a unit vector in its axes), whether the yaw rate is
+    its nearest axis's rate alone (``on_axis``), and its signals (``rates``, ``accelerations``, axis by axis)."""
+
+    up: tuple[float, float, float]
+    on_axis: bool
+    rates: tuple[str, ...]
+    accelerations: tuple[str, ...]
+
+    def describe(self) -> str:
+        """One line: up in the accelerometer's axes, its tilt from the nearest axis, and the yaw rate taken."""
+        nearest = max(range(3), key=lambda i: abs(self.up[i]))
+        sign = "+" if self.up[nearest] > 0 else "-"
+        tilt = math.degrees(math.acos(min(1.0, abs(self.up[nearest]))))
+        parts = " ".join(f"{u:+.3f} {name}" for u, name in zip(self.up, self.accelerations, strict=True))
+        rate = f"{sign}{self.rates[nearest]} alone" if self.on_axis else "the rate about up"
+        return (
+            f"the IMU's up: {parts} ({tilt:.1f} deg from {sign}{self.accelerations[nearest]}); the yaw rate is {rate}"
+        )
 
 
 class VerticalRate:
@@ -63,8 +86,9 @@ class VerticalRate:
         return self.rates + self.accelerations
 
     def __call__(self, values: Mapping[str, Any]) -> float | None:
-        """The angular rate about up of one sample (the rate signals' unit), its accelerations added to the mean
-        first; NaN where an acceleration is not finite (nothing added); None while the mean points no one way."""
+        """The yaw rate of one sample (the rate signals' unit: the nearest axis's rate or the rate about up), its
+        accelerations added to the mean first; NaN where an acceleration is not finite (nothing added); None while
+        the mean points no one way."""
         a, b, c = self.accelerations
         ax, ay, az = float(values[a]), float(values[b]), float(values[c])
         norm = math.sqrt(ax * ax + ay * ay + az * az)
@@ -90,6 +114,11 @@ class VerticalRate:
         """The unit up vector in the device's axes, None while the mean points no one way (:data:`COHERENCE`)."""
         size = self._size()
         return None if size is None else (self._x / size, self._y / size, self._z / size)
+
+    def mounting(self) -> Mounting | None:
+        """How the IMU sits, as found so far; None while the mean points no one way."""
+        up = self.up()
+        return None if up is None else Mounting(up, self.on_axis, self.rates, self.accelerations)
 
     def _size(self) -> float | None:
         size = math.sqrt(self._x * self._x + self._y * self._y + self._z * self._z)
