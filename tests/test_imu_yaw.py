@@ -17,7 +17,7 @@ from sumhe.calibration import DriveSignals, _spec_toml, calibrate
 from sumhe.config import SignalSpec, load_config
 from sumhe.errors import ConfigError
 from sumhe.io.can import CanDecoder, load_dbc, read_logs
-from sumhe.io.imu import Mounting, VerticalRate
+from sumhe.io.imu import REPORT_AFTER, Mounting, VerticalRate
 from sumhe.io.quanta import signal_quanta
 from sumhe.messages import CanSample
 
@@ -322,3 +322,24 @@ def test_any_payloads_give_finite_yaw_rates_or_counted_errors_never_a_crash(payl
     assert all(math.isfinite(r) and abs(r) <= 10.24 * math.sqrt(3) * DEG for r in rates)
     s = dec.stats
     assert len(rates) == s.decoded and s.decoded + s.invalid + s.decode_errors + s.long_frames == len(payloads)
+
+
+def test_how_the_imu_sits_is_logged_once_settled_and_at_each_switch(caplog):
+    vertical = VerticalRate(RATES, ACCELERATIONS, "c.toml: can.signals.yaw_rate")
+
+    def tilted(deg: float, n: int) -> None:
+        a = (0.0, G * math.sin(math.radians(deg)), G * math.cos(math.radians(deg)))
+        for _ in range(n):
+            vertical(dict(zip(ACCELERATIONS, a, strict=True)) | dict.fromkeys(RATES, 1.0))
+
+    with caplog.at_level(logging.INFO, logger="sumhe.io.imu"):
+        tilted(5.0, REPORT_AFTER - 1)
+        assert caplog.messages == []
+        tilted(5.0, 500)
+        tilted(40.0, 600)  # the mean past 11 deg after some 330 of them: the rate about up from there
+    assert caplog.messages == [
+        "c.toml: can.signals.yaw_rate: the IMU's up: +0.000 AX +0.087 AY +0.996 AZ (5.0 deg from +AZ); the yaw rate "
+        "is +WZ alone (after 1000 samples)",
+        caplog.messages[1],
+    ]
+    assert "; the yaw rate is the rate about up (after 18" in caplog.messages[1]

@@ -722,7 +722,7 @@ def _field(message: Message, mapped: _Mapped) -> _Field:
         units = {_signal_of(message, name, f"{key}.accelerations").unit for name in spec.accelerations}
         if len(units) > 1:  # only the direction counts, not the unit: one unit for the three
             raise ConfigError(f"{key}.accelerations: the signals' units differ ({', '.join(sorted(map(str, units)))})")
-        vertical = VerticalRate(spec.rates, spec.accelerations)
+        vertical = VerticalRate(spec.rates, spec.accelerations, key)
     else:
         signal = _signal_of(message, spec.signal, key)
     unit = spec.unit if spec.unit is not None else signal.unit

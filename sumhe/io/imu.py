@@ -27,10 +27,13 @@ on-line check (:mod:`sumhe.frontend.sensor_check`) says so.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
+
+log = logging.getLogger(__name__)
 
 COHERENCE = 0.8
 """The least ratio of the mean acceleration's magnitude to the mean magnitude at which the mean's direction is
@@ -44,6 +47,9 @@ a step in the yaw rate's scale and bias)."""
 AXIS_BAND_DEG = 1.0
 _JOIN_COS = math.cos(math.radians(AXIS_TILT_DEG - AXIS_BAND_DEG))
 _LEAVE_COS = math.cos(math.radians(AXIS_TILT_DEG + AXIS_BAND_DEG))
+REPORT_AFTER = 1000
+"""Samples after which how the IMU sits is logged (INFO: 10 s of a 100 Hz IMU), and again at each switch between its
+axis alone and the rate about up."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -70,10 +76,11 @@ class Mounting:
 
 class VerticalRate:
     """Yaw rates of one IMU (stateful: the running sum of its accelerations). ``rates`` and ``accelerations``: the
-    signal names of its three axes, in the same order."""
+    signal names of its three axes, in the same order; ``name``: its key, for the log."""
 
-    def __init__(self, rates: tuple[str, ...], accelerations: tuple[str, ...]) -> None:
-        self.rates, self.accelerations = rates, accelerations
+    def __init__(self, rates: tuple[str, ...], accelerations: tuple[str, ...], name: str = "") -> None:
+        self.rates, self.accelerations, self.name = rates, accelerations, name
+        self._samples = 0
         self._x = self._y = self._z = 0.0
         """The sum of the accelerations (the signals' unit)."""
         self._norms = 0.0
@@ -104,7 +111,12 @@ class VerticalRate:
         x, y, z = self._x, self._y, self._z
         p, q, r = self.rates
         nearest = max(abs(x), abs(y), abs(z))
-        self.on_axis = nearest >= (_LEAVE_COS if self.on_axis else _JOIN_COS) * size
+        was = self.on_axis
+        self.on_axis = nearest >= (_LEAVE_COS if was else _JOIN_COS) * size
+        self._samples += 1
+        if self._samples == REPORT_AFTER or (self.on_axis != was and self._samples > REPORT_AFTER):
+            mounting = Mounting((x / size, y / size, z / size), self.on_axis, self.rates, self.accelerations)
+            log.info("%s: %s (after %d samples)", self.name, mounting.describe(), self._samples)
         if self.on_axis:
             axis, along = (p, x) if nearest == abs(x) else (q, y) if nearest == abs(y) else (r, z)
             return float(values[axis]) if along > 0.0 else -float(values[axis])
