@@ -115,8 +115,7 @@ class VerticalRate:
         self.on_axis = nearest >= (_LEAVE_COS if was else _JOIN_COS) * size
         self._samples += 1
         if self._samples == REPORT_AFTER or (self.on_axis != was and self._samples > REPORT_AFTER):
-            mounting = Mounting((x / size, y / size, z / size), self.on_axis, self.rates, self.accelerations)
-            log.info("%s: %s (after %d samples)", self.name, mounting.describe(), self._samples)
+            self._report()
         if self.on_axis:
             axis, along = (p, x) if nearest == abs(x) else (q, y) if nearest == abs(y) else (r, z)
             return float(values[axis]) if along > 0.0 else -float(values[axis])
@@ -131,6 +130,11 @@ class VerticalRate:
         """How the IMU sits, as found so far; None while the mean points no one way."""
         up = self.up()
         return None if up is None else Mounting(up, self.on_axis, self.rates, self.accelerations)
+
+    def _report(self) -> None:
+        mounting = self.mounting()
+        if mounting is not None:
+            log.info("%s: %s (after %d samples)", self.name, mounting.describe(), self._samples)
 
     def _size(self) -> float | None:
         size = math.sqrt(self._x * self._x + self._y * self._y + self._z * self._z)
