@@ -14,7 +14,9 @@ only that it kept rejecting fixes and restarting. :class:`SensorCheck` gathers, 
   further :data:`REFIT_TURN_RAD` (a drive that does not turn costs no fit), until the yaw-rate scale (true = scale
   x CAN) is told :data:`CHECK_SIGMAS` standard errors from the bounds: the sign flipped (a scale within
   -:data:`YAW_SCALE_PLAUSIBLE`), not this car's yaw rate (a scale of about 0: another axis; or beyond the bounds:
-  a unit), or fine (the check ends there);
+  a unit), this car's yaw rate with a gain (CAN = gain x true) outside the estimators' gain state's ``1 +-
+  sensors.can.yaw_rate_gain_max`` (a single axis of an IMU tilted from up, a scale a little off), or fine: within
+  those (the check ends there);
 * the speed: the scale of the receiver's speed over ground against the CAN speed, from the fits of the time-offset
   learner (:class:`~sumhe.frontend.alignment.ClockLearner`, every 10 s over 300 s): the CAN speed's scale (CAN = k
   x true, what the estimators' speed-scale state bounds) outside ``1 +- sensors.can.speed_scale_max`` by
@@ -31,17 +33,21 @@ only that it kept rejecting fixes and restarting. :class:`SensorCheck` gathers, 
 
 Each finding is logged once, at ERROR (the rounding's at WARNING: a calibration, not a mapping gone wrong), with
 the config key, the fitted value and its standard error, and counted (``yaw_rate_sign_flipped``,
-``yaw_rate_not_following``, ``speed_scale_outside``, ``speed_rounding_wrong``: the estimator's ``stats()``, which
-``sumhe replay`` prints and the daemon's status line carries). The fallbacks: a flipped sign is unambiguous (the
-scale's magnitude plausible, 5 standard errors from it): from the verdict on the front-end turns the yaw rate round
-(:attr:`SensorCheck.yaw_sign`) and the estimator starts over at that fix afresh (``Epoch.fresh``: its CAN states,
-output bounds and consistency scales were learned from the wrong sign); on the shared real drive with ``scale =
--1`` the MHE's 10/30 s outages after it came out at 2.22/3.26 m (2.42/3.60 mapped right; 128/143 m as mapped). A
-yaw rate that does not follow, a speed scale out of bounds or a rounding other than configured has no one
-correction: the estimators keep running on the config as it is, and their estimates through outages stay as wrong
-as it until it is changed. (The rounding corrected from the verdict on was tried: the speed scale the estimators had
-learned was then off at once, and on the shared drive the EKF's 10 s outages after it came out worse, 1.63 / 1.17 /
-1.16 m at 510 / 630 / 750 s -> 6.25 / 3.23 / 2.87 m; ``docs/error-estimates.md``.)
+``yaw_rate_not_following``, ``yaw_rate_gain_outside``, ``speed_scale_outside``, ``speed_rounding_wrong``: the
+estimator's ``stats()``, which ``sumhe replay`` prints and the daemon's status line carries). The fallbacks: a
+flipped sign is unambiguous (the scale's magnitude plausible, 5 standard errors from it): from the verdict on the
+front-end turns the yaw rate round (:attr:`SensorCheck.yaw_factor`) and the estimator starts over at that fix
+afresh (``Epoch.fresh``: its CAN states, output bounds and consistency scales were learned from the wrong sign); on
+the shared real drive with ``scale = -1`` the MHE's 10/30 s outages after it came out at 2.22/3.26 m (2.42/3.60 mapped
+right; 128/143 m as mapped). A gain out of bounds is undone the same way, the yaw rate multiplied by the fitted scale
+(the estimators' gain state takes up what is left of it, within its bounds): a gain the state cannot reach had the MHE
+fail its solves and lose the fixes (a simulated town drive read at 0.7 of its yaw rate: 51 m off 20 s into an outage,
+1.41 m with the yaw rate undone, 1.93 m mapped right). A yaw rate that does not follow, a speed scale out of bounds or a
+rounding other than configured has no one correction: the estimators keep running on the config as it is, and their
+estimates through outages stay as wrong as it until it is changed. (The rounding corrected from the verdict on was
+tried: the speed scale the estimators had learned was then off at once, and on the shared drive the EKF's 10 s outages
+after it came out worse, 1.63 / 1.17 / 1.16 m at 510 / 630 / 750 s -> 6.25 / 3.23 / 2.87 m;
+``docs/error-estimates.md``.)
 """
 
 from __future__ import annotations
@@ -85,16 +91,20 @@ ROUNDING_AFTER_S = 300.0
 """The speed's rounding is judged from this far into the data (s) on."""
 
 
-def yaw_verdict(scale: float, std: float) -> str | None:
+def yaw_verdict(scale: float, std: float, gain_max: float) -> str | None:
     """What a fitted yaw-rate scale (true = scale x CAN) with standard error ``std`` says: ``"ok"``,
-    ``"sign_flipped"``, ``"not_following"``, or None while the evidence is too weak (:data:`CHECK_SIGMAS`,
+    ``"sign_flipped"``, ``"not_following"``, ``"gain_outside"`` (this car's yaw rate, but its gain, CAN = gain x
+    true, outside the estimators' ``1 +- gain_max``), or None while the evidence is too weak (:data:`CHECK_SIGMAS`,
     :data:`YAW_SCALE_PLAUSIBLE`)."""
     if not (math.isfinite(scale) and math.isfinite(std)):
         return None
     lo, hi = YAW_SCALE_PLAUSIBLE
     a, b = scale - CHECK_SIGMAS * std, scale + CHECK_SIGMAS * std
     if lo < a and b < hi:
-        return "ok"
+        off, spread = abs(1.0 / scale - 1.0), CHECK_SIGMAS * std / scale**2
+        if off + spread < gain_max:
+            return "ok"
+        return "gain_outside" if off - spread > gain_max else None
     if -hi < a and b < -lo:
         return "sign_flipped"
     if (-lo < a and b < lo) or a > hi or b < -hi:
@@ -143,8 +153,9 @@ class SensorCheck:
         self.tally = tally
         self.yaw_done = False
         """A verdict on the yaw rate was reached: nothing more is gathered."""
-        self.yaw_sign = 1.0
-        """-1 once the yaw rate's sign is found flipped: the front-end turns the CAN yaw rate round from then on."""
+        self.yaw_factor = 1.0
+        """What the front-end multiplies the CAN yaw rate by: -1 once its sign is found flipped, the fitted scale once
+        its gain is found outside the bounds, else 1."""
         self.speed_done = False
         can = settings.can
         self.rounding_done = can.speed_quantum_mps < COARSE_QUANTUM_MPS
@@ -232,7 +243,8 @@ class SensorCheck:
         fit = course_lag(f[:, 0], azimuth, f[:, 3], *self._yaw.columns(), CHECK_LAGS_S, speed_weighted=not heading)
         if fit is None:
             return
-        verdict = yaw_verdict(fit.scale, fit.scale_std)
+        gain_max = self.settings.can.yaw_rate_gain_max
+        verdict = yaw_verdict(fit.scale, fit.scale_std, gain_max)
         if verdict is None:
             return
         self.yaw_done = True
@@ -242,9 +254,15 @@ class SensorCheck:
             f"{fit.n} pairs of fixes, {math.degrees(self._turned):.0f} deg turned, {t - self._t0:.0f} s into the data"
         )
         if verdict == "ok":
-            self.tally.log.info("%s: the CAN yaw rate follows the receiver's azimuth: %s", self.tally.name, found)
+            self.tally.log.info(
+                "%s: the CAN yaw rate follows the receiver's azimuth, its gain within 1 +- "
+                "sensors.can.yaw_rate_gain_max = %g: %s",
+                self.tally.name,
+                gain_max,
+                found,
+            )
         elif verdict == "sign_flipped":
-            self.yaw_sign = -1.0
+            self.yaw_factor = -1.0
             self.tally.count(
                 "yaw_rate_sign_flipped",
                 "the CAN yaw rate turns against the receiver's azimuth: %s; set scale = -1 (times the scale it has) in "
@@ -252,6 +270,22 @@ class SensorCheck:
                 "from here, and the estimator starts over at this fix (what it estimated before turned the wrong way "
                 "through outages)",
                 found,
+                level=logging.ERROR,
+            )
+        elif verdict == "gain_outside":
+            self.yaw_factor = fit.scale
+            self.tally.count(
+                "yaw_rate_gain_outside",
+                "the CAN yaw rate reads %.3f x the receiver's azimuth rate, outside 1 +- sensors.can.yaw_rate_gain_max "
+                "= %g: %s; check can.signals.yaw_rate (its scale? a single axis of an IMU tilted from up reads the "
+                "cosine of the tilt: map its three rates and accelerations; sumhe calibrate measures it). Until then "
+                "it is multiplied by %.3f on line from here, and the estimator starts over at this fix (what it "
+                "estimated before turned too %s through outages)",
+                1.0 / fit.scale,
+                gain_max,
+                found,
+                fit.scale,
+                "little" if fit.scale > 1.0 else "much",
                 level=logging.ERROR,
             )
         else:

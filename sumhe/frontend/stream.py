@@ -20,8 +20,9 @@ is worth and when it counts:
   sends none had left the offset at the config's all drive without a word: the shared real drive without its
   speed signal ran 0.37 s off, every estimate's ``eph`` carrying 0.3 s of it);
 * the CAN mapping checked against the receiver (:class:`~sumhe.frontend.sensor_check.SensorCheck`): a yaw rate's
-  flipped sign, a yaw rate that does not follow the azimuth, a speed scale out of bounds, said once and counted; a
-  flipped sign turned round from the verdict on, the estimator starting over afresh there (``Epoch.fresh``);
+  flipped sign, a yaw rate that does not follow the azimuth, a yaw-rate gain or a speed scale out of bounds, said
+  once and counted; a flipped sign turned round and a yaw-rate gain out of bounds undone from the verdict on, the
+  estimator starting over afresh there (``Epoch.fresh``);
 * the start: nothing before the first usable fix, which comes as ``Epoch(start=True)``; no sample at all for
   ``MAX_DATA_GAP_S`` restarts there (counted ``restarts``).
 
@@ -112,8 +113,8 @@ class Epoch:
     missed: bool = False
     start: bool = False
     fresh: bool = False
-    """With ``start``: the CAN data changed meaning before it (the yaw rate's sign turned round on line,
-    :meth:`FrontEnd._turn_yaw_round`): the CAN sensor states learned before are no longer of these data."""
+    """With ``start``: the CAN data changed meaning before it (the yaw rate's sign turned round or its gain undone
+    on line, :meth:`FrontEnd._rescale_yaw`): the CAN sensor states learned before are no longer of these data."""
     fills: bool = False
     """The fix of an epoch handed out before as ``missed`` (it came after the epoch was declared missed): the
     estimator puts it in that epoch, as a late fix (:meth:`FrontEnd._after_missed`)."""
@@ -264,7 +265,7 @@ class FrontEnd:
             self.learner.add_can_speed(t, value)
         else:
             self.check.add_yaw(t, value)
-            value *= self.check.yaw_sign
+            value *= self.check.yaw_factor
         store.add(t, value)
         if not self.started:
             return []
@@ -375,11 +376,11 @@ class FrontEnd:
         speed = fix.speed_mps
         if speed is None or not math.isfinite(speed):
             speed = self.can["speed"].at(fix.t, self.settings.can.max_gap_s)
-        sign = self.check.yaw_sign
+        factor = self.check.yaw_factor
         self.check.add_fix(fix, math.nan if speed is None else speed)
         self.check.check_speed(self.learner.newest, fix.t)
-        if self.check.yaw_sign != sign:
-            self._turn_yaw_round()
+        if self.check.yaw_factor != factor:
+            self._rescale_yaw(self.check.yaw_factor / factor)
 
     def _check_heading(self, fix: LocalFix) -> None:
         """A usable fix's heading (where it has one and headings are used) to :attr:`headings`, with the CAN yaw
@@ -393,11 +394,12 @@ class FrontEnd:
         turn = None if mean is None else mean[0] * (fix.t - before.t)  # type: ignore[union-attr]
         self.headings.add(HeadingFix(fix.t, heading, yaw.at(fix.t, self.settings.can.max_gap_s)), turn)
 
-    def _turn_yaw_round(self) -> None:
-        """The CAN yaw rate's sign was found flipped (:attr:`check`): the samples kept are turned round as the
-        new ones will be, and the estimator starts over at this fix (its state and window hold the wrong turns)."""
+    def _rescale_yaw(self, ratio: float) -> None:
+        """The CAN yaw rate's sign was found flipped or its gain outside the bounds (:attr:`check`): the samples
+        kept are multiplied by ``ratio`` as the new ones will be, and the estimator starts over at this fix (its
+        state and window hold the wrong turns)."""
         samples = self.can.samples["yaw_rate"]
-        samples.v[:] = [-v for v in samples.v]
+        samples.v[:] = [ratio * v for v in samples.v]
         self._fresh = True
         if self.started:
             self.started = False
