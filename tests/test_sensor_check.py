@@ -96,45 +96,60 @@ def test_a_wrong_mapping_is_said_once_at_error_naming_the_key(urban, caplog, cha
     assert error.levelno == logging.ERROR and says in error.getMessage() and " +- " in error.getMessage()
 
 
-@pytest.mark.parametrize(("factor", "key"), [(-1.0, "yaw_rate_sign_flipped"), (0.7, "yaw_rate_gain_outside")])
-def test_a_wrong_yaw_rate_is_undone_from_the_verdict_on_and_the_estimator_starts_afresh(urban, factor, key):
-    """Until the verdict the yaw ticks are as mapped; from it on multiplied by the check's factor (the samples kept
-    too): -1 for a flipped sign, the fitted scale for a gain out of bounds (within 5 % of the inverse of the
-    drive's); the fix of the verdict starts the estimator over with ``fresh`` (its CAN states learned from the wrong
-    yaw rate dropped)."""
+WRONG = [
+    ("yaw_rate", -1.0, "yaw_rate_sign_flipped"),
+    ("yaw_rate", 0.7, "yaw_rate_gain_outside"),
+    ("speed", 1.609, "speed_scale_outside"),
+]
+"""A CAN quantity read as the drive's times a factor, and what the check finds."""
+
+
+@pytest.mark.parametrize(("quantity", "factor", "key"), WRONG)
+def test_a_wrong_mapping_is_undone_from_the_verdict_on_and_the_estimator_starts_afresh(urban, quantity, factor, key):
+    """Until the verdict the quantity's ticks are as mapped; from it on multiplied by the check's factor (the
+    samples kept too, and the time-offset learner's CAN speeds): -1 for a flipped sign, the fitted scale for a
+    yaw-rate gain or a speed scale out of bounds (within 5 % of the inverse of the drive's); the fix of the verdict
+    starts the estimator over with ``fresh`` (its CAN states learned from the wrong mapping dropped)."""
     fe = FrontEnd(EstimationSettings(), Tally("test", logging.getLogger("test.sensor_check")))
     raw, ticked, starts = [], [], []
-    for s in map(_scaled("yaw_rate", factor), urban):
+    for s in map(_scaled(quantity, factor), urban):
         for e in fe.push(s):
-            if isinstance(e, CanTick) and e.quantity == "yaw_rate":
+            if isinstance(e, CanTick) and e.quantity == quantity:
                 raw.append(s.value)  # type: ignore[union-attr]
                 ticked.append(e.value)
             elif isinstance(e, Epoch) and e.start:
                 starts.append((e.t, e.fresh, len(ticked)))
-    undo = fe.check.yaw_factor
+    undo = fe.check.factor[quantity]
     assert fe.tally.counts["restarts"] == 1 and fe.tally.counts[key] == 1
     assert undo == -1.0 if factor < 0 else undo * factor == pytest.approx(1.0, abs=0.05)
+    assert fe.check.factor == {"speed": 1.0, "yaw_rate": 1.0} | {quantity: undo}
     (_, first, _), (t, fresh, k) = starts
-    assert fresh and not first and 40.0 < t - urban[0].t < 75.0
+    assert fresh and not first and 10.0 < t - urban[0].t < 75.0
     assert ticked[:k] == raw[:k] and ticked[k:] == [undo * v for v in raw[k:]]
-    kept = fe.can["yaw_rate"].v
+    kept = fe.can[quantity].v
     assert kept == pytest.approx([undo * v for v in raw[-len(kept) :]], rel=1e-15)
+    if quantity == "speed":
+        _, learned = fe.learner._can.columns()
+        assert learned.tolist() == pytest.approx([undo * v for v in raw[-len(learned) :]], rel=1e-15)
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("factor", "key"), [(-1.0, "yaw_rate_sign_flipped"), (0.7, "yaw_rate_gain_outside")])
+@pytest.mark.parametrize(("quantity", "factor", "key"), WRONG)
 @pytest.mark.parametrize("estimator", [Ekf, MovingHorizonEstimator])
-def test_through_an_outage_after_the_verdict_a_wrong_yaw_rate_does_as_well_as_the_right_one(estimator, factor, key):
-    """A town drive whose yaw rate reads clockwise-positive, or 0.7 of the car's, with a 20 s outage 10 s after the
-    verdict (59 s): the error through it is that of the drive mapped right (MHE 1.41 against 1.93 m, EKF 1.63
-    against 1.41 m, for either); the MHE's was 6.1 m when it kept the CAN states learned from the wrong sign over the
-    restart, and 51 m with the gain left as it read."""
+def test_through_an_outage_after_the_verdict_a_wrong_mapping_does_as_well_as_the_right_one(
+    estimator, quantity, factor, key
+):
+    """A town drive whose yaw rate reads clockwise-positive or 0.7 of the car's (the verdict at 59 s), or whose speed
+    reads 1.609 of it (20 s), with a 20 s outage from 70 s: the error through it is that of the drive mapped right
+    (MHE 1.41, 1.41 and 1.95 against 1.93 m, EKF 1.63, 1.63 and 1.48 against 1.41 m); the MHE's was 6.1 m when it
+    kept the CAN states learned from the wrong sign over the restart, and 51 and 68 m with the gain and the speed
+    left as they read."""
     drive = simulate(SimSettings(scenario="urban", seed=3, duration_s=100.0))
     t0 = drive.settings.start_unix_s
     out = (t0 + 70.0, t0 + 90.0)
     right = [s for s in drive_stream(drive) if not (isinstance(s, LocalFix) and out[0] <= s.t < out[1])]
     errors = []
-    for stream in (right, [_scaled("yaw_rate", factor)(s) for s in right]):
+    for stream in (right, [_scaled(quantity, factor)(s) for s in right]):
         est = estimator(EstimationSettings())
         estimates = [e for s in stream for e in est.push(s) if out[0] <= e.t < out[1]]
         truth = drive.truth.at(np.array([e.t for e in estimates]))

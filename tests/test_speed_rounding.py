@@ -130,6 +130,23 @@ def test_a_rounding_other_than_configured_is_said_once_naming_the_key(obd_drive,
         assert any("as sensors.can.speed_rounding" in r.getMessage() for r in caplog.records)
 
 
+def test_a_speed_scale_undone_on_line_leaves_the_rounding_judged_in_the_speeds_units(obd_drive, caplog):
+    """The drive's speed read as 1.609 of it (km/h as mph), its quantum so too (the DBC's times the mapping's
+    scale): the scale is undone on line at its verdict, and the rounding judged after it in the undone speed's
+    quantum (in the config's, a truncated speed, half a quantum low, had read as rounded)."""
+    rounding, stream = obd_drive
+    factor = 1.609
+    scaled = [
+        dataclasses.replace(s, value=factor * s.value) if isinstance(s, CanSample) and s.quantity == "speed" else s
+        for s in stream
+    ]
+    with caplog.at_level(logging.INFO, logger=LOGGER):
+        fe = run(scaled, front_end("round", quantum=factor * KMH))
+    assert fe.tally.counts["speed_scale_outside"] == 1
+    assert fe.check.factor["speed"] * factor == pytest.approx(1.0, abs=0.02)
+    assert fe.check.rounding_done and fe.tally.counts["speed_rounding_wrong"] == int(rounding == "floor")
+
+
 def test_a_fine_quantum_is_not_judged(obd_drive):
     _, stream = obd_drive
     fe = front_end("round", quantum=None)  # the fallback quantum, 0.01 m/s

@@ -370,6 +370,10 @@ class TimeSeries:
             start = 0
         self.start = start
 
+    def scale(self, factor: float) -> None:
+        """Multiply every value kept by ``factor``."""
+        self.v = array("d", [factor * v for v in self.v])
+
     def columns(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The times and values kept (copies)."""
         return np.frombuffer(self.t[self.start :]), np.frombuffer(self.v[self.start :])
@@ -410,6 +414,10 @@ class ClockLearner:
     def add_can_speed(self, t: float, speed_mps: float) -> None:
         """A CAN speed sample (s, m/s) on the CAN clock."""
         self._can.append(t, speed_mps)
+
+    def scale_can_speeds(self, factor: float) -> None:
+        """Multiply the CAN speeds kept by ``factor`` (the speed's scale corrected on line)."""
+        self._can.scale(factor)
 
     def add_fix(self, t: float, speed_mps: float | None) -> None:
         """A fix's stamped time (s, before the offset) and its speed over ground (m/s, None if it has none)."""

@@ -21,7 +21,7 @@ only that it kept rejecting fixes and restarting. :class:`SensorCheck` gathers, 
   learner (:class:`~sumhe.frontend.alignment.ClockLearner`, every 10 s over 300 s): the CAN speed's scale (CAN = k
   x true, what the estimators' speed-scale state bounds) outside ``1 +- sensors.can.speed_scale_max`` by
   :data:`CHECK_SIGMAS` standard errors and half a CAN speed quantum over the mean speed (a truncated speed reads up
-  to that much low);
+  to that much low): a unit, or a scale a little off;
 * the speed's rounding (``sensors.can.speed_rounding``), where the quantum is coarse (at least
   :data:`~sumhe.settings.sensors.COARSE_QUANTUM_MPS`): how much the CAN speed, as the front-end takes it, reads low
   on the mean, fitted beside the scale by the same fits (:attr:`~sumhe.frontend.alignment.LagFit.reads_low`), once
@@ -36,14 +36,15 @@ the config key, the fitted value and its standard error, and counted (``yaw_rate
 ``yaw_rate_not_following``, ``yaw_rate_gain_outside``, ``speed_scale_outside``, ``speed_rounding_wrong``: the
 estimator's ``stats()``, which ``sumhe replay`` prints and the daemon's status line carries). The fallbacks: a
 flipped sign is unambiguous (the scale's magnitude plausible, 5 standard errors from it): from the verdict on the
-front-end turns the yaw rate round (:attr:`SensorCheck.yaw_factor`) and the estimator starts over at that fix
+front-end turns the yaw rate round (:attr:`SensorCheck.factor`) and the estimator starts over at that fix
 afresh (``Epoch.fresh``: its CAN states, output bounds and consistency scales were learned from the wrong sign); on
 the shared real drive with ``scale = -1`` the MHE's 10/30 s outages after it came out at 2.22/3.26 m (2.42/3.60 mapped
 right; 128/143 m as mapped). A gain out of bounds is undone the same way, the yaw rate multiplied by the fitted scale
 (the estimators' gain state takes up what is left of it, within its bounds): a gain the state cannot reach had the MHE
 fail its solves and lose the fixes (a simulated town drive read at 0.7 of its yaw rate: 51 m off 20 s into an outage,
-1.41 m with the yaw rate undone, 1.93 m mapped right). A yaw rate that does not follow, a speed scale out of bounds or a
-rounding other than configured has no one correction: the estimators keep running on the config as it is, and their
+1.41 m with the yaw rate undone, 1.93 m mapped right); so is a speed scale out of bounds (the same drive's speed read
+as 1.609 of it: the MHE 68 m off in that outage, 1.95 m undone). A yaw rate that does not follow or a rounding other
+than configured has no one correction: the estimators keep running on the config as it is, and their
 estimates through outages stay as wrong as it until it is changed. (The rounding corrected from the verdict on was
 tried: the speed scale the estimators had learned was then off at once, and on the shared drive the EKF's 10 s outages
 after it came out worse, 1.63 / 1.17 / 1.16 m at 510 / 630 / 750 s -> 6.25 / 3.23 / 2.87 m;
@@ -153,9 +154,10 @@ class SensorCheck:
         self.tally = tally
         self.yaw_done = False
         """A verdict on the yaw rate was reached: nothing more is gathered."""
-        self.yaw_factor = 1.0
-        """What the front-end multiplies the CAN yaw rate by: -1 once its sign is found flipped, the fitted scale once
-        its gain is found outside the bounds, else 1."""
+        self.factor = {"speed": 1.0, "yaw_rate": 1.0}
+        """What the front-end multiplies each CAN quantity by: the yaw rate -1 once its sign is found flipped, the
+        fitted scale (true = scale x CAN) once its gain is found outside the bounds; the speed the fitted scale once
+        found outside the bounds; else 1."""
         self.speed_done = False
         can = settings.can
         self.rounding_done = can.speed_quantum_mps < COARSE_QUANTUM_MPS
@@ -262,7 +264,7 @@ class SensorCheck:
                 found,
             )
         elif verdict == "sign_flipped":
-            self.yaw_factor = -1.0
+            self.factor["yaw_rate"] = -1.0
             self.tally.count(
                 "yaw_rate_sign_flipped",
                 "the CAN yaw rate turns against the receiver's azimuth: %s; set scale = -1 (times the scale it has) in "
@@ -273,7 +275,7 @@ class SensorCheck:
                 level=logging.ERROR,
             )
         elif verdict == "gain_outside":
-            self.yaw_factor = fit.scale
+            self.factor["yaw_rate"] = fit.scale
             self.tally.count(
                 "yaw_rate_gain_outside",
                 "the CAN yaw rate reads %.3f x the receiver's azimuth rate, outside 1 +- sensors.can.yaw_rate_gain_max "
@@ -316,7 +318,7 @@ class SensorCheck:
 
     def _judge_rounding(self, fit: LagFit, t: float) -> None:
         can = self.settings.can
-        q, truncate = can.speed_quantum_mps, can.speed_rounding == "truncate"
+        q, truncate = can.speed_quantum_mps * self.factor["speed"], can.speed_rounding == "truncate"
         wrong = rounding_wrong(fit.reads_low, fit.reads_low_std, -0.5 * q if truncate else 0.5 * q)
         if wrong is None:
             return
@@ -353,16 +355,20 @@ class SensorCheck:
         if k is None:
             return
         self.speed_done = True
+        self.factor["speed"] = fit.scale
         self.tally.count(
             "speed_scale_outside",
             "the CAN speed reads %.3f +- %.3f x the receiver's speed over ground (%d fixes, %.0f s into the data), "
             "outside 1 +- sensors.can.speed_scale_max = %g: check can.signals.speed (its unit, or scale: mph read "
-            "as km/h is 0.621x, km/h as mph 1.609x; sumhe calibrate measures it). The estimates run on the config "
-            "as it is: through outages their distance is off by as much",
+            "as km/h is 0.621x, km/h as mph 1.609x; sumhe calibrate measures it). Until then it is multiplied by "
+            "%.3f on line from here, and the estimator starts over at this fix (what it estimated before ran %s "
+            "through outages)",
             k,
             fit.scale_std / fit.scale**2,
             fit.n,
             t - self._t0,
             can.speed_scale_max,
+            fit.scale,
+            "short" if fit.scale > 1.0 else "long",
             level=logging.ERROR,
         )

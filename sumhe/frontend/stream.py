@@ -21,8 +21,8 @@ is worth and when it counts:
   speed signal ran 0.37 s off, every estimate's ``eph`` carrying 0.3 s of it);
 * the CAN mapping checked against the receiver (:class:`~sumhe.frontend.sensor_check.SensorCheck`): a yaw rate's
   flipped sign, a yaw rate that does not follow the azimuth, a yaw-rate gain or a speed scale out of bounds, said
-  once and counted; a flipped sign turned round and a yaw-rate gain out of bounds undone from the verdict on, the
-  estimator starting over afresh there (``Epoch.fresh``);
+  once and counted; a flipped sign turned round and a yaw-rate gain or a speed scale out of bounds undone from the
+  verdict on, the estimator starting over afresh there (``Epoch.fresh``);
 * the start: nothing before the first usable fix, which comes as ``Epoch(start=True)``; no sample at all for
   ``MAX_DATA_GAP_S`` restarts there (counted ``restarts``).
 
@@ -113,8 +113,9 @@ class Epoch:
     missed: bool = False
     start: bool = False
     fresh: bool = False
-    """With ``start``: the CAN data changed meaning before it (the yaw rate's sign turned round or its gain undone
-    on line, :meth:`FrontEnd._rescale_yaw`): the CAN sensor states learned before are no longer of these data."""
+    """With ``start``: the CAN data changed meaning before it (the yaw rate's sign turned round, its gain or the
+    speed's scale undone on line, :meth:`FrontEnd._rescale`): the CAN sensor states learned before are no longer of
+    these data."""
     fills: bool = False
     """The fix of an epoch handed out before as ``missed`` (it came after the epoch was declared missed): the
     estimator puts it in that epoch, as a late fix (:meth:`FrontEnd._after_missed`)."""
@@ -261,11 +262,11 @@ class FrontEnd:
         self._check_gap(t)
         value = float(value)
         if q == "speed":
-            value = centred_speed(value, self._speed_reads_low)
+            value = centred_speed(value, self._speed_reads_low) * self.check.factor["speed"]
             self.learner.add_can_speed(t, value)
         else:
             self.check.add_yaw(t, value)
-            value *= self.check.yaw_factor
+            value *= self.check.factor["yaw_rate"]
         store.add(t, value)
         if not self.started:
             return []
@@ -376,11 +377,11 @@ class FrontEnd:
         speed = fix.speed_mps
         if speed is None or not math.isfinite(speed):
             speed = self.can["speed"].at(fix.t, self.settings.can.max_gap_s)
-        factor = self.check.yaw_factor
+        before = self.check.factor.copy()
         self.check.add_fix(fix, math.nan if speed is None else speed)
         self.check.check_speed(self.learner.newest, fix.t)
-        if self.check.yaw_factor != factor:
-            self._rescale_yaw(self.check.yaw_factor / factor)
+        if self.check.factor != before:
+            self._rescale(before)
 
     def _check_heading(self, fix: LocalFix) -> None:
         """A usable fix's heading (where it has one and headings are used) to :attr:`headings`, with the CAN yaw
@@ -394,12 +395,17 @@ class FrontEnd:
         turn = None if mean is None else mean[0] * (fix.t - before.t)  # type: ignore[union-attr]
         self.headings.add(HeadingFix(fix.t, heading, yaw.at(fix.t, self.settings.can.max_gap_s)), turn)
 
-    def _rescale_yaw(self, ratio: float) -> None:
-        """The CAN yaw rate's sign was found flipped or its gain outside the bounds (:attr:`check`): the samples
-        kept are multiplied by ``ratio`` as the new ones will be, and the estimator starts over at this fix (its
-        state and window hold the wrong turns)."""
-        samples = self.can.samples["yaw_rate"]
-        samples.v[:] = [ratio * v for v in samples.v]
+    def _rescale(self, before: dict[str, float]) -> None:
+        """A CAN quantity's mapping was found wrong (:attr:`check`: the yaw rate's sign flipped or its gain outside
+        the bounds, the speed's scale outside them), its factor changed from ``before``: the samples kept are
+        multiplied as the new ones will be, and the estimator starts over at this fix (its state and window hold
+        the wrong turns or distances)."""
+        for q, factor in self.check.factor.items():
+            if factor != before[q]:
+                ratio = factor / before[q]
+                self.can[q].scale(ratio)
+                if q == "speed":
+                    self.learner.scale_can_speeds(ratio)
         self._fresh = True
         if self.started:
             self.started = False
