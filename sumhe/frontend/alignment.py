@@ -66,6 +66,9 @@ class LagFit:
     """The antenna's forward lever arm (m) fitted with the lag (:func:`course_lag` with ``lever_prior_m``)."""
     scale_std: float = math.nan
     """The standard error of ``scale`` at the lag (:func:`_coefficient_std`; NaN where the scale is not fitted)."""
+    offset_std: float = math.nan
+    """The standard error of ``offset`` at the lag (:func:`course_lag`: the bias's, its intercept's over the scale;
+    NaN where not fitted)."""
     level: float = math.nan
     """The mean magnitude of the GNSS quantity fitted (:func:`speed_lag`: the mean speed over ground, m/s)."""
     reads_low: float = math.nan
@@ -304,15 +307,18 @@ def course_lag(
     lag, std = _refine(lags, rss, len(rate), coef.shape[1] + 1)
     i = int(np.argmin(rss))
     cols, y_i = systems[i]
-    scale_std = _coefficient_std(cols, y_i - np.column_stack(cols) @ coef[i], 0) if fixed_scale is None else math.nan
+    residuals = y_i - np.column_stack(cols) @ coef[i]
+    scale_std = _coefficient_std(cols, residuals, 0) if fixed_scale is None else math.nan
     row = list(coef[i]) if fixed_scale is None else [fixed_scale, *coef[i]]
     scale, intercept = row[0], row[1]
     bias = -intercept / scale if scale else math.nan
+    intercept_std = _coefficient_std(cols, residuals, 0 if fixed_scale is not None else 1)
+    bias_std = intercept_std / abs(scale) if scale else math.nan
     lever = float(row[2] / scale) if lever_prior_m is not None and scale else 0.0
     rms = math.sqrt(float(rss[i]) / len(rate))
     slope = root_w * (mean(t1 - lag - SLOPE_S, t2 - lag - SLOPE_S) - mean(t1 - lag + SLOPE_S, t2 - lag + SLOPE_S))
     std = max(std, _linear_std(rms, scale * slope / (2.0 * SLOPE_S)))
-    return LagFit(lag, std, float(scale), float(bias), rms, len(rate), lever, scale_std)
+    return LagFit(lag, std, float(scale), float(bias), rms, len(rate), lever, scale_std, offset_std=float(bias_std))
 
 
 LEVER_SMOOTH_S = 0.5

@@ -51,9 +51,9 @@ class Samples:
         if k > TRIM_EVERY or (k and k == len(self.t)):
             del self.t[:k], self.v[:k]
 
-    def scale(self, factor: float) -> None:
-        """Multiply every value kept by ``factor`` (a quantity's mapping corrected on line)."""
-        self.v[:] = [factor * v for v in self.v]
+    def remap(self, factor: float, shift: float) -> None:
+        """Multiply every value kept by ``factor`` and add ``shift`` (a quantity's mapping corrected on line)."""
+        self.v[:] = [factor * v + shift for v in self.v]
 
     def mean(self, t0: float, t1: float) -> tuple[float, int] | None:
         """Mean of the samples in (t0, t1] and their number, None if there is none."""

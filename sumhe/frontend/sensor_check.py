@@ -14,9 +14,11 @@ only that it kept rejecting fixes and restarting. :class:`SensorCheck` gathers, 
   further :data:`REFIT_TURN_RAD` (a drive that does not turn costs no fit), until the yaw-rate scale (true = scale
   x CAN) is told :data:`CHECK_SIGMAS` standard errors from the bounds: the sign flipped (a scale within
   -:data:`YAW_SCALE_PLAUSIBLE`), not this car's yaw rate (a scale of about 0: another axis; or beyond the bounds:
-  a unit), this car's yaw rate with a gain (CAN = gain x true) outside the estimators' gain state's ``1 +-
-  sensors.can.yaw_rate_gain_max`` (a single axis of an IMU tilted from up, a scale a little off), or fine: within
-  those (the check ends there);
+  a unit), or this car's yaw rate; then its gain (CAN = gain x true + bias) and its bias, each until told within
+  or outside the estimators' bounds, ``1 +- sensors.can.yaw_rate_gain_max`` (a single axis of an IMU tilted from
+  up, a scale a little off) and ``+- sensors.can.yaw_rate_bias_max_rps`` (an uncalibrated gyro's zero-rate
+  offset: consumer MEMS parts are rated at 1-20 deg/s), by as many standard errors (:func:`within`); the check ends
+  when both are told;
 * the speed: the scale of the receiver's speed over ground against the CAN speed, from the fits of the time-offset
   learner (:class:`~sumhe.frontend.alignment.ClockLearner`, every 10 s over 300 s): the CAN speed's scale (CAN = k
   x true, what the estimators' speed-scale state bounds) outside ``1 +- sensors.can.speed_scale_max`` by
@@ -31,23 +33,24 @@ only that it kept rejecting fixes and restarting. :class:`SensorCheck` gathers, 
   m/s: 5.6 m in a minute). On the shared real drive the fits said 0.10 +- 0.02 m/s from 339 s after its first fix
   (``sumhe calibrate``: half its 1 km/h, 0.139 m/s).
 
-Each finding is logged once, at ERROR (the rounding's at WARNING: a calibration, not a mapping gone wrong), with
-the config key, the fitted value and its standard error, and counted (``yaw_rate_sign_flipped``,
-``yaw_rate_not_following``, ``yaw_rate_gain_outside``, ``speed_scale_outside``, ``speed_rounding_wrong``: the
-estimator's ``stats()``, which ``sumhe replay`` prints and the daemon's status line carries). The fallbacks: a
-flipped sign is unambiguous (the scale's magnitude plausible, 5 standard errors from it): from the verdict on the
-front-end turns the yaw rate round (:attr:`SensorCheck.factor`) and the estimator starts over at that fix
-afresh (``Epoch.fresh``: its CAN states, output bounds and consistency scales were learned from the wrong sign); on
-the shared real drive with ``scale = -1`` the MHE's 10/30 s outages after it came out at 2.22/3.26 m (2.42/3.60 mapped
-right; 128/143 m as mapped). A gain out of bounds is undone the same way, the yaw rate multiplied by the fitted scale
-(the estimators' gain state takes up what is left of it, within its bounds): a gain the state cannot reach had the MHE
-fail its solves and lose the fixes (a simulated town drive read at 0.7 of its yaw rate: 51 m off 20 s into an outage,
-1.41 m with the yaw rate undone, 1.93 m mapped right); so is a speed scale out of bounds (the same drive's speed read
-as 1.609 of it: the MHE 68 m off in that outage, 1.95 m undone). A yaw rate that does not follow or a rounding other
-than configured has no one correction: the estimators keep running on the config as it is, and their
-estimates through outages stay as wrong as it until it is changed. (The rounding corrected from the verdict on was
-tried: the speed scale the estimators had learned was then off at once, and on the shared drive the EKF's 10 s outages
-after it came out worse, 1.63 / 1.17 / 1.16 m at 510 / 630 / 750 s -> 6.25 / 3.23 / 2.87 m;
+Each finding is logged once, at ERROR (the rounding's at WARNING: a calibration, not a mapping gone wrong), with the
+config key, the fitted value and its standard error, and counted (``yaw_rate_sign_flipped``,
+``yaw_rate_not_following``, ``yaw_rate_gain_outside``, ``yaw_rate_bias_outside``, ``speed_scale_outside``,
+``speed_rounding_wrong``: the estimator's ``stats()``, which ``sumhe replay`` prints and the daemon's status line
+carries). The fallbacks: a flipped sign is unambiguous (the scale's magnitude plausible, 5 standard errors from it):
+from the verdict on the front-end turns the yaw rate round (:attr:`SensorCheck.factor`) and the estimator starts
+over at that fix afresh (``Epoch.fresh``: its CAN states, output bounds and consistency scales were learned from the
+wrong sign); on the shared real drive with ``scale = -1`` the MHE's 10/30 s outages after it came out at 2.22/3.26 m
+(2.42/3.60 mapped right; 128/143 m as mapped). A gain out of bounds is undone the same way, the yaw rate multiplied
+by the fitted scale (the estimators' gain state takes up what is left of it, within its bounds): a gain the state
+cannot reach had the MHE fail its solves and lose the fixes (a simulated town drive read at 0.7 of its yaw rate: 51
+m off 20 s into an outage, 1.41 m with the yaw rate undone, 1.93 m mapped right); so is a speed scale out of bounds
+(the same drive's speed read as 1.609 of it: the MHE 68 m off in that outage, 1.95 m undone), and a bias out of
+bounds, the fitted bias taken off (its yaw rate reading 2.3 deg/s more: 14 m, 1.41 m undone). A yaw rate that does
+not follow or a rounding other than configured has no one correction: the estimators keep running on the config as
+it is, and their estimates through outages stay as wrong as it until it is changed. (The rounding corrected from the
+verdict on was tried: the speed scale the estimators had learned was then off at once, and on the shared drive the
+EKF's 10 s outages after it came out worse, 1.63 / 1.17 / 1.16 m at 510 / 630 / 750 s -> 6.25 / 3.23 / 2.87 m;
 ``docs/error-estimates.md``.)
 """
 
@@ -92,25 +95,32 @@ ROUNDING_AFTER_S = 300.0
 """The speed's rounding is judged from this far into the data (s) on."""
 
 
-def yaw_verdict(scale: float, std: float, gain_max: float) -> str | None:
-    """What a fitted yaw-rate scale (true = scale x CAN) with standard error ``std`` says: ``"ok"``,
-    ``"sign_flipped"``, ``"not_following"``, ``"gain_outside"`` (this car's yaw rate, but its gain, CAN = gain x
-    true, outside the estimators' ``1 +- gain_max``), or None while the evidence is too weak (:data:`CHECK_SIGMAS`,
-    :data:`YAW_SCALE_PLAUSIBLE`)."""
+def yaw_verdict(scale: float, std: float) -> str | None:
+    """What a fitted yaw-rate scale (true = scale x CAN) with standard error ``std`` says: ``"follows"`` (this car's
+    yaw rate, its sign right), ``"sign_flipped"``, ``"not_following"``, or None while the evidence is too weak
+    (:data:`CHECK_SIGMAS`, :data:`YAW_SCALE_PLAUSIBLE`)."""
     if not (math.isfinite(scale) and math.isfinite(std)):
         return None
     lo, hi = YAW_SCALE_PLAUSIBLE
     a, b = scale - CHECK_SIGMAS * std, scale + CHECK_SIGMAS * std
     if lo < a and b < hi:
-        off, spread = abs(1.0 / scale - 1.0), CHECK_SIGMAS * std / scale**2
-        if off + spread < gain_max:
-            return "ok"
-        return "gain_outside" if off - spread > gain_max else None
+        return "follows"
     if -hi < a and b < -lo:
         return "sign_flipped"
     if (-lo < a and b < lo) or a > hi or b < -hi:
         return "not_following"
     return None
+
+
+def within(off: float, std: float, bound: float) -> bool | None:
+    """Whether an estimate ``off`` from where it should be, with standard error ``std``, lies within ``+- bound``
+    of it by :data:`CHECK_SIGMAS` standard errors (True), outside it by as many (False), or neither yet (None)."""
+    if not (math.isfinite(off) and math.isfinite(std)):
+        return None
+    spread = CHECK_SIGMAS * std
+    if abs(off) + spread < bound:
+        return True
+    return False if abs(off) - spread > bound else None
 
 
 def speed_scale_outside(fit: LagFit, scale_max: float, quantum_mps: float) -> float | None:
@@ -153,11 +163,18 @@ class SensorCheck:
         self.settings = settings
         self.tally = tally
         self.yaw_done = False
-        """A verdict on the yaw rate was reached: nothing more is gathered."""
+        """The verdicts on the yaw rate were reached: nothing more is gathered."""
+        self.gain_ok: bool | None = None
+        """Whether the yaw rate's gain lies within the estimators' bounds, None until told."""
+        self.bias_ok: bool | None = None
+        """Whether the yaw rate's bias lies within the estimators' bounds, None until told."""
         self.factor = {"speed": 1.0, "yaw_rate": 1.0}
-        """What the front-end multiplies each CAN quantity by: the yaw rate -1 once its sign is found flipped, the
-        fitted scale (true = scale x CAN) once its gain is found outside the bounds; the speed the fitted scale once
-        found outside the bounds; else 1."""
+        """What the front-end multiplies each CAN quantity by (less its :attr:`offset`): the yaw rate -1 once its
+        sign is found flipped, the fitted scale (true = scale x (CAN - bias)) once its gain is found outside the
+        bounds; the speed the fitted scale once found outside the bounds; else 1."""
+        self.offset = {"speed": 0.0, "yaw_rate": 0.0}
+        """What the front-end takes off each CAN quantity before :attr:`factor`: the yaw rate's fitted bias once
+        found outside the bounds, else 0."""
         self.speed_done = False
         can = settings.can
         self.rounding_done = can.speed_quantum_mps < COARSE_QUANTUM_MPS
@@ -245,22 +262,28 @@ class SensorCheck:
         fit = course_lag(f[:, 0], azimuth, f[:, 3], *self._yaw.columns(), CHECK_LAGS_S, speed_weighted=not heading)
         if fit is None:
             return
-        gain_max = self.settings.can.yaw_rate_gain_max
-        verdict = yaw_verdict(fit.scale, fit.scale_std, gain_max)
-        if verdict is None:
-            return
+        verdict = yaw_verdict(fit.scale, fit.scale_std)
+        if verdict is None or (verdict != "follows" and (self.gain_ok, self.bias_ok) != (None, None)):
+            return  # once it followed, a fit that says otherwise is the noise's
+        found = (
+            f"scale {fit.scale:.3f} +- {fit.scale_std:.3f}, bias {fit.offset:.4f} +- {fit.offset_std:.4f} rad/s (true "
+            f"= scale x (CAN - bias)) from the receiver's {source} over {fit.n} pairs of fixes, "
+            f"{math.degrees(self._turned):.0f} deg turned, {t - self._t0:.0f} s into the data"
+        )
+        if verdict == "follows":
+            self._judge_calibration(fit, found)
+            if self.gain_ok is None or self.bias_ok is None:
+                return
         self.yaw_done = True
         self._yaw, self._fixes, self._turns = TimeSeries(), deque(), deque()
-        found = (
-            f"scale {fit.scale:.3f} +- {fit.scale_std:.3f} (true = scale x CAN) from the receiver's {source} over "
-            f"{fit.n} pairs of fixes, {math.degrees(self._turned):.0f} deg turned, {t - self._t0:.0f} s into the data"
-        )
-        if verdict == "ok":
+        can = self.settings.can
+        if verdict == "follows" and self.gain_ok and self.bias_ok:
             self.tally.log.info(
                 "%s: the CAN yaw rate follows the receiver's azimuth, its gain within 1 +- "
-                "sensors.can.yaw_rate_gain_max = %g: %s",
+                "sensors.can.yaw_rate_gain_max = %g and its bias within +- sensors.can.yaw_rate_bias_max_rps = %g: %s",
                 self.tally.name,
-                gain_max,
+                can.yaw_rate_gain_max,
+                can.yaw_rate_bias_max_rps,
                 found,
             )
         elif verdict == "sign_flipped":
@@ -274,23 +297,7 @@ class SensorCheck:
                 found,
                 level=logging.ERROR,
             )
-        elif verdict == "gain_outside":
-            self.factor["yaw_rate"] = fit.scale
-            self.tally.count(
-                "yaw_rate_gain_outside",
-                "the CAN yaw rate reads %.3f x the receiver's azimuth rate, outside 1 +- sensors.can.yaw_rate_gain_max "
-                "= %g: %s; check can.signals.yaw_rate (its scale? a single axis of an IMU tilted from up reads the "
-                "cosine of the tilt: map its three rates and accelerations; sumhe calibrate measures it). Until then "
-                "it is multiplied by %.3f on line from here, and the estimator starts over at this fix (what it "
-                "estimated before turned too %s through outages)",
-                1.0 / fit.scale,
-                gain_max,
-                found,
-                fit.scale,
-                "little" if fit.scale > 1.0 else "much",
-                level=logging.ERROR,
-            )
-        else:
+        elif verdict == "not_following":
             self.tally.count(
                 "yaw_rate_not_following",
                 "the CAN yaw rate does not follow the receiver's azimuth: %s; check can.signals.yaw_rate (another axis "
@@ -300,6 +307,47 @@ class SensorCheck:
                 found,
                 level=logging.ERROR,
             )
+
+    def _judge_calibration(self, fit: LagFit, found: str) -> None:
+        """The gain and the bias of a yaw rate that follows the azimuth, each judged once against the estimators'
+        bounds (:func:`within`); one outside is undone from here (:attr:`factor`, :attr:`offset`)."""
+        can = self.settings.can
+        if self.gain_ok is None:
+            self.gain_ok = within(1.0 / fit.scale - 1.0, fit.scale_std / fit.scale**2, can.yaw_rate_gain_max)
+            if self.gain_ok is False:
+                self.factor["yaw_rate"] = fit.scale
+                self.tally.count(
+                    "yaw_rate_gain_outside",
+                    "the CAN yaw rate reads %.3f x the receiver's azimuth rate, outside 1 +- "
+                    "sensors.can.yaw_rate_gain_max = %g: %s; check can.signals.yaw_rate (its scale? a single axis of "
+                    "an IMU tilted from up reads the cosine of the tilt: map its three rates and accelerations; sumhe "
+                    "calibrate measures it). Until then it is multiplied by %.3f on line from here, and the "
+                    "estimator starts over at this fix (what it estimated before turned too %s through outages)",
+                    1.0 / fit.scale,
+                    can.yaw_rate_gain_max,
+                    found,
+                    fit.scale,
+                    "little" if fit.scale > 1.0 else "much",
+                    level=logging.ERROR,
+                )
+        if self.bias_ok is None:
+            self.bias_ok = within(fit.offset, fit.offset_std, can.yaw_rate_bias_max_rps)
+            if self.bias_ok is False:
+                self.offset["yaw_rate"] = fit.offset
+                self.tally.count(
+                    "yaw_rate_bias_outside",
+                    "the CAN yaw rate reads %.2f deg/s where the car turns none, outside +- "
+                    "sensors.can.yaw_rate_bias_max_rps = %g rad/s: %s; set sensors.can.yaw_rate_bias_max_rps to cover "
+                    "it (a gyro's zero-rate offset, which wanders with temperature; sumhe calibrate measures it). "
+                    "Until then %.4f rad/s is taken off it on line from here, and the estimator starts over at this "
+                    "fix (what it estimated before turned %s through outages)",
+                    math.degrees(fit.offset),
+                    can.yaw_rate_bias_max_rps,
+                    found,
+                    fit.offset,
+                    "left" if fit.offset > 0 else "right",
+                    level=logging.ERROR,
+                )
 
     def check_speed(self, fit: LagFit | None, t: float) -> None:
         """Judge the CAN speed's rounding and scale by ``fit``, the time-offset learner's newest fit (once each), at

@@ -114,7 +114,7 @@ class Epoch:
     start: bool = False
     fresh: bool = False
     """With ``start``: the CAN data changed meaning before it (the yaw rate's sign turned round, its gain or the
-    speed's scale undone on line, :meth:`FrontEnd._rescale`): the CAN sensor states learned before are no longer of
+    speed's scale undone on line, :meth:`FrontEnd._remap`): the CAN sensor states learned before are no longer of
     these data."""
     fills: bool = False
     """The fix of an epoch handed out before as ``missed`` (it came after the epoch was declared missed): the
@@ -266,7 +266,7 @@ class FrontEnd:
             self.learner.add_can_speed(t, value)
         else:
             self.check.add_yaw(t, value)
-            value *= self.check.factor["yaw_rate"]
+            value = (value - self.check.offset["yaw_rate"]) * self.check.factor["yaw_rate"]
         store.add(t, value)
         if not self.started:
             return []
@@ -377,11 +377,11 @@ class FrontEnd:
         speed = fix.speed_mps
         if speed is None or not math.isfinite(speed):
             speed = self.can["speed"].at(fix.t, self.settings.can.max_gap_s)
-        before = self.check.factor.copy()
+        before = (self.check.factor.copy(), self.check.offset.copy())
         self.check.add_fix(fix, math.nan if speed is None else speed)
         self.check.check_speed(self.learner.newest, fix.t)
-        if self.check.factor != before:
-            self._rescale(before)
+        if (self.check.factor, self.check.offset) != before:
+            self._remap(*before)
 
     def _check_heading(self, fix: LocalFix) -> None:
         """A usable fix's heading (where it has one and headings are used) to :attr:`headings`, with the CAN yaw
@@ -395,15 +395,16 @@ class FrontEnd:
         turn = None if mean is None else mean[0] * (fix.t - before.t)  # type: ignore[union-attr]
         self.headings.add(HeadingFix(fix.t, heading, yaw.at(fix.t, self.settings.can.max_gap_s)), turn)
 
-    def _rescale(self, before: dict[str, float]) -> None:
-        """A CAN quantity's mapping was found wrong (:attr:`check`: the yaw rate's sign flipped or its gain outside
-        the bounds, the speed's scale outside them), its factor changed from ``before``: the samples kept are
-        multiplied as the new ones will be, and the estimator starts over at this fix (its state and window hold
-        the wrong turns or distances)."""
-        for q, factor in self.check.factor.items():
-            if factor != before[q]:
-                ratio = factor / before[q]
-                self.can[q].scale(ratio)
+    def _remap(self, factor: dict[str, float], offset: dict[str, float]) -> None:
+        """A CAN quantity's mapping was found wrong (:attr:`check`: the yaw rate's sign flipped, its gain or bias
+        outside the bounds, the speed's scale outside them), its factor and offset changed from ``factor`` and
+        ``offset``: the samples kept are mapped as the new ones will be, and the estimator starts over at this fix
+        (its state and window hold the wrong turns or distances)."""
+        for q, now in self.check.factor.items():
+            shift = now * (offset[q] - self.check.offset[q])
+            if now != factor[q] or shift:
+                ratio = now / factor[q]
+                self.can[q].remap(ratio, shift)
                 if q == "speed":
                     self.learner.scale_can_speeds(ratio)
         self._fresh = True
