@@ -95,6 +95,23 @@ ROUNDING_AFTER_S = 300.0
 """The speed's rounding is judged from this far into the data (s) on."""
 
 
+GAIN_OUTSIDE = (
+    "the CAN yaw rate reads %.3f x the receiver's azimuth rate, outside 1 +- sensors.can.yaw_rate_gain_max = %g: %s; "
+    "check can.signals.yaw_rate (its scale? a single axis of an IMU tilted from up reads the cosine of the tilt: map "
+    "its three rates and accelerations; sumhe calibrate measures it). Until then it is multiplied by %.3f on line from "
+    "here, and the estimator starts over at this fix (what it estimated before turned too %s through outages)"
+)
+"""The log line of a yaw-rate gain outside the bounds (its gain, the bound, the fit, the factor, too what)."""
+BIAS_OUTSIDE = (
+    "the CAN yaw rate reads %.2f deg/s where the car turns none, outside +- sensors.can.yaw_rate_bias_max_rps = %g "
+    "rad/s: %s; set sensors.can.yaw_rate_bias_max_rps to cover it (a gyro's zero-rate offset, which wanders with "
+    "temperature; sumhe calibrate measures it). Until then %.4f rad/s is taken off it on line from here, and the "
+    "estimator starts over at this fix (what it estimated before turned %s through outages)"
+)
+"""The log line of a yaw-rate bias outside the bounds (the bias in deg/s, the bound, the fit, the bias taken off,
+which way)."""
+
+
 def yaw_verdict(scale: float, std: float) -> str | None:
     """What a fitted yaw-rate scale (true = scale x CAN) with standard error ``std`` says: ``"follows"`` (this car's
     yaw rate, its sign right), ``"sign_flipped"``, ``"not_following"``, or None while the evidence is too weak
@@ -316,38 +333,16 @@ class SensorCheck:
             self.gain_ok = within(1.0 / fit.scale - 1.0, fit.scale_std / fit.scale**2, can.yaw_rate_gain_max)
             if self.gain_ok is False:
                 self.factor["yaw_rate"] = fit.scale
-                self.tally.count(
-                    "yaw_rate_gain_outside",
-                    "the CAN yaw rate reads %.3f x the receiver's azimuth rate, outside 1 +- "
-                    "sensors.can.yaw_rate_gain_max = %g: %s; check can.signals.yaw_rate (its scale? a single axis of "
-                    "an IMU tilted from up reads the cosine of the tilt: map its three rates and accelerations; sumhe "
-                    "calibrate measures it). Until then it is multiplied by %.3f on line from here, and the "
-                    "estimator starts over at this fix (what it estimated before turned too %s through outages)",
-                    1.0 / fit.scale,
-                    can.yaw_rate_gain_max,
-                    found,
-                    fit.scale,
-                    "little" if fit.scale > 1.0 else "much",
-                    level=logging.ERROR,
-                )
+                way = "little" if fit.scale > 1.0 else "much"
+                args = (1.0 / fit.scale, can.yaw_rate_gain_max, found, fit.scale, way)
+                self.tally.count("yaw_rate_gain_outside", GAIN_OUTSIDE, *args, level=logging.ERROR)
         if self.bias_ok is None:
             self.bias_ok = within(fit.offset, fit.offset_std, can.yaw_rate_bias_max_rps)
             if self.bias_ok is False:
                 self.offset["yaw_rate"] = fit.offset
-                self.tally.count(
-                    "yaw_rate_bias_outside",
-                    "the CAN yaw rate reads %.2f deg/s where the car turns none, outside +- "
-                    "sensors.can.yaw_rate_bias_max_rps = %g rad/s: %s; set sensors.can.yaw_rate_bias_max_rps to cover "
-                    "it (a gyro's zero-rate offset, which wanders with temperature; sumhe calibrate measures it). "
-                    "Until then %.4f rad/s is taken off it on line from here, and the estimator starts over at this "
-                    "fix (what it estimated before turned %s through outages)",
-                    math.degrees(fit.offset),
-                    can.yaw_rate_bias_max_rps,
-                    found,
-                    fit.offset,
-                    "left" if fit.offset > 0 else "right",
-                    level=logging.ERROR,
-                )
+                way = "left" if fit.offset > 0 else "right"
+                args = (math.degrees(fit.offset), can.yaw_rate_bias_max_rps, found, fit.offset, way)
+                self.tally.count("yaw_rate_bias_outside", BIAS_OUTSIDE, *args, level=logging.ERROR)
 
     def check_speed(self, fit: LagFit | None, t: float) -> None:
         """Judge the CAN speed's rounding and scale by ``fit``, the time-offset learner's newest fit (once each), at
