@@ -76,9 +76,11 @@ def test_course_lag_recovers_lag_scale_and_bias():
 
 
 def test_the_fitted_scales_standard_errors_cover_their_errors():
-    """The scales' standard errors (the on-line sensor check judges a mapping by them): over 20 noise draws of the
-    drives above the errors' root mean square is 0.80 (speed) and 0.41 (course: conservative) of them."""
-    z_speed, z_course = [], []
+    """The scales' and the yaw rate's bias's standard errors (the on-line sensor check judges a mapping by them):
+    over 20 noise draws of the drives above the errors' root mean square is 0.88 (speed), 0.40 (course: conservative)
+    and 0.09 (bias: the rates between consecutive fixes share their azimuths' noise, which a sum of them cancels, and
+    the error is taken as the scale's is; a bias is told late rather than wrongly) of them."""
+    z_speed, z_course, z_bias = [], [], []
     for seed in range(20):
         rng = np.random.default_rng(seed)
         t_can = np.arange(0.0, 300.0, 0.02)
@@ -88,13 +90,14 @@ def test_the_fitted_scales_standard_errors_cover_their_errors():
         assert fit is not None
         z_speed.append((fit.scale - 1 / 1.01) / fit.scale_std)
         t_yaw = np.arange(0.0, 300.0, 0.01)
-        yaw = np.round((1.05 * true_yaw_rate(t_yaw) + rng.normal(0, 0.002, len(t_yaw))) / 0.004) * 0.004
+        yaw = np.round((1.05 * true_yaw_rate(t_yaw) + 0.007 + rng.normal(0, 0.002, len(t_yaw))) / 0.004) * 0.004
         course = np.mod(true_azimuth(t_fix - 0.28) + rng.normal(0, math.radians(0.3), len(t_fix)), 2 * math.pi)
         fit = course_lag(t_fix, course, np.full(len(t_fix), 15.0), t_yaw, yaw)
         assert fit is not None
         z_course.append((fit.scale - 1 / 1.05) / fit.scale_std)
-    for z in (z_speed, z_course):
-        assert 0.3 < math.sqrt(np.mean(np.square(z))) < 1.3
+        z_bias.append((fit.offset - 0.007) / fit.offset_std)
+    for z, low in ((z_speed, 0.3), (z_course, 0.3), (z_bias, 0.03)):
+        assert low < math.sqrt(np.mean(np.square(z))) < 1.3
 
 
 def test_too_little_data_or_no_excitation_determines_no_lag():

@@ -1,7 +1,7 @@
 """The on-line check of the CAN yaw rate's and speed's mapping against the receiver: a flipped sign, a yaw rate that
-does not follow the azimuth, a yaw-rate gain out of bounds, a speed in the wrong unit, each said once at ERROR naming
-the key, and counted; nothing said of a correct mapping. A flipped sign is turned round and a gain out of bounds
-undone from the verdict on, the estimator starting over afresh."""
+does not follow the azimuth, a yaw-rate gain or bias out of bounds, a speed in the wrong unit, each said once at
+ERROR naming the key, and counted; nothing said of a correct mapping. A flipped sign is turned round and a gain, bias
+or speed scale out of bounds undone from the verdict on, the estimator starting over afresh."""
 
 from __future__ import annotations
 

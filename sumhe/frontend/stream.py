@@ -20,9 +20,9 @@ is worth and when it counts:
   sends none had left the offset at the config's all drive without a word: the shared real drive without its
   speed signal ran 0.37 s off, every estimate's ``eph`` carrying 0.3 s of it);
 * the CAN mapping checked against the receiver (:class:`~sumhe.frontend.sensor_check.SensorCheck`): a yaw rate's
-  flipped sign, a yaw rate that does not follow the azimuth, a yaw-rate gain or a speed scale out of bounds, said
-  once and counted; a flipped sign turned round and a yaw-rate gain or a speed scale out of bounds undone from the
-  verdict on, the estimator starting over afresh there (``Epoch.fresh``);
+  flipped sign, a yaw rate that does not follow the azimuth, a yaw-rate gain or bias or a speed scale out of
+  bounds, said once and counted; a flipped sign turned round and a gain, bias or scale out of bounds undone from
+  the verdict on, the estimator starting over afresh there (``Epoch.fresh``);
 * the start: nothing before the first usable fix, which comes as ``Epoch(start=True)``; no sample at all for
   ``MAX_DATA_GAP_S`` restarts there (counted ``restarts``).
 
@@ -113,9 +113,9 @@ class Epoch:
     missed: bool = False
     start: bool = False
     fresh: bool = False
-    """With ``start``: the CAN data changed meaning before it (the yaw rate's sign turned round, its gain or the
-    speed's scale undone on line, :meth:`FrontEnd._remap`): the CAN sensor states learned before are no longer of
-    these data."""
+    """With ``start``: the CAN data changed meaning before it (the yaw rate's sign turned round, its gain or bias or
+    the speed's scale undone on line, :meth:`FrontEnd._remap`): the CAN sensor states learned before are no longer
+    of these data."""
     fills: bool = False
     """The fix of an epoch handed out before as ``missed`` (it came after the epoch was declared missed): the
     estimator puts it in that epoch, as a late fix (:meth:`FrontEnd._after_missed`)."""
