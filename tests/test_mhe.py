@@ -23,11 +23,11 @@ from sumhe.estimator.mhe.newest import grow_box, half_widths
 from sumhe.estimator.mhe.nlp import NlpSolver
 from sumhe.estimator.mhe.problem import WindowProblem
 from sumhe.estimator.mhe.sqp import SqpSolver
-from sumhe.estimator.mhe.standstill import Stop, bias_at_rest, still_yaw_rates
 from sumhe.estimator.registry import make_estimator
 from sumhe.estimator.uncertainty import Spread
 from sumhe.frontend.can import CanBuffer
 from sumhe.frontend.fixes import LocalFix
+from sumhe.frontend.standstill import Stop, bias_at_rest, still_yaw_rates
 from sumhe.frontend.stream import FixMeasurement
 from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample, GnssFix

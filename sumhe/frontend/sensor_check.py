@@ -18,7 +18,8 @@ only that it kept rejecting fixes and restarting. :class:`SensorCheck` gathers, 
   or outside the estimators' bounds, ``1 +- sensors.can.yaw_rate_gain_max`` (a single axis of an IMU tilted from
   up, a scale a little off) and ``+- sensors.can.yaw_rate_bias_max_rps`` (an uncalibrated gyro's zero-rate
   offset: consumer MEMS parts are rated at 1-20 deg/s), by as many standard errors (:func:`within`); the check ends
-  when both are told;
+  when both are told. A stop tells the bias sooner: the mean of its CAN yaw rates, judged when the car drives off
+  (:meth:`SensorCheck._watch_stop`; the fits take the azimuth's 180 deg);
 * the speed: the scale of the receiver's speed over ground against the CAN speed, from the fits of the time-offset
   learner (:class:`~sumhe.frontend.alignment.ClockLearner`, every 10 s over 300 s): the CAN speed's scale (CAN = k
   x true, what the estimators' speed-scale state bounds) outside ``1 +- sensors.can.speed_scale_max`` by
@@ -63,8 +64,10 @@ from collections import deque
 import numpy as np
 
 from sumhe.frontend.alignment import CHORD_S, MIN_PAIRS, MIN_SPEED_MPS, LagFit, TimeSeries, course_lag, row_array
+from sumhe.frontend.can import CanBuffer
 from sumhe.frontend.fixes import LocalFix
 from sumhe.frontend.measurements import chord_azimuth
+from sumhe.frontend.standstill import Stop, bias_at_rest, still_yaw_rates
 from sumhe.frontend.tally import Tally
 from sumhe.settings import EstimationSettings
 from sumhe.settings.sensors import COARSE_QUANTUM_MPS
@@ -184,7 +187,9 @@ class SensorCheck:
         self.gain_ok: bool | None = None
         """Whether the yaw rate's gain lies within the estimators' bounds, None until told."""
         self.bias_ok: bool | None = None
-        """Whether the yaw rate's bias lies within the estimators' bounds, None until told."""
+        """Whether the yaw rate's bias lies within the estimators' bounds, None until told (by a fit, or a stop)."""
+        self._followed = False
+        """A fit found the yaw rate this car's, its sign right: fits that say otherwise later are taken as noise."""
         self.factor = {"speed": 1.0, "yaw_rate": 1.0}
         """What the front-end multiplies each CAN quantity by (less its :attr:`offset`): the yaw rate -1 once its
         sign is found flipped, the fitted scale (true = scale x (CAN - bias)) once its gain is found outside the
@@ -211,21 +216,28 @@ class SensorCheck:
         self._anchor: tuple[float, float] | None = None
         self._chord_start: tuple[float, float, float] | None = None
         self._t0 = math.nan
+        self._stop = Stop()
+        self._stop_since = math.nan
+        self._fix_t = math.nan
+        """The previous valid fix's time (s): the step a standstill is watched over ends at the next one."""
 
     def add_yaw(self, t: float, yaw_rps: float) -> None:
         """A CAN yaw rate (s on the CAN clock, rad/s as mapped)."""
         if not self.yaw_done:
             self._yaw.append(t, yaw_rps)
 
-    def add_fix(self, fix: LocalFix, speed_mps: float) -> None:
+    def add_fix(self, fix: LocalFix, speed_mps: float, can: CanBuffer) -> None:
         """A valid fix (its time on the CAN clock) and its speed (m/s: over ground, else the CAN's; NaN if
-        neither). Its azimuth: its heading (with ``sensors.gnss.use_heading``), else its course over ground, else
-        the course from the position :data:`CHORD_S` before (:meth:`_chord`)."""
+        neither), with the front-end's CAN samples (a standstill since the fix before, :meth:`_watch_stop`). Its
+        azimuth: its heading (with ``sensors.gnss.use_heading``), else its course over ground, else the course from
+        the position :data:`CHORD_S` before (:meth:`_chord`)."""
         if self.yaw_done:
             return
         t = fix.t
         if math.isnan(self._t0):
             self._t0 = t
+        if self.bias_ok is None and self.factor["yaw_rate"] == 1.0:
+            self._watch_stop(can, t)
         heading = math.nan if fix.heading_rad is None or not self.settings.gnss.use_heading else fix.heading_rad
         course = math.nan if fix.course_rad is None else fix.course_rad
         if not (math.isfinite(heading) or math.isfinite(course)):
@@ -243,6 +255,40 @@ class SensorCheck:
         if self._turned >= MIN_TURN_RAD and self._turned_total >= self._fitted_at + REFIT_TURN_RAD:
             self._fitted_at = self._turned_total
             self._judge_yaw(t)
+
+    def _watch_stop(self, can: CanBuffer, t: float) -> None:
+        """Collect the CAN yaw rates (as mapped: no correction applied yet) of a standstill between the fix before
+        and ``t``; when the car drives off, judge the bias by what the stop measured
+        (:func:`~sumhe.frontend.standstill.bias_at_rest`, its bound at :data:`CHECK_SIGMAS`): a car at rest does not
+        turn, so a stop tells the bias in seconds where the fits need the azimuth to turn 180 deg."""
+        t0, self._fix_t = self._fix_t, t
+        if math.isnan(t0):
+            return
+        settings = self.settings
+        still = still_yaw_rates(can, t0, t, 0.5 * settings.can.speed_quantum_mps, settings.can.max_gap_s)
+        if still is not None:
+            if not self._stop.n:
+                self._stop_since = t0
+            self._stop.add(still)
+            return
+        stop, self._stop = self._stop, Stop()
+        bias = bias_at_rest(stop, settings.can, CHECK_SIGMAS, settings.estimator.mhe.rest_bias_rps)
+        if bias is None:
+            return
+        mean, bound = bias
+        bias_max = settings.can.yaw_rate_bias_max_rps
+        if abs(mean) + bound < bias_max:
+            self.bias_ok = True
+        elif abs(mean) - bound > bias_max:
+            self.bias_ok = False
+            self.offset["yaw_rate"] = mean
+            found = (
+                f"the mean of {stop.n} CAN yaw rates at a standstill of {t0 - self._stop_since:.0f} s, {mean:.4f} +- "
+                f"{bound:.4f} rad/s ({CHECK_SIGMAS:g} standard errors and half a quantum), {t0 - self._t0:.0f} s "
+                "into the data"
+            )
+            args = (math.degrees(mean), bias_max, found, mean, "left" if mean > 0 else "right")
+            self.tally.count("yaw_rate_bias_outside", BIAS_OUTSIDE, *args, level=logging.ERROR)
 
     def _chord(self, t: float, east_m: float, north_m: float) -> tuple[float, float]:
         """The middle time (s) and azimuth (rad) of the chord from the fix :data:`CHORD_S` before (its first to
@@ -280,7 +326,7 @@ class SensorCheck:
         if fit is None:
             return
         verdict = yaw_verdict(fit.scale, fit.scale_std)
-        if verdict is None or (verdict != "follows" and (self.gain_ok, self.bias_ok) != (None, None)):
+        if verdict is None or (verdict != "follows" and self._followed):
             return  # once it followed, a fit that says otherwise is the noise's
         found = (
             f"scale {fit.scale:.3f} +- {fit.scale_std:.3f}, bias {fit.offset:.4f} +- {fit.offset_std:.4f} rad/s (true "
@@ -288,6 +334,7 @@ class SensorCheck:
             f"{math.degrees(self._turned):.0f} deg turned, {t - self._t0:.0f} s into the data"
         )
         if verdict == "follows":
+            self._followed = True
             self._judge_calibration(fit, found)
             if self.gain_ok is None or self.bias_ok is None:
                 return

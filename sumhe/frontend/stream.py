@@ -378,7 +378,7 @@ class FrontEnd:
         if speed is None or not math.isfinite(speed):
             speed = self.can["speed"].at(fix.t, self.settings.can.max_gap_s)
         before = (self.check.factor.copy(), self.check.offset.copy())
-        self.check.add_fix(fix, math.nan if speed is None else speed)
+        self.check.add_fix(fix, math.nan if speed is None else speed, self.can)
         self.check.check_speed(self.learner.newest, fix.t)
         if (self.check.factor, self.check.offset) != before:
             self._remap(*before)

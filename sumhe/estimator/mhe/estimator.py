@@ -59,9 +59,9 @@ from sumhe.estimator.mhe.preintegration import part_bound, step_motion
 from sumhe.estimator.mhe.problem import SolveResult, step_jacobians
 from sumhe.estimator.mhe.propagate import Propagation, advance
 from sumhe.estimator.mhe.solve import WindowSolve
-from sumhe.estimator.mhe.standstill import Stop, bias_at_rest, still_yaw_rates
 from sumhe.estimator.mhe.window import Window, plan_window
 from sumhe.frontend.measurements import can_allowance, unmodelled_can_errors
+from sumhe.frontend.standstill import Stop, bias_at_rest, still_yaw_rates
 from sumhe.frontend.stream import OUTPUT_QUANTITY, SAME_EPOCH, CanTick, Epoch, FixMeasurement
 from sumhe.messages import GpsStatus
 from sumhe.model.su import SuModel, output_residuals
@@ -441,7 +441,7 @@ class MovingHorizonEstimator(StreamEstimator):
 
     def _watch_stop(self, t0: float, t1: float) -> None:
         """Collect the CAN yaw rates of a standstill over the step (``t0``, ``t1``]; when the car drives off, tell
-        the arrival cost once what the stop measured of the bias (:mod:`.standstill`)."""
+        the arrival cost once what the stop measured of the bias (:mod:`sumhe.frontend.standstill`)."""
         s = self.settings
         still = still_yaw_rates(self.frontend.can, t0, t1, 0.5 * s.can.speed_quantum_mps, s.can.max_gap_s)
         if still is not None:

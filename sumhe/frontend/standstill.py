@@ -1,5 +1,6 @@
 """The CAN yaw rate at a standstill as a measurement of its bias: the MHE's form of the Kalman peers' ``omega = 0`` row
-(``docs/mhe.md``).
+(``docs/mhe.md``), and the on-line sensor check's first word on a bias beyond the estimators' bounds
+(:mod:`sumhe.frontend.sensor_check`, at its own number of sigmas).
 
 A car at rest does not turn, so what its CAN yaw rate reads then is the bias (``g omega + b`` with ``omega = 0``).
 The window cannot see it: at rest no course is measured and the azimuth's change is free. A stop (consecutive GNSS
