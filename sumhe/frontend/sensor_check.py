@@ -47,12 +47,12 @@ by the fitted scale (the estimators' gain state takes up what is left of it, wit
 cannot reach had the MHE fail its solves and lose the fixes (a simulated town drive read at 0.7 of its yaw rate: 51
 m off 20 s into an outage, 1.41 m with the yaw rate undone, 1.93 m mapped right); so is a speed scale out of bounds
 (the same drive's speed read as 1.609 of it: the MHE 68 m off in that outage, 1.95 m undone), and a bias out of
-bounds, the fitted bias taken off (its yaw rate reading 2.3 deg/s more: 14 m, 1.41 m undone). A yaw rate that does
-not follow or a rounding other than configured has no one correction: the estimators keep running on the config as
-it is, and their estimates through outages stay as wrong as it until it is changed. (The rounding corrected from the
-verdict on was tried: the speed scale the estimators had learned was then off at once, and on the shared drive the
-EKF's 10 s outages after it came out worse, 1.63 / 1.17 / 1.16 m at 510 / 630 / 750 s -> 6.25 / 3.23 / 2.87 m;
-``docs/error-estimates.md``.)
+bounds, the bias a stop or the fits measured taken off (its yaw rate reading 2.3 deg/s more: 14 m, 1.90 m undone). A
+yaw rate that does not follow or a rounding other than configured has no one correction: the estimators keep running
+on the config as it is, and their estimates through outages stay as wrong as it until it is changed. (The rounding
+corrected from the verdict on was tried: the speed scale the estimators had learned was then off at once, and on the
+shared drive the EKF's 10 s outages after it came out worse, 1.63 / 1.17 / 1.16 m at 510 / 630 / 750 s -> 6.25 /
+3.23 / 2.87 m; ``docs/error-estimates.md``.)
 """
 
 from __future__ import annotations
