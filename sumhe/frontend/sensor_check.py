@@ -67,7 +67,7 @@ from sumhe.frontend.alignment import CHORD_S, MIN_PAIRS, MIN_SPEED_MPS, LagFit, 
 from sumhe.frontend.can import CanBuffer
 from sumhe.frontend.fixes import LocalFix
 from sumhe.frontend.measurements import chord_azimuth
-from sumhe.frontend.standstill import Stop, bias_at_rest, still_yaw_rates
+from sumhe.frontend.standstill import StopWatch, bias_at_rest
 from sumhe.frontend.tally import Tally
 from sumhe.settings import EstimationSettings
 from sumhe.settings.sensors import COARSE_QUANTUM_MPS
@@ -216,8 +216,7 @@ class SensorCheck:
         self._anchor: tuple[float, float] | None = None
         self._chord_start: tuple[float, float, float] | None = None
         self._t0 = math.nan
-        self._stop = Stop()
-        self._stop_since = math.nan
+        self._stops = StopWatch()
         self._fix_t = math.nan
         """The previous valid fix's time (s): the step a standstill is watched over ends at the next one."""
 
@@ -265,13 +264,10 @@ class SensorCheck:
         if math.isnan(t0):
             return
         settings = self.settings
-        still = still_yaw_rates(can, t0, t, 0.5 * settings.can.speed_quantum_mps, settings.can.max_gap_s)
-        if still is not None:
-            if not self._stop.n:
-                self._stop_since = t0
-            self._stop.add(still)
+        since = self._stops.since
+        stop = self._stops.step(can, t0, t, 0.5 * settings.can.speed_quantum_mps, settings.can.max_gap_s)
+        if stop is None:
             return
-        stop, self._stop = self._stop, Stop()
         bias = bias_at_rest(stop, settings.can, CHECK_SIGMAS, settings.estimator.mhe.rest_bias_rps)
         if bias is None:
             return
@@ -283,7 +279,7 @@ class SensorCheck:
             self.bias_ok = False
             self.offset["yaw_rate"] = mean
             found = (
-                f"the mean of {stop.n} CAN yaw rates at a standstill of {t0 - self._stop_since:.0f} s, {mean:.4f} +- "
+                f"the mean of {stop.n} CAN yaw rates at a standstill of {t0 - since:.0f} s, {mean:.4f} +- "
                 f"{bound:.4f} rad/s ({CHECK_SIGMAS:g} standard errors and half a quantum), {t0 - self._t0:.0f} s "
                 "into the data"
             )

@@ -62,6 +62,27 @@ def still_yaw_rates(can: CanBuffer, t0: float, t1: float, still_mps: float, max_
     return can["yaw_rate"].between(t0, t1)
 
 
+class StopWatch:
+    """A standstill's CAN yaw rates gathered step by step (:func:`still_yaw_rates`), the stop handed out whole
+    when the car drives off; :attr:`since` is when it began (s)."""
+
+    def __init__(self) -> None:
+        self.stop = Stop()
+        self.since = math.nan
+
+    def step(self, can: CanBuffer, t0: float, t1: float, still_mps: float, max_gap_s: float) -> Stop | None:
+        """Take the step (``t0``, ``t1``]: the stop that ended before it where the car moves in it (None where
+        there was none, or the car is still at rest)."""
+        still = still_yaw_rates(can, t0, t1, still_mps, max_gap_s)
+        if still is not None:
+            if not self.stop.n:
+                self.since = t0
+            self.stop.add(still)
+            return None
+        stop, self.stop = self.stop, Stop()
+        return stop if stop.n else None
+
+
 def bias_at_rest(stop: Stop, can: CanModel, k_sigmas: float, rest_rps: float) -> tuple[float, float] | None:
     """What ``stop`` measures of the yaw-rate bias: its mean and the bound on the mean's error (rad/s), None where
     it has no sample or its samples spread too much (module docstring)."""

@@ -61,7 +61,7 @@ from sumhe.estimator.mhe.propagate import Propagation, advance
 from sumhe.estimator.mhe.solve import WindowSolve
 from sumhe.estimator.mhe.window import Window, plan_window
 from sumhe.frontend.measurements import can_allowance, unmodelled_can_errors
-from sumhe.frontend.standstill import Stop, bias_at_rest, still_yaw_rates
+from sumhe.frontend.standstill import StopWatch, bias_at_rest
 from sumhe.frontend.stream import OUTPUT_QUANTITY, SAME_EPOCH, CanTick, Epoch, FixMeasurement
 from sumhe.messages import GpsStatus
 from sumhe.model.su import SuModel, output_residuals
@@ -168,7 +168,7 @@ class MovingHorizonEstimator(StreamEstimator):
         self._unsolved = False
         self._theta0: NDArray[np.float64] | None = None
         self._theta_info: NDArray[np.float64] | None = None
-        self._stop = Stop()
+        self._stops = StopWatch()
         self._status: GpsStatus = "outage"
 
     def on_epoch(self, epoch: Epoch) -> StateEstimate | None:
@@ -234,11 +234,11 @@ class MovingHorizonEstimator(StreamEstimator):
             since = float(self.window.t[-1] - self.window.t[0])
             drift = theta_drift_variance(self.policy.theta_drift, self._theta_range, since)
             info = theta_information(self._arrival.weight, md, drift)
-        stop = self._stop
+        stops = self._stops
         self.reset_state()
         self._theta0, self._theta_info = theta, info
         if theta is not None:
-            self._stop = stop
+            self._stops = stops
 
     def _begin(self, fix: FixMeasurement) -> StateEstimate:
         """Start at a usable fix: position from it, azimuth from its course/heading (else 0), speed and yaw rate
@@ -443,12 +443,8 @@ class MovingHorizonEstimator(StreamEstimator):
         """Collect the CAN yaw rates of a standstill over the step (``t0``, ``t1``]; when the car drives off, tell
         the arrival cost once what the stop measured of the bias (:mod:`sumhe.frontend.standstill`)."""
         s = self.settings
-        still = still_yaw_rates(self.frontend.can, t0, t1, 0.5 * s.can.speed_quantum_mps, s.can.max_gap_s)
-        if still is not None:
-            self._stop.add(still)
-            return
-        stop, self._stop = self._stop, Stop()
-        if not stop.n or self.model.i_bias is None:
+        stop = self._stops.step(self.frontend.can, t0, t1, 0.5 * s.can.speed_quantum_mps, s.can.max_gap_s)
+        if stop is None or self.model.i_bias is None:
             return
         assert self._arrival is not None  # set at the start
         bias = bias_at_rest(stop, s.can, s.estimator.r_cap_sigmas, self.policy.rest_bias_rps)
