@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+import logging
+
 import numpy as np
 import pytest
 from test_estimator_contract import run, synthetic_drive
 
 from sumhe.baseline.mskf_em import MskfEm, Step, clamp, smooth_block
+from sumhe.frontend.fixes import LocalFix
 from sumhe.settings import MskfSettings
 
 
@@ -47,6 +51,37 @@ def test_blocks_re_estimate_the_scales() -> None:
     assert stats["em_blocks"] >= 8
     start = MskfSettings().noise
     assert stats["q_position"] != start.pos_rw**2 and stats["r_gnss"] != 1.0
+
+
+def noisier_fixes(samples: list, sigma_m: float, seed: int) -> list:
+    """The drive's samples with its fixes' positions off by ``sigma_m`` more noise than their GST sigmas say."""
+    rng = np.random.default_rng(seed)
+
+    def worse(s):
+        if not (isinstance(s, LocalFix) and s.valid):
+            return s
+        e, n = rng.normal(0.0, sigma_m, 2)
+        return dataclasses.replace(s, east_m=s.east_m + e, north_m=s.north_m + n)
+
+    return [worse(s) for s in samples]
+
+
+@pytest.mark.parametrize(("sigma_m", "limit", "said"), [(1.0, 4.0, True), (1.0, 1.0, False), (0.0, 100.0, False)])
+def test_an_em_scale_at_its_bound_is_said_naming_the_key(sigma_m, limit, said, caplog) -> None:
+    """Fixes with 1 m more noise than their 0.3 m sigmas say: the GNSS scale runs to ``scale_limit`` and the filter
+    says so, naming the key (counted for each block that ends there, logged at the 1st and the 10th); with the EM
+    off (a limit of 1) or the fixes as noisy as they say, nothing."""
+    drive = synthetic_drive(duration_s=30.0)
+    est = MskfEm(table=MskfSettings(block_s=2.0, scale_limit=limit))
+    with caplog.at_level(logging.WARNING, logger="sumhe.baseline.mskf_em"):
+        run(est, noisier_fixes(drive.samples, sigma_m, seed=3))
+    stats = est.stats()
+    said_lines = [r.getMessage() for r in caplog.records if "estimator.mskf_em.scale_limit" in r.getMessage()]
+    if said:
+        assert stats["r_gnss"] == limit and stats["em_at_limit"] >= 10
+        assert len(said_lines) == 2 and all("GNSS noise scale at its bound, 4 x its start" in m for m in said_lines)
+    else:
+        assert stats.get("em_at_limit", 0) == 0 and not said_lines
 
 
 def test_settings_are_validated() -> None:

@@ -25,15 +25,18 @@ On sumhe's sensors (GNSS + CAN speed and yaw rate, no accelerometer) the stages 
 EM on blocks of ``block_s`` seconds (002's 2-6 s for the process noises): when a block ends, it is filtered again
 from its first state with the current ``q_h``, ``q_p`` and ``r``, smoothed (RTS, eqs. 13-14, lag-one covariance
 ``P_k+1,k|N = P_k+1|N C_k'``), and the scales re-estimated, up to ``em_iterations`` times or until they change by
-less than 1 %: for ``Q = q Q_1 + Q_0`` (Q_1 diagonal) the M-step of eq. 15 projected on the scale,
-``q = mean over steps and rows of (E[w w']_ii - Q_0,ii) / Q_1,ii``, with ``E[w w'] = d d' + P_k+1|N + F P_k|N F' -
-P_k+1,k|N F' - F P_k+1,k|N'``, ``d = x_k+1|N - F x_k|N - c``; the GNSS noise scale from eq. 16, ``r = mean of tr(
-R_fix^-1 (e e' + H P_k|N H')) / 2`` over the fixes of the last ``r_window_s`` seconds (002's 30-40 s for the GNSS
-covariance), ``e = z - H x_k|N``. The scales are kept within ``[1/scale_limit, scale_limit]`` times their tuned
-start values. The live filter is not re-run: the new values apply from the next block on (002's step 6). A block
-ends with the first fix ``block_s`` after it began (without one, in an outage, ``BLOCK_WAIT_S`` later), so that a
-late fix's re-run (:mod:`.stream`) never crosses a block's end: ended at a CAN tick, a block's EM ran again in the
-re-run of every fix older than that tick (on the 60 s contract drive with fixes 0.25 s late, 4x the CPU time).
+less than 1 %: for ``Q = q Q_1 + Q_0`` (Q_1 diagonal) the M-step of eq. 15 projected on the scale, ``q = mean over
+steps and rows of (E[w w']_ii - Q_0,ii) / Q_1,ii``, with ``E[w w'] = d d' + P_k+1|N + F P_k|N F' - P_k+1,k|N F' - F
+P_k+1,k|N'``, ``d = x_k+1|N - F x_k|N - c``; the GNSS noise scale from eq. 16, ``r = mean of tr(R_fix^-1 (e e' + H
+P_k|N H')) / 2`` over the fixes of the last ``r_window_s`` seconds (002's 30-40 s for the GNSS covariance), ``e = z -
+H x_k|N``. The scales are kept within ``[1/scale_limit, scale_limit]`` times their tuned start values; a block whose
+EM ends with a scale at its upper bound is counted and said (``em_at_limit``, :data:`EM_AT_LIMIT`: on the shared real
+drive the position and GNSS scales ran to their upper bounds, at 10 as at 100, and the filter came to lag the fixes
+by 10-14 m; docs/baselines.md). The live filter is not re-run: the new values apply from the next block on (002's
+step 6). A block ends with the first fix ``block_s`` after it began (without one, in an outage, ``BLOCK_WAIT_S``
+later), so that a late fix's re-run (:mod:`.stream`) never crosses a block's end: ended at a CAN tick, a block's EM
+ran again in the re-run of every fix older than that tick (on the 60 s contract drive with fixes 0.25 s late, 4x the
+CPU time).
 
 Where it deviates from 002 and why:
 
@@ -91,6 +94,13 @@ from sumhe.settings import EstimationSettings, MskfSettings
 
 EM_TOLERANCE = 0.01
 """EM stops iterating on a block when no scale changes by more than this share."""
+EM_AT_LIMIT = (
+    "the EM's %s noise scale at its bound, %g x its start value (estimator.mskf_em.scale_limit): the data disagree "
+    "with the stages' model, its fixed noises included, by more than the scale can take up (slowly wandering GNSS "
+    "errors, a CAN calibration or a course noise beyond the fixed noises); held there, the filter can lag the fixes "
+    "by metres"
+)
+"""Said (``em_at_limit``, each block the EM ends with a scale at its upper bound) where the EM runs to its bound."""
 BLOCK_WAIT_S = 1.0
 """A block ends with the first fix ``block_s`` after it began; without a fix (an outage), this much later."""
 
@@ -516,6 +526,12 @@ class MskfEm(FollowsHeadings):
         self._r_blocks.append((mp.r_sum, mp.r_rows))
         self.heading.q, self.position.q, self.r = q_h, q_p, r
         self.tally.counts["em_blocks"] += 1
+        names = ("heading process", "position process", "GNSS")
+        capped = [
+            n for n, q, s in zip(names, (q_h, q_p, r), (*start, 1.0), strict=True) if limit > 1.0 and q >= s * limit
+        ]
+        if capped:
+            self.tally.count("em_at_limit", EM_AT_LIMIT, " and ".join(capped), limit)
         self._begin_blocks()
 
 
