@@ -21,14 +21,12 @@ from sumhe.frontend.fixes import FixConverter, LocalFix
 from sumhe.frontend.stream import FixMeasurement
 from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample
-from sumhe.settings import EstimationSettings, NoiseSettings
+from sumhe.settings import EstimationSettings, NoiseSettings, with_changes
 from sumhe.sim import SimSettings, simulate
 
 gtsam = pytest.importorskip("gtsam", reason=registry.missing_requirement("gtsam-fls") or "")
 
-from test_baselines import (  # noqa: E402
-    test_a_headings_offset_is_considered_in_the_covariance_not_in_the_estimate as offset_considered,
-)
+from test_baselines import north_with_azimuths  # noqa: E402
 from test_estimator_contract import errors, run, synthetic_drive  # noqa: E402
 
 from sumhe.baseline.ekf import lever_course_sigma  # noqa: E402
@@ -270,8 +268,9 @@ def test_the_lag_bounds_the_graph() -> None:
     for lag in (1.0, 3.0):
         est = make_estimator("gtsam-fls", load_config(overrides={"estimator.gtsam_fls.lag_s": lag}))
         run(est, drive.samples)
-        # two variables (pose, calibration) per node, a node per 0.1 s epoch, within the lag (and one beyond)
-        assert 2 * 10 * lag <= est.stats()["graph_values"] <= 2 * (10 * lag + 2)
+        # three variables (pose, calibration, heading offset) per node, a node per 0.1 s epoch, within the lag (and
+        # one beyond)
+        assert 3 * 10 * lag <= est.stats()["graph_values"] <= 3 * (10 * lag + 2)
 
 
 # ---- settings and the optional package ----------------------------------------------------------------------------
@@ -364,11 +363,17 @@ def test_a_course_is_widened_by_the_lever_in_a_turn() -> None:
     assert est._fix_angle(dataclasses.replace(course, heading=True)) == (0.5, 0.01)
 
 
-def test_a_headings_offset_is_considered_in_its_covariance_not_in_its_estimate() -> None:
-    """As the EKF's and the particle filter's: the offset of a heading from the azimuth of the velocity (0.43 deg)
-    widens its covariance across the way moved since the newest position fix, its estimates unchanged; a course
-    over ground has none (the shared real drive's 60 s outages: 89.3 -> 91.3 % of the removed fixes within eph)."""
-    offset_considered(GtsamFls)
+def test_a_courses_offset_is_never_seen() -> None:
+    """A course over ground is the velocity's azimuth: with courses only the offset stays at its prior, 0, and the
+    estimates are those of the graph without it (with headings it learns it as the Kalman filters do:
+    ``test_baselines.py``)."""
+    settings = EstimationSettings()
+    on, off = GtsamFls(settings), GtsamFls(with_changes(settings, {"estimator.azimuth_offset": False}))
+    for s in north_with_azimuths(False):
+        a, b = on.push(s), off.push(s)
+        np.testing.assert_allclose([e.east_m for e in a], [e.east_m for e in b], atol=1e-6)
+        np.testing.assert_allclose([e.north_m for e in a], [e.north_m for e in b], atol=1e-6)
+    assert on.stats()["heading_offset_deg"] == pytest.approx(0.0, abs=1e-9)
 
 
 def speed_swinging_drive(can_late_s: float, scale: float, duration_s: float = 40.0) -> list[LocalFix | CanSample]:

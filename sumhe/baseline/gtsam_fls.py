@@ -11,14 +11,18 @@ The factor graph, one node per GNSS epoch ``k`` (at the epoch's time on the CAN 
   and ``k`` (the preintegration of IMU factor graphs) and its covariance from the CAN sigmas and the model error
   densities (``pos_rw``, ``heading_rw``); a CAN value missing is held, its error a random walk (``speed_rw``,
   ``yaw_rate_rw``: the EKF's model of its speed and yaw-rate states);
-* GNSS factors on ``X_k``: position (the front-end's sigmas x ``gps_scale``), azimuth (course or heading, sigma
-  with ``course_rad``; a course's with the antenna lever's error in turns, as the EKF's and the particle filter's:
-  :class:`~sumhe.baseline.ekf.LeverCourse`); on ``C_k``: speed over ground against the CAN speed (``k sog = CAN
-  speed``; the front-end's sigma x ``sog_scale``), the CAN speed interpolated to the fix's time, none for a fix
-  ahead of the CAN data (the newest CAN speed held to it is the speed of up to a GNSS latency earlier: in a realistic
-  offroad drive's braking at 5 m/s^2, 1.9 m/s off a speed over ground of 8.5 m/s, which the gate rejected for a
-  second, then re-acquired with the speed scale widened, and ``k`` jumped by 0.2-0.4 at each while its marginal said
-  0.002-0.009).
+* ``O_k``: the offset (rad) of a receiver's heading from the azimuth of the motion (mounting, sideslip), a
+  first-order Gauss-Markov process between nodes about 0 (:data:`~.heading_offset.OFFSET_CORRELATION_S`, its
+  prior's variance at rest: the config's bound read as sigmas, 0.43 deg), as the Kalman filters carry it
+  (:class:`~sumhe.baseline.ekf.OffsetFilter`);
+* GNSS factors on ``X_k``: position (the front-end's sigmas x ``gps_scale``), azimuth (a course, sigma with
+  ``course_rad`` and the antenna lever's error in turns, as the EKF's and the particle filter's:
+  :class:`~sumhe.baseline.ekf.LeverCourse`; a heading on ``(X_k, O_k)``, the azimuth plus the offset); on ``C_k``:
+  speed over ground against the CAN speed (``k sog = CAN speed``; the front-end's sigma x ``sog_scale``), the CAN
+  speed interpolated to the fix's time, none for a fix ahead of the CAN data (the newest CAN speed held to it is the
+  speed of up to a GNSS latency earlier: in a realistic offroad drive's braking at 5 m/s^2, 1.9 m/s off a speed over
+  ground of 8.5 m/s, which the gate rejected for a second, then re-acquired with the speed scale widened, and ``k``
+  jumped by 0.2-0.4 at each while its marginal said 0.002-0.009).
 
 Without ``C_k`` (the odometry taken as it is) the smoother drifted to 25.7 m in the bundled drive's outages; with
 it, it matched the MHE (issue 17). The figures: ``docs/baselines.md``.
@@ -37,17 +41,15 @@ course or heading gives an azimuth there is no graph: the estimate is the newest
 (a receiver that sends neither), the first chord between two of them opens it (``azimuth_from_motion``,
 :mod:`.stream`).
 
-Error estimate: the newest node's joint marginal carried by the odometry (:meth:`GtsamFls._covariance`), with the
-offset of a receiver's heading considered as the particle filter considers it (the Kalman filters estimate it)
-(:class:`~sumhe.baseline.heading_offset.ConsideredHeadingOffset`, the bound read as sigmas, 0.43 deg; the estimates
-do not change). The azimuth factor
-takes a heading for the velocity's azimuth, so the smoother carries the heading's offset (mounting, sideslip) into an
-outage, where it makes an error across the track that grows with the way moved. On the shared real drive (the
-logger's GNSS/IMU heading) the error across the track in the 60 s outages grew linearly with the distance in most of
-them, at 0.46 deg rms over 18 outages (13 to the left), where the marginal said 0.21 deg of azimuth at the outages'
-starts and grew across the track as the bias's ``t^2``: 18-21 % of the removed fixes outside ``eph`` in the outages'
-first 20 s, 1 % in their last 10 s. With the offset considered, 117 -> 95 of 1093 outside (89.3 -> 91.3 %); the
-realistic profile's fixes have courses (no offset: unchanged).
+Error estimate: the newest node's joint marginal of pose, calibration and offset carried by the odometry
+(:meth:`GtsamFls._covariance`).
+
+The offset estimated since 1 Dec 2026: before, a heading's factor took it for the velocity's azimuth, and the
+smoother carried the offset (only considered in its error estimate, as the particle filters do) into its estimates:
+on the shared real drive (the logger's GNSS/IMU heading, 0.7 deg off the motion by the EKF's estimate) its estimates
+with GPS lay 1-4 m left of the fixes on the mean, more as the drive went on, and in the 60 s outages the error across
+the track grew linearly with the distance in most of them, at 0.46 deg rms over 18 outages (13 to the left). The
+EKF had gone the same way (:class:`~sumhe.baseline.ekf.OffsetFilter`). Figures: docs/baselines.md.
 """
 
 from __future__ import annotations
@@ -63,7 +65,7 @@ import numpy as np
 
 from sumhe.baseline import kinematics as kin
 from sumhe.baseline.ekf import LeverCourse
-from sumhe.baseline.heading_offset import ConsideredHeadingOffset
+from sumhe.baseline.heading_offset import OFFSET_CORRELATION_S, heading_offset_variance
 from sumhe.baseline.kinematics import AZIMUTH, GPS_SPEED, OMEGA, PHI, POSITION, E, FloatArray, N, V
 from sumhe.baseline.stream import Inputs, Pending
 from sumhe.config import Config
@@ -248,6 +250,35 @@ def azimuth_error(phi: float) -> ErrorFunction:
     return error
 
 
+def heading_error(phi: float) -> ErrorFunction:
+    """Keys ``(X, O)``: its theta minus the azimuth a heading ``phi`` measures, the offset ``o`` taken off (a
+    heading measures the azimuth plus the offset: ``pi/2 - theta + o``)."""
+
+    def error(this: Any, values: Any, H: Any) -> FloatArray:
+        kx, ko = this.keys()
+        x, o = values.atPose2(kx), float(values.atVector(ko)[0])
+        if H is not None:
+            H[0] = np.array([[0.0, 0.0, 1.0]])
+            H[1] = np.array([[-1.0]])
+        return np.array([wrap_angle(x.theta() - (0.5 * math.pi - phi) - o)])
+
+    return error
+
+
+def offset_step_error(decay: float) -> ErrorFunction:
+    """Keys ``(O_i, O_j)``: ``o_j - decay o_i``, the heading offset's first-order Gauss-Markov step."""
+
+    def error(this: Any, values: Any, H: Any) -> FloatArray:
+        ki, kj = this.keys()
+        oi, oj = float(values.atVector(ki)[0]), float(values.atVector(kj)[0])
+        if H is not None:
+            H[0] = np.array([[-decay]])
+            H[1] = np.array([[1.0]])
+        return np.array([oj - decay * oi])
+
+    return error
+
+
 def speed_error(sog: float, can_speed: float) -> ErrorFunction:
     """Key ``C``: ``k sog - CAN speed`` (the CAN speed at the fix's time, its speed over ground ``sog``)."""
 
@@ -281,13 +312,15 @@ def gaussian(cov: FloatArray) -> Any:
 
 @dataclass(slots=True)
 class Node:
-    """The newest node: index, time (s), its estimate (east, north, theta; b, k) and, once asked for, the joint
-    marginal covariance of its pose and calibration (east, north, theta in the world frame; b, k)."""
+    """The newest node: index, time (s), its estimate (east, north, theta; b, k; the heading's offset o, rad) and,
+    once asked for, the joint marginal covariance of its pose, calibration and offset (east, north, theta in the
+    world frame; b, k; o)."""
 
     index: int
     t: float
     pose: FloatArray
     calib: FloatArray
+    offset: float
     cov: FloatArray | None = None
 
 
@@ -299,26 +332,26 @@ class Opened:
     t: float
     odo: Odometry | None = None
     factors: list[tuple[ErrorFunction, FloatArray, str]] = field(default_factory=list)
-    widen: FloatArray = field(default_factory=lambda: np.zeros((5, 5)))
+    widen: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
     priors: tuple[FloatArray, FloatArray] | None = None
 
 
 def joint_marginal(smoother: Any, node: Node) -> FloatArray:
-    """The joint marginal covariance of ``node``'s pose (east, north, theta in the world frame) and calibration
-    (b, k) in iSAM2's Bayes tree.
+    """The joint marginal covariance of ``node``'s pose (east, north, theta in the world frame), calibration (b, k)
+    and heading offset (o) in iSAM2's Bayes tree.
 
     Joint, not the two marginals apart: the fixes see the calibration only through the poses, so after a fix the
     pose's error and the calibration's are correlated (a heading pulled by the bias, a position along the track
     pulled by the speed scale), and the prediction from the node carries both through the odometry's Jacobian
     ``J_c``; the two marginals apart dropped the cross term ``2 J_x Sigma_xc J_c'``."""
-    X, C = gtsam.symbol("x", node.index), gtsam.symbol("c", node.index)
-    full = np.asarray(smoother.getISAM2().jointMarginalCovariance([X, C]).fullMatrix())
-    T = np.eye(5)
+    keys = [gtsam.symbol(name, node.index) for name in "xco"]
+    full = np.asarray(smoother.getISAM2().jointMarginalCovariance(keys).fullMatrix())
+    T = np.eye(6)
     T[:2, :2] = _rot(node.pose[2])  # the pose's body tangent -> world
     return T @ full @ T.T
 
 
-class GtsamFls(ConsideredHeadingOffset, LeverCourse):
+class GtsamFls(LeverCourse):
     """GTSAM's iSAM2 fixed-lag smoother over the CAN odometry and GNSS (``gtsam-fls``; the module docstring)."""
 
     name = "gtsam-fls"
@@ -328,15 +361,24 @@ class GtsamFls(ConsideredHeadingOffset, LeverCourse):
         settings = settings or EstimationSettings()
         self.table = table or settings.estimator.gtsam_fls
         super().__init__(settings, self.table.noise)
+        variance = heading_offset_variance(self.settings)
+        self._offset_sigma = max(math.sqrt(variance), FIXED_SIGMA)
+        """The heading offset's prior sigma (rad): the config's bound read as sigmas, as the Kalman filters'."""
+        self._offset_estimated = variance > 0.0
+        """Whether a heading measures the azimuth plus the offset (else the azimuth: ``estimator.azimuth_offset``
+        off; the offset then stays at its prior, 0)."""
 
     @classmethod
     def from_config(cls, config: Config) -> GtsamFls:
         return cls(config.estimation)
 
     def stats(self) -> dict[str, float | int | str]:
+        """The counters, the graph's size and the heading's offset estimated (``heading_offset_deg``, the heading
+        less the azimuth)."""
         out = dict(super().stats())
         if self._smoother is not None:
             out["graph_values"] = int(self._smoother.getLinearizationPoint().size())
+        out["heading_offset_deg"] = math.degrees(self._node.offset) if self._node is not None else 0.0
         return out
 
     # ---- the smoother ---------------------------------------------------------------------------------------
@@ -391,7 +433,7 @@ class GtsamFls(ConsideredHeadingOffset, LeverCourse):
         odo = self._node_odometry() if opened.priors is None else None
         self._opened = None
         i = 0 if node is None else node.index + 1
-        X, C = gtsam.symbol("x", i), gtsam.symbol("c", i)
+        X, C, Ho = (gtsam.symbol(name, i) for name in "xco")
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         if opened.priors is not None:
             mean, sigma = opened.priors
@@ -400,11 +442,13 @@ class GtsamFls(ConsideredHeadingOffset, LeverCourse):
                 gtsam.CustomFactor(gaussian(np.diag(sigma[2:] ** 2)), [X], azimuth_error(0.5 * math.pi - mean[2]))
             )
             graph.add(gtsam.PriorFactorVector(C, self._calib0, gtsam.noiseModel.Diagonal.Sigmas(self._calib_sigma0)))
-            pose, calib = mean, self._calib0
+            offset_sigma = np.array([self._offset_sigma])
+            graph.add(gtsam.PriorFactorVector(Ho, np.zeros(1), gtsam.noiseModel.Diagonal.Sigmas(offset_sigma)))
+            pose, calib, offset = mean, self._calib0, 0.0
         else:
             assert node is not None and odo is not None
             pose, _ = self._predict_node(node, odo)
-            calib = node.calib
+            calib, offset = node.calib, node.offset
             cov = odo.cov[:3, :3].copy()
             R = np.eye(3)
             R[:2, :2] = _rot(node.pose[2])
@@ -412,27 +456,34 @@ class GtsamFls(ConsideredHeadingOffset, LeverCourse):
             Xp, Cp = gtsam.symbol("x", node.index), gtsam.symbol("c", node.index)
             graph.add(gtsam.CustomFactor(gaussian(cov), [Xp, X, Cp], odometry_error(odo)))
             rw = np.array([self.noise.bias_rw, self.noise.scale_rw]) ** 2 * max(odo.T, 1e-3)
-            rw = np.where(self._calib_sigma0 <= FIXED_SIGMA, FIXED_SIGMA**2, rw) + np.diag(opened.widen)[3:]
+            rw = np.where(self._calib_sigma0 <= FIXED_SIGMA, FIXED_SIGMA**2, rw) + np.diag(opened.widen)[3:5]
             graph.add(gtsam.BetweenFactorVector(Cp, C, np.zeros(2), gtsam.noiseModel.Diagonal.Variances(rw)))
+            decay, var = self._offset_step(odo.T)
+            step = offset_step_error(decay)
+            graph.add(gtsam.CustomFactor(gaussian(np.array([[var]])), [gtsam.symbol("o", node.index), Ho], step))
         if self._still and self.layout.b is not None and self.noise.standstill_rps > 0.0:
             var = (self.noise.can_yaw_rate_rps**2 + self.noise.standstill_rps**2) / len(self._still)
             still = bias_error(float(np.mean(self._still)))
             graph.add(gtsam.CustomFactor(gaussian(np.array([[var]])), [C if node is None else Cp], still))
         self._still = []
+        keys = {"x": [X], "c": [C], "xo": [X, Ho]}
         for error, cov, key in opened.factors:
-            graph.add(gtsam.CustomFactor(gaussian(cov), [C if key == "c" else X], error))
+            graph.add(gtsam.CustomFactor(gaussian(cov), keys[key], error))
         values.insert(X, gtsam.Pose2(*pose))
         values.insert(C, np.asarray(calib, dtype=float))
+        values.insert(Ho, np.array([offset]))
         stamps = gtsam.FixedLagSmootherKeyTimestampMap()
-        stamps.insert((X, opened.t))
-        stamps.insert((C, opened.t))
+        for key in (X, C, Ho):
+            stamps.insert((key, opened.t))
         try:
             self._smoother.update(graph, values, stamps)
             est = self._smoother.calculateEstimatePose2(X)
             calib = self._smoother.calculateEstimateVector(C)
+            offset = float(self._smoother.calculateEstimateVector(Ho)[0])
         except RuntimeError as e:  # GTSAM's indeterminant system and the like
             raise np.linalg.LinAlgError(f"GTSAM: {e}") from e
-        self._node = Node(i, opened.t, np.array([est.x(), est.y(), est.theta()]), np.asarray(calib, dtype=float))
+        pose = np.array([est.x(), est.y(), est.theta()])
+        self._node = Node(i, opened.t, pose, np.asarray(calib, dtype=float), offset)
         self._steps = after(self._steps, opened.t)
         self._now = integrate(self._steps, *self._node.calib, self.noise)
 
@@ -443,22 +494,32 @@ class GtsamFls(ConsideredHeadingOffset, LeverCourse):
             self._opened.odo = integrate(self._steps, *self._node.calib, self.noise, until=self._opened.t)
         return self._opened.odo
 
+    def _offset_step(self, T: float) -> tuple[float, float]:
+        """The heading offset's first-order Gauss-Markov step over ``T`` s (:data:`OFFSET_CORRELATION_S`, about 0,
+        its prior's variance at rest, as the Kalman filters'): its decay and the variance it adds."""
+        decay = math.exp(-T / OFFSET_CORRELATION_S)
+        return decay, self._offset_sigma**2 * (1.0 - decay * decay)
+
     def _predict_node(self, node: Node, odo: Odometry) -> tuple[FloatArray, FloatArray]:
         """The pose (east, north, theta) at the end of ``odo`` from ``node``, and the covariance of
-        (east, north, theta, b, k) there: the node's joint marginal (:func:`joint_marginal`) carried by the
-        odometry, ``J Sigma J' + odo`` with ``J = [d pose / d node pose, d pose / d calibration; 0, I]``."""
+        (east, north, theta, b, k, o) there: the node's joint marginal (:func:`joint_marginal`) carried by the
+        odometry, ``J Sigma J' + odo`` with ``J = [d pose / d node pose, d pose / d calibration, 0; 0, I, 0; 0, 0,
+        decay]`` (the offset's Gauss-Markov step, :meth:`_offset_step`)."""
         if node.cov is None:
             node.cov = joint_marginal(self._smoother, node)
         R = _rot(node.pose[2])
         d = np.array([odo.dx, odo.dy])
         pose = np.array([*(node.pose[:2] + R @ d), node.pose[2] + odo.dth])
-        J = np.eye(5)
+        decay, var = self._offset_step(odo.T)
+        J = np.eye(6)
         J[:2, 2] = _rot(node.pose[2] + 0.5 * math.pi) @ d  # d(R d)/dtheta
-        J[:3, 3:] = np.vstack([R @ odo.J[:2], odo.J[2:]])
+        J[:3, 3:5] = np.vstack([R @ odo.J[:2], odo.J[2:]])
+        J[5, 5] = decay
         Rb = np.eye(3)
         Rb[:2, :2] = R
         P = J @ node.cov @ J.T
         P[:3, :3] += Rb @ odo.cov[:3, :3] @ Rb.T
+        P[5, 5] += var
         return pose, P
 
     # ---- the RecursiveEstimator's hooks ---------------------------------------------------------------------
@@ -515,18 +576,24 @@ class GtsamFls(ConsideredHeadingOffset, LeverCourse):
         opened = self._opened
         assert opened is not None
         if self._smoother is None:  # no azimuth yet: the newest fix is the estimate
-            pose, P = np.array([*self._fix_pos, 0.0]), np.diag([NO_GRAPH_SIGMA_M**2] * 2 + [math.pi**2, 1.0, 1.0])
+            pose = np.array([*self._fix_pos, 0.0])
+            P = np.diag([NO_GRAPH_SIGMA_M**2] * 2 + [math.pi**2, 1.0, 1.0, self._offset_sigma**2])
         elif self._node is None:
             assert opened.priors is not None
             pose, sigma = opened.priors
-            P = np.diag([*sigma**2, *self._calib_sigma0**2])
+            P = np.diag([*sigma**2, *self._calib_sigma0**2, self._offset_sigma**2])
         else:
             pose, P = self._predict_node(self._node, self._node_odometry())
         P = P + opened.widen
         calib = self._node.calib if self._node is not None else self._calib0
+        offset = self._node.offset if self._node is not None else 0.0
         if kind == POSITION:
             nu, S, H = z - pose[:2], P[:2, :2] + R, None
             factor: tuple[ErrorFunction, FloatArray, str] | None = (position_error(z.copy()), R, "x")
+        elif kind == AZIMUTH and self._heading and self._offset_estimated:  # the azimuth plus the offset
+            nu = np.array([wrap_angle(z[0] - (0.5 * math.pi - pose[2]) - offset)])
+            h = np.array([-1.0, 1.0])
+            S, factor = h @ P[np.ix_([2, 5], [2, 5])] @ h + R, (heading_error(float(z[0])), R, "xo")
         elif kind == AZIMUTH:
             nu = np.array([wrap_angle(z[0] - (0.5 * math.pi - pose[2]))])
             S, factor = P[2:3, 2:3] + R, (azimuth_error(float(z[0])), R, "x")
@@ -535,7 +602,7 @@ class GtsamFls(ConsideredHeadingOffset, LeverCourse):
             measured = self.frontend.can["speed"].interpolate(opened.t, self.settings.can.max_gap_s)
             # no CAN on both sides of the fix (ahead of the CAN data, or a gap): no factor below
             can = float(z[0]) * float(calib[1]) if measured is None else measured
-            H = np.array([[0.0, 0.0, 0.0, 0.0, -can / calib[1] ** 2]])
+            H = np.array([[0.0, 0.0, 0.0, 0.0, -can / calib[1] ** 2, 0.0]])
             nu = np.array([z[0] - can / calib[1]])
             # one CAN sample: its noise and its resolution (uniform rounding error)
             var_can = self.noise.can_speed_mps**2 + self.settings.can.speed_quantum_mps**2 / 12.0
@@ -568,10 +635,9 @@ class GtsamFls(ConsideredHeadingOffset, LeverCourse):
             self._open_graph(phi, sigma)
 
     def _covariance(self) -> FloatArray:
-        """The newest node's marginal covariance (iSAM2's) carried by the odometry since to the state's time, with a
-        heading's offset considered where the newest azimuth was one (the way moved since the newest position fix:
-        :meth:`_position_anchor`); the newest fix's sigmas before the graph opens;
-        speed and yaw rate the CAN sensors' noise."""
+        """The newest node's marginal covariance (iSAM2's) carried by the odometry since to the state's time (the
+        heading's offset estimated beside the pose: its uncertainty is in the pose's); the newest fix's sigmas before
+        the graph opens; speed and yaw rate the CAN sensors' noise."""
         P = np.diag(np.square([self.noise.can_speed_mps, self.noise.can_yaw_rate_rps]))
         out = np.eye(self.layout.n)
         out[np.ix_([V, OMEGA], [V, OMEGA])] = P
@@ -580,16 +646,11 @@ class GtsamFls(ConsideredHeadingOffset, LeverCourse):
             out[[E, N], [E, N]] = np.square(self._fix_sigma)
             out[PHI, PHI] = math.pi**2
             return out
-        pose, pose_cov = self._predict_node(node, self._now)
+        _, pose_cov = self._predict_node(node, self._now)
         rows = [E, N, PHI]
         out[np.ix_(rows, rows)] = pose_cov[:3, :3]
         out[PHI, [E, N]] = out[[E, N], PHI] = -pose_cov[:2, 2]  # phi = pi/2 - theta
-        return self._considered(out, pose[:2])
-
-    def _position_anchor(self, z: FloatArray) -> FloatArray:
-        """The position fix itself (the smoother's newest fix): the mean at the fix would flush the node the fix
-        opened before its azimuth and speed factors are in."""
-        return z
+        return out
 
     def _mean(self) -> FloatArray:
         if self._opened is not None and self._smoother is not None and self._opened.t <= self._t_state:
