@@ -35,8 +35,10 @@ from sumhe.baseline.gtsam_fls import (  # noqa: E402 (after the skip: the module
     Odometry,
     Step,
     azimuth_error,
+    heading_error,
     integrate,
     odometry_error,
+    offset_step_error,
     position_error,
     speed_error,
 )
@@ -141,21 +143,26 @@ def analytic_jacobians(factor: gtsam.CustomFactor, values: gtsam.Values) -> list
     return np.split(A, np.cumsum(sizes)[:-1], axis=1)
 
 
-@pytest.mark.parametrize("which", ["odometry", "position", "azimuth", "speed"])
+@pytest.mark.parametrize("which", ["odometry", "position", "azimuth", "heading", "offset step", "speed"])
 def test_factor_jacobians_match_numerical_derivatives(which: str) -> None:
     xi, xj, c = gtsam.symbol("x", 0), gtsam.symbol("x", 1), gtsam.symbol("c", 0)
+    oi, oj = gtsam.symbol("o", 0), gtsam.symbol("o", 1)
     values = gtsam.Values()
     values.insert(xi, gtsam.Pose2(3.0, -2.0, 0.7))
     values.insert(xj, gtsam.Pose2(9.0, 4.0, 1.1))
     values.insert(c, np.array([0.01, 1.02]))
+    values.insert(oi, np.array([0.012]))
+    values.insert(oj, np.array([-0.004]))
     odo = integrate(curving_steps(40), 0.0, 1.0, NOISE)
     error, keys = {
         "odometry": (odometry_error(odo), [xi, xj, c]),
         "position": (position_error(np.array([2.0, -1.0])), [xi]),
         "azimuth": (azimuth_error(0.9), [xi]),
+        "heading": (heading_error(0.9), [xi, oi]),
+        "offset step": (offset_step_error(0.97), [oi, oj]),
         "speed": (speed_error(11.0, 11.3), [c]),
     }[which]
-    dim = {"odometry": 3, "position": 2, "azimuth": 1, "speed": 1}[which]
+    dim = {"odometry": 3, "position": 2}.get(which, 1)
     factor = gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(dim), keys, error)
     for analytic, numeric in zip(analytic_jacobians(factor, values), numerical_jacobians(factor, values), strict=True):
         np.testing.assert_allclose(analytic, numeric, atol=1e-4)
