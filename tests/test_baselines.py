@@ -685,7 +685,7 @@ def test_a_considered_heading_offset_moves_the_position_across_the_way_moved() -
     assert P[kin.PHI, kin.PHI] == pytest.approx(1e-4)
 
 
-@pytest.mark.parametrize("filter_class", [ParticleFilter, MskfEm, SrUpf])
+@pytest.mark.parametrize("filter_class", [MskfEm, SrUpf])
 def test_a_headings_offset_is_considered_in_the_covariance_not_in_the_estimate(filter_class: type) -> None:
     """The offset of a heading from the azimuth of the velocity (bounded by ``gnss.azimuth_offset_max_rad``, read
     as ``r_cap_sigmas`` sigmas: 0.43 deg) is a considered parameter of the filters that follow headings and do not
@@ -732,35 +732,39 @@ def test_the_kalman_filters_tell_the_part_their_considered_heading_offset_makes_
     assert off.considered_m2() == pytest.approx(0.0, abs=1e-12)
 
 
-@pytest.mark.parametrize("name", estimator_params(["ekf", "rts", "ukf", "imm", "gtsam-fls"]))
+@pytest.mark.parametrize("name", estimator_params(["ekf", "rts", "ukf", "imm", "gtsam-fls", "pf"]))
 def test_the_ekf_learns_a_headings_offset_and_follows_the_fixes_not_the_headings(name: str) -> None:
-    """(And the RTS smoother live, the UKF, each cell of the IMM, and ``gtsam-fls`` as a variable of its graph.) Every
-    heading 1 deg (2.3 of the offset's prior sigmas) to the right of the way north: the EKF learns the offset from the
-    position fixes within a tenth of a degree in 90 s, its azimuth stays on the way (within 0.05 deg, where the
-    headings say 1 deg) and a 10 s outage that follows ends within 0.1 m of the way; with the offset off
-    (``estimator.azimuth_offset``) it follows the headings, 0.84 deg off, and ends the outage 3.9 m across. Its
-    covariance at the end holds the offset's part (east variance above that of the filter without it)."""
+    """(And the RTS smoother live, the UKF, each cell of the IMM, ``gtsam-fls`` as a variable of its graph and the
+    particle filter as one more value of each particle.) Every heading 1 deg (2.3 of the offset's prior sigmas) to
+    the right of the way north: the EKF learns the offset from the position fixes within a tenth of a degree in 90
+    s, its azimuth stays on the way (within 0.05 deg, where the headings say 1 deg) and a 10 s outage that follows
+    ends within 0.1 m of the way; with the offset off (``estimator.azimuth_offset``) it follows the headings, 0.84
+    deg off, and ends the outage 3.9 m across. Its covariance at the end holds the offset's part (east variance
+    above that of the filter without it)."""
     offset = math.radians(1.0)
     settings = EstimationSettings()
     filter_class = estimator_class(name)
     learns, follows = filter_class(settings), filter_class(with_changes(settings, {"estimator.azimuth_offset": False}))
+    # the particle filter's cloud: looser (its offset 0.89-0.94 deg on seeds 0-2), its spread not the EKF's
+    offset_deg, azimuth_deg, across_m, followed_m = (0.12, 0.07, 0.25, 1.5) if name == "pf" else (0.1, 0.05, 0.1, 3.0)
     stream = north_with_azimuths(True, seconds=100.0, outage_from=90.0)
     for s in stream:
         shifted = dataclasses.replace(s, heading_rad=s.heading_rad + offset) if isinstance(s, LocalFix) else s
         if s.t < 140.0:
             learns.push(shifted)
             follows.push(shifted)
-    assert learns.stats()["heading_offset_deg"] == pytest.approx(1.0, abs=0.1)
+    assert learns.stats()["heading_offset_deg"] == pytest.approx(1.0, abs=offset_deg)
     assert follows.stats()["heading_offset_deg"] == pytest.approx(0.0, abs=1e-3)
-    assert math.degrees(kin.wrap_angle(learns._mean()[kin.PHI])) == pytest.approx(0.0, abs=0.05)
+    assert math.degrees(kin.wrap_angle(learns._mean()[kin.PHI])) == pytest.approx(0.0, abs=azimuth_deg)
     assert math.degrees(kin.wrap_angle(follows._mean()[kin.PHI])) > 0.7
     for s in stream:
         if s.t >= 140.0:
             learns.push(s)
             follows.push(s)
-    assert abs(learns._mean()[kin.E]) < 0.1
-    assert follows._mean()[kin.E] > 3.0
-    assert learns._covariance()[kin.E, kin.E] > follows._covariance()[kin.E, kin.E]
+    assert abs(learns._mean()[kin.E]) < across_m
+    assert follows._mean()[kin.E] > followed_m
+    if name != "pf":
+        assert learns._covariance()[kin.E, kin.E] > follows._covariance()[kin.E, kin.E]
 
 
 @pytest.mark.parametrize("filter_class", [Ekf, Ukf, Imm])
@@ -773,6 +777,17 @@ def test_the_ekfs_heading_offset_is_nil_where_the_fixes_have_courses(filter_clas
         np.testing.assert_allclose(as_array(on.push(s)), as_array(off.push(s)), atol=1e-9)
     assert on.offset_rad == 0.0
     np.testing.assert_allclose(on._covariance(), off._covariance(), atol=1e-12)
+
+
+def test_the_particle_filters_offset_leaves_a_drive_of_courses_as_it_was() -> None:
+    """The offset's draws come from a generator of their own and only headings see it: with courses over ground the
+    particles, their estimates and their spread are those of the filter without it, to the bit."""
+    settings = EstimationSettings()
+    on, off = ParticleFilter(settings), ParticleFilter(with_changes(settings, {"estimator.azimuth_offset": False}))
+    for s in north_with_azimuths(False):
+        np.testing.assert_array_equal(as_array(on.push(s)), as_array(off.push(s)))
+    np.testing.assert_array_equal(on.X, off.X)
+    np.testing.assert_array_equal(on._covariance(), off._covariance())
 
 
 @pytest.mark.parametrize("filter_class", [MskfEm])

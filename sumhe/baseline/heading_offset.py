@@ -10,13 +10,14 @@ the position). The offset's variance is the config's bound read as sigmas (:func
 :class:`FollowsHeadings` keeps whether the newest azimuth measured was a heading (a course over ground is the velocity's
 azimuth: no offset). :class:`ConsideredHeadingOffset` adds the position the estimate had at the newest position fix and
 the covariance the offset adds since it (:func:`considered_heading_offset`), for the filters whose error estimate is a
-covariance of their own beliefs (``pf``, ``sr-upf``); it takes the position at that fix as right and the azimuth as off
+covariance of their own beliefs (``sr-upf``); it takes the position at that fix as right and the azimuth as off
 by the whole offset. ``mskf-em`` carries the offset as a Schmidt consider parameter in its stages' joint covariance
 (:class:`~sumhe.baseline.mskf_em.MskfEm`), which also holds what the offset makes of the position at the fix: between
 fixes a filter follows the headings, and the fixes pull it back only in part (on the shared real drive 0.4-3.9 m across
 the track, 1-sigma, at the starts of the 60 s outages). The Kalman filters estimate the offset as a state
 (:class:`~sumhe.baseline.ekf.OffsetFilter`), ``gtsam-fls`` as a variable of its graph
-(:class:`~sumhe.baseline.gtsam_fls.GtsamFls`).
+(:class:`~sumhe.baseline.gtsam_fls.GtsamFls`), ``pf`` as one more value of each particle
+(:class:`~sumhe.baseline.particle.ParticleFilter`).
 """
 
 from __future__ import annotations

@@ -12,9 +12,15 @@ azimuth, bias and scale (without it the cloud, and the error estimate read from 
 within the config's range. The gate works on the particle cloud's mean and covariance; a re-acquisition shifts
 the cloud onto the fix.
 
-Its error estimate is the particles' spread, with the offset of a receiver's heading from the azimuth of the
-motion considered where it follows headings (:class:`~.heading_offset.ConsideredHeadingOffset`, the EKF's bound and
-reading); the estimates do not change. On the shared real drive
+Each particle carries the offset of a receiver's heading from the azimuth of the motion as well (``O``, beside the
+state: mounting, sideslip, a GNSS/IMU module's heading filter), as the Kalman filters estimate it in their states
+(:class:`~sumhe.baseline.ekf.OffsetFilter`): drawn from the config's bound read as sigmas (0.43 deg), a first-order
+Gauss-Markov process about 0 (:data:`~.heading_offset.OFFSET_CORRELATION_S`) stepped at each heading, which
+measures the particle's azimuth plus its offset; a course over ground sees none. Its draws come from a generator of
+their own, so that a drive without headings runs the particles as before (since 1 Dec 2026; docs/baselines.md).
+
+Its error estimate is the particles' spread. Before the offset was estimated it was considered there
+(:class:`~.heading_offset.ConsideredHeadingOffset`); with that, on the shared real drive
 (headings, 1 Hz), seeds 0, 1 and 2: 97.3, 94.5 and 90.7 / 93.2, 94.9 and 96.5 / 91.8, 95.0 and 95.8 % of the
 removed fixes within ``eph`` in the 10 / 30 / 60 s outages (before 95.6, 92.9 and 90.1 / 90.8, 92.1 and 94.3 /
 86.3, 90.9 and 91.7 %), median ``eph`` 1.78-1.87 / 2.01-2.49 / 1.84-2.78 times the median error; the realistic
@@ -30,8 +36,8 @@ import numpy as np
 
 from sumhe.baseline import kinematics as kin
 from sumhe.baseline.ekf import LeverCourse
-from sumhe.baseline.heading_offset import ConsideredHeadingOffset
-from sumhe.baseline.kinematics import OMEGA, PHI, E, FloatArray, N, V
+from sumhe.baseline.heading_offset import OFFSET_CORRELATION_S, heading_offset_variance
+from sumhe.baseline.kinematics import AZIMUTH, OMEGA, PHI, FloatArray, V
 from sumhe.baseline.stream import Inputs, Pending
 from sumhe.config import Config
 from sumhe.model.su import can_motion, wrap_angle
@@ -95,11 +101,11 @@ def systematic_resample(weights: FloatArray, rng: np.random.Generator) -> FloatA
     return np.searchsorted(cumulative, positions)
 
 
-class ParticleFilter(ConsideredHeadingOffset, LeverCourse):
+class ParticleFilter(LeverCourse):
     """Bootstrap particle filter with ``particles`` particles; the same ``seed`` gives the same estimates."""
 
     name = "pf"
-    snapshot_attrs = ("X", "w", "rng", "_anchor")
+    snapshot_attrs = ("X", "w", "rng", "O", "offset_rng", "_t_offset")
     uses_gps_speed = False
     """A 0.05 m/s likelihood on the speed leaves a handful of the particles alive at each fix: with it, the error
     after the contract test's outage rose to 2.9-3.4 m (limit 3 m); a Rao-Blackwellised speed would be needed."""
@@ -119,6 +125,12 @@ class ParticleFilter(ConsideredHeadingOffset, LeverCourse):
         self.particles = particles
         self.seed = table.seed if seed is None else seed
         super().__init__(settings, noise or table.noise)
+        self._offset_sigma = math.sqrt(heading_offset_variance(self.settings))
+        """The heading offset's prior sigma (rad; 0: ``estimator.azimuth_offset`` off, a heading is the azimuth)."""
+
+    def stats(self) -> dict[str, float | int | str]:
+        """The counters and the heading's offset estimated (``heading_offset_deg``, the particles' weighted mean)."""
+        return {**super().stats(), "heading_offset_deg": math.degrees(float(self.O @ self.w))}
 
     @classmethod
     def from_config(cls, config: Config) -> ParticleFilter:
@@ -126,7 +138,10 @@ class ParticleFilter(ConsideredHeadingOffset, LeverCourse):
 
     def _reset_filter(self) -> None:
         self.rng = np.random.default_rng(self.seed)
+        self.offset_rng = np.random.default_rng([self.seed, 1])
         self.X = np.zeros((self.layout.n, self.particles))
+        self.O = np.zeros(self.particles)
+        self._t_offset = math.nan
         self.w = np.full(self.particles, 1.0 / self.particles)
         n = self.layout.n
         dens = np.zeros(n)
@@ -144,6 +159,8 @@ class ParticleFilter(ConsideredHeadingOffset, LeverCourse):
         self.X = x0[:, None] + np.linalg.cholesky(P0) @ self.rng.standard_normal((len(x0), self.particles))
         if not self._heading_known:
             self.X[PHI] = self.rng.uniform(-math.pi, math.pi, self.particles)
+        self.O = self._offset_sigma * self.offset_rng.standard_normal(self.particles)
+        self._t_offset = self._t_state
         self.w = np.full(self.particles, 1.0 / self.particles)
 
     def _set_inputs(self, inputs: Inputs) -> None:
@@ -164,6 +181,9 @@ class ParticleFilter(ConsideredHeadingOffset, LeverCourse):
 
     def _innovation(self, kind: str, z: FloatArray, R: FloatArray, lag: float) -> Pending:
         Z = kin.fix_model(self.X, kind, lag)
+        if kind == AZIMUTH and self._heading and self._offset_sigma > 0.0:  # the azimuth plus the offset
+            self._step_offset()
+            Z = Z + self.O
         zhat = kin.measurement_mean(kind, Z, self.w)
         D = kin.residual(kind, Z, zhat[:, None])
         S = (D * self.w) @ D.T + R
@@ -180,17 +200,30 @@ class ParticleFilter(ConsideredHeadingOffset, LeverCourse):
 
         return Pending(nu, S, commit)
 
+    def _step_offset(self) -> None:
+        """The heading offset's Gauss-Markov step from its previous step to the state's time."""
+        dt = self._t_state - self._t_offset
+        self._t_offset = self._t_state
+        if dt > 0.0:
+            decay = math.exp(-dt / OFFSET_CORRELATION_S)
+            noise = self._offset_sigma * math.sqrt(1.0 - decay * decay)
+            self.O = decay * self.O + noise * self.offset_rng.standard_normal(self.particles)
+
     def _resample(self) -> None:
-        """Systematic resampling; the static rows (bias, scale, gain) get Liu-West kernel shrinkage, the position and
-        azimuth roughening."""
+        """Systematic resampling; the static rows (bias, scale, gain) and the heading's offset get Liu-West kernel
+        shrinkage (the offset's jitter from its own generator), the position and azimuth roughening."""
         rows = list(self.layout.sensor_rows)
         mean = self.X[rows] @ self.w
         var = np.square(self.X[rows] - mean[:, None]) @ self.w
+        offset_mean = float(self.O @ self.w)
+        offset_var = float(np.square(self.O - offset_mean) @ self.w)
         keep = systematic_resample(self.w, self.rng)
         self.X = self.X[:, keep]
         a = (3.0 * LIU_WEST_DISCOUNT - 1.0) / (2.0 * LIU_WEST_DISCOUNT)
         jitter = np.sqrt((1.0 - a * a) * var)[:, None] * self.rng.standard_normal((len(rows), self.particles))
         self.X[rows] = a * self.X[rows] + (1.0 - a) * mean[:, None] + jitter
+        jitter = math.sqrt((1.0 - a * a) * offset_var) * self.offset_rng.standard_normal(self.particles)
+        self.O = a * self.O[keep] + (1.0 - a) * offset_mean + jitter
         self.w = np.full(self.particles, 1.0 / self.particles)
         self._roughen()
 
@@ -218,13 +251,13 @@ class ParticleFilter(ConsideredHeadingOffset, LeverCourse):
         kin.wrap_state(self.X)
 
     def _init_heading(self, phi: float, sigma: float) -> None:
-        self.X[PHI] = wrap_angle(phi + sigma * self.rng.standard_normal(self.particles))
+        """The particles' azimuth from a first course (``phi``), or heading (``phi`` less each particle's offset)."""
+        offset = self.O if self._heading and self._offset_sigma > 0.0 else 0.0
+        self.X[PHI] = wrap_angle(phi - offset + sigma * self.rng.standard_normal(self.particles))
 
     def _mean(self) -> FloatArray:
         return kin.weighted_mean(self.X, self.w)
 
     def _covariance(self) -> FloatArray:
-        """The particles' weighted spread about their mean, with the offset of a receiver's heading considered
-        where the newest azimuth measured was one (:meth:`~.heading_offset.ConsideredHeadingOffset._considered`)."""
-        mean = self._mean()
-        return self._considered(kin.weighted_covariance(self.X, self.w, mean), mean[[E, N]])
+        """The particles' weighted spread about their mean."""
+        return kin.weighted_covariance(self.X, self.w, self._mean())
