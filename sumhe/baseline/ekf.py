@@ -15,7 +15,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from sumhe.baseline import kinematics as kin
-from sumhe.baseline.heading_offset import OFFSET_CORRELATION_S, FollowsHeadings, heading_offset_variance
+from sumhe.baseline.heading_offset import FollowsHeadings, heading_offset_variance, offset_step
 from sumhe.baseline.kinematics import AZIMUTH, OMEGA, PHI, FloatArray, V
 from sumhe.baseline.stream import Inputs, Pending, RecursiveEstimator
 from sumhe.config import Config
@@ -63,8 +63,8 @@ def offset_predict(
     covariance ``Pt`` (:func:`considered`): the offset a first-order Gauss-Markov process about 0 of stationary
     ``variance`` (rad^2) and correlation time :data:`~.heading_offset.OFFSET_CORRELATION_S`."""
     x, F, Q = ekf_step(x, dt, noise, layout)
-    keep = math.exp(-dt / OFFSET_CORRELATION_S)
-    return x, offset * keep, kf_predict(Pt, considered(F, keep), considered(Q, (1.0 - keep * keep) * variance))
+    keep, walk = offset_step(dt, variance)
+    return x, offset * keep, kf_predict(Pt, considered(F, keep), considered(Q, walk))
 
 
 def sees_offset(kind: str, heading: bool) -> float:

@@ -65,7 +65,7 @@ import numpy as np
 
 from sumhe.baseline import kinematics as kin
 from sumhe.baseline.ekf import LeverCourse
-from sumhe.baseline.heading_offset import OFFSET_CORRELATION_S, heading_offset_variance
+from sumhe.baseline.heading_offset import heading_offset_variance, offset_step
 from sumhe.baseline.kinematics import AZIMUTH, GPS_SPEED, OMEGA, PHI, POSITION, E, FloatArray, N, V
 from sumhe.baseline.stream import Inputs, Pending
 from sumhe.config import Config
@@ -497,8 +497,7 @@ class GtsamFls(LeverCourse):
     def _offset_step(self, T: float) -> tuple[float, float]:
         """The heading offset's first-order Gauss-Markov step over ``T`` s (:data:`OFFSET_CORRELATION_S`, about 0,
         its prior's variance at rest, as the Kalman filters'): its decay and the variance it adds."""
-        decay = math.exp(-T / OFFSET_CORRELATION_S)
-        return decay, self._offset_sigma**2 * (1.0 - decay * decay)
+        return offset_step(T, self._offset_sigma**2)
 
     def _predict_node(self, node: Node, odo: Odometry) -> tuple[FloatArray, FloatArray]:
         """The pose (east, north, theta) at the end of ``odo`` from ``node``, and the covariance of

@@ -22,6 +22,7 @@ the track, 1-sigma, at the starts of the 60 s outages). The Kalman filters estim
 
 from __future__ import annotations
 
+import math
 from functools import cached_property
 
 import numpy as np
@@ -45,6 +46,14 @@ def heading_offset_variance(settings: EstimationSettings) -> float:
     (``estimator.azimuth_offset``)."""
     e = settings.estimator
     return (settings.gnss.azimuth_offset_max_rad / e.r_cap_sigmas) ** 2 if e.azimuth_offset else 0.0
+
+
+def offset_step(dt: float, variance: float) -> tuple[float, float]:
+    """A receiver heading's offset as a first-order Gauss-Markov process about 0 of stationary ``variance`` (rad^2)
+    and correlation time :data:`OFFSET_CORRELATION_S`, over ``dt`` s: how much of it is kept, and the variance the
+    step adds."""
+    keep = math.exp(-dt / OFFSET_CORRELATION_S)
+    return keep, (1.0 - keep * keep) * variance
 
 
 def considered_heading_offset(n: int, moved: FloatArray, variance: float) -> FloatArray:

@@ -36,7 +36,7 @@ import numpy as np
 
 from sumhe.baseline import kinematics as kin
 from sumhe.baseline.ekf import LeverCourse
-from sumhe.baseline.heading_offset import OFFSET_CORRELATION_S, heading_offset_variance
+from sumhe.baseline.heading_offset import heading_offset_variance, offset_step
 from sumhe.baseline.kinematics import AZIMUTH, OMEGA, PHI, FloatArray, V
 from sumhe.baseline.stream import Inputs, Pending
 from sumhe.config import Config
@@ -205,9 +205,8 @@ class ParticleFilter(LeverCourse):
         dt = self._t_state - self._t_offset
         self._t_offset = self._t_state
         if dt > 0.0:
-            decay = math.exp(-dt / OFFSET_CORRELATION_S)
-            noise = self._offset_sigma * math.sqrt(1.0 - decay * decay)
-            self.O = decay * self.O + noise * self.offset_rng.standard_normal(self.particles)
+            keep, walk = offset_step(dt, self._offset_sigma**2)
+            self.O = keep * self.O + math.sqrt(walk) * self.offset_rng.standard_normal(self.particles)
 
     def _resample(self) -> None:
         """Systematic resampling; the static rows (bias, scale, gain) and the heading's offset get Liu-West kernel

@@ -13,14 +13,13 @@ sigma points drawn from the state grown by the offset once a heading has tied th
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import numpy as np
 
 from sumhe.baseline import kinematics as kin
 from sumhe.baseline.ekf import OffsetFilter, can_rows, considered, sees_offset
-from sumhe.baseline.heading_offset import OFFSET_CORRELATION_S
+from sumhe.baseline.heading_offset import offset_step
 from sumhe.baseline.kinematics import FloatArray
 from sumhe.baseline.stream import Inputs, Pending
 from sumhe.settings import EstimationSettings, NoiseSettings
@@ -105,8 +104,7 @@ class Ukf(OffsetFilter):
         self._marginal()
 
     def _step(self, dt: float) -> None:
-        keep = math.exp(-dt / OFFSET_CORRELATION_S)
-        walk = (1.0 - keep * keep) * self._offset_var
+        keep, walk = offset_step(dt, self._offset_var)
         mean, cov = self._block(False)
         grown = len(mean) > len(self.x)
         X, wm, wc = self._sigma_points(mean, cov)
