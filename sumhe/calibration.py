@@ -2,13 +2,14 @@
 calibrate``): what a test engineer measures before trusting a new car, with standard errors.
 
 Definitions (the CAN values as the config decodes them, its mapping's ``scale`` applied; ``d`` =
-``[sensors.can] delay_s``, the age the config gives every CAN sample):
+``[sensors.can] delay_s``, the age the config gives every CAN sample, and ``s`` = ``speed_delay_s``, how much
+older it takes the speed to be):
 
 * ``gps_time_offset_s``: the CAN-clock time at which a fix's position was true minus the time sumhe stamped the
-  fix with (``[gps] time``, ``latency_s``), taking the CAN speed to be ``d`` old: ``-lag - d`` for the lag of the
-  receiver's speed over ground behind the CAN speed (:func:`~sumhe.frontend.alignment.speed_lag`). GNSS and CAN
-  alone observe relative timing only: the offset is relative to the CAN speed, whose own age (an OBD-II reply's,
-  say) is the part ``d`` does not hold.
+  fix with (``[gps] time``, ``latency_s``), taking the CAN speed to be ``d + s`` old: ``-lag - d - s`` for the lag
+  of the receiver's speed over ground behind the CAN speed (:func:`~sumhe.frontend.alignment.speed_lag`). GNSS and
+  CAN alone observe relative timing only: the offset is relative to the CAN speed, whose own age (an OBD-II
+  reply's, say) is the part ``d + s`` does not hold.
 * ``speed_scale``: true speed = scale x CAN speed (negative: the mapping has the wrong sign).
 * ``yaw_rate_bias_dps`` and ``yaw_rate_scale``: true yaw rate = scale x (CAN - bias) (deg/s; negative scale: the
   wrong sign), from the rate of the receiver's azimuth against the CAN yaw rate
@@ -16,7 +17,11 @@ Definitions (the CAN values as the config decodes them, its mapping's ``scale`` 
   the CAN yaw rate at standstill combined by their variances, if they agree (:func:`combined_bias`).
 * ``can_delay_s``: how much older the CAN speed is than the CAN yaw rate (s): the azimuth's lag minus the speed's.
   This is what the two fits determine of the CAN sensors' ages; their common age ``d`` is not observable from
-  GNSS and CAN, and ``[sensors.can] delay_s`` holds one age for both.
+  GNSS and CAN. It is what ``[sensors.can] speed_delay_s`` holds (an OBD-II speed 0.2 s old beside a broadcast
+  yaw rate put the fixes of a realistic simulated highway drive 0.19 s late against the yaw rate, 4 m behind on
+  the mean at 32 m/s, until the key said so); the snippet writes it as a comment, not as the key: a course's lag
+  carries the antenna's lead and the sideslip's lag, which a drive at a steady speed cannot tell from timing, and
+  on simulated drives it missed by up to 0.17 s, 2-6 of its standard errors (README, ``sumhe bench calibrate``).
 
 Methods, in order of preference: the time offset and speed scale from the receiver's speed over ground, else from
 the speed between fix positions; the yaw rate from the receiver's heading (HDT: the body's azimuth), else its
@@ -142,7 +147,7 @@ class SignCheck:
 @dataclass(frozen=True)
 class Calibration:
     """The five parameters (:data:`KEYS`), the sign checks, notes (further findings), and the config's CAN delay
-    the time offset is relative to (s)."""
+    and speed delay the time offset is relative to (s)."""
 
     gps_time_offset_s: Parameter
     speed_scale: Parameter
@@ -152,6 +157,7 @@ class Calibration:
     signs: tuple[SignCheck, ...]
     notes: tuple[str, ...]
     delay_s: float
+    speed_delay_s: float = 0.0
     speed_factor: float | None = None
     """What the mapping's speed ``scale`` is multiplied by: ``speed_scale``, or where the best fit's offset is
     not the one ``speed_rounding`` takes, the one factor that fits the drive's speeds best at that one."""
@@ -510,9 +516,9 @@ def _quantum(values: FloatArray) -> float:
 # ---- the calibration -----------------------------------------------------------------------------------------------
 
 
-def calibrate(sig: DriveSignals, delay_s: float = 0.0) -> Calibration:
-    """The installation parameters of one drive (see the module docstring); ``delay_s`` is the config's
-    ``[sensors.can] delay_s`` (s)."""
+def calibrate(sig: DriveSignals, delay_s: float = 0.0, speed_delay_s: float = 0.0) -> Calibration:
+    """The installation parameters of one drive (see the module docstring); ``delay_s`` and ``speed_delay_s`` are
+    the config's ``[sensors.can]`` ones (s)."""
     notes = [sig.imu.describe()] if sig.imu is not None else []
     moving_fixes = int(np.count_nonzero(np.abs(sig.gnss_speed) > MIN_SPEED_MPS))
     if moving_fixes >= MIN_PAIRS:
@@ -534,7 +540,7 @@ def calibrate(sig: DriveSignals, delay_s: float = 0.0) -> Calibration:
     if turn is not None and not float(np.std(turn)) >= TURN_RATE_RPS / 2:
         turn = None  # a drive that hardly turns tells no lateral antenna offset
     sf = _speed_fit(t_g, g, sig, turn) if len(t_g) else None
-    offset, scale, speed_sign = _speed_parameters(sf, g_source, delay_s, sig, notes)
+    offset, scale, speed_sign = _speed_parameters(sf, g_source, delay_s + speed_delay_s, sig, notes)
     bias, yaw_scale, yaw_sign = _yaw_parameters(yf, sig, notes)
     return Calibration(
         gps_time_offset_s=offset,
@@ -545,6 +551,7 @@ def calibrate(sig: DriveSignals, delay_s: float = 0.0) -> Calibration:
         signs=(speed_sign, yaw_sign),
         notes=tuple(notes),
         delay_s=delay_s,
+        speed_delay_s=speed_delay_s,
         speed_factor=sf.factor if sf is not None and scale.value is not None else None,
         speed_rounding=sf.rounding if sf is not None and scale.value is not None else None,
     )
@@ -558,7 +565,7 @@ def _untold(lag: LagFit, quantum_mps: float) -> str:
 
 
 def _speed_parameters(
-    sf: _SpeedFit | None, source: str, delay_s: float, sig: DriveSignals, notes: list[str]
+    sf: _SpeedFit | None, source: str, speed_age_s: float, sig: DriveSignals, notes: list[str]
 ) -> tuple[Parameter, Parameter, SignCheck]:
     if sf is None:
         why = (
@@ -570,11 +577,11 @@ def _speed_parameters(
     if sf.lag_std_s <= MAX_LAG_STD_S:
         direction = "before" if lag.lag_s >= 0 else "after"
         offset = Parameter(
-            -lag.lag_s - delay_s,
+            -lag.lag_s - speed_age_s,
             sf.lag_std_s,
             f"{source} against the CAN speed: it follows it by {lag.lag_s:.3f} s, so a fix is true "
             f"{abs(lag.lag_s):.3f} s {direction} its stamp on the clock of a CAN speed taken to be "
-            f"[sensors.can] delay_s = {delay_s:g} s old",
+            f"{speed_age_s:g} s old ([sensors.can] delay_s + speed_delay_s)",
         )
     else:
         offset = Parameter(
@@ -709,7 +716,8 @@ def _relative_delay(sf: _SpeedFit | None, yf: _YawFit | None, notes: list[str]) 
             f"{yf.v_eff_mps:.0f} m/s"
         )
     notes.append(
-        "[sensors.can] delay_s holds one age for every CAN quantity; GNSS and CAN observe only how the ages differ"
+        "GNSS and CAN observe only how the CAN sensors' ages differ: [sensors.can] delay_s is their common age, "
+        "speed_delay_s how much older the speed is"
     )
     return Parameter(delay, math.sqrt(variance), how)
 
@@ -780,8 +788,8 @@ def report_lines(cal: Calibration, sig: DriveSignals) -> list[str]:
 def toml_snippet(cal: Calibration, config: Config) -> str:
     """The calibration as TOML the config accepts: ``[sensors.gnss] time_offset_s``, ``[sensors.can]
     speed_rounding`` (for a coarse quantum) and the mapping's ``scale`` of ``can.signals.speed`` and ``yaw_rate``
-    (the found scale folded into the one the mapping has; the sign included); what has no key (the CAN delays, the
-    bias) as comments."""
+    (the found scale folded into the one the mapping has; the sign included); what has no key (the CAN sensors'
+    common age, the bias) and what it does not set (``speed_delay_s``: module docstring) as comments."""
     lines: list[str] = []
     offset = cal.gps_time_offset_s
     if offset.value is not None:
@@ -798,7 +806,9 @@ def toml_snippet(cal: Calibration, config: Config) -> str:
     ]
     if cal.can_delay_s.value is not None:
         lines.append(
-            f"# the CAN speed's age minus the yaw rate's: {cal.can_delay_s.value:+.3f} +- {cal.can_delay_s.std:.3f} s"
+            f"# the CAN speed's age minus the yaw rate's: {cal.can_delay_s.value:+.3f} +- {cal.can_delay_s.std:.3f} s "
+            f"(speed_delay_s = {cal.speed_delay_s:g} as configured; set it where the speed is surely older, an "
+            "OBD-II reply's, and the time offset above by as much less)"
         )
     if cal.speed_rounding is not None:
         how = "towards 0: half a step low on the mean" if cal.speed_rounding == "truncate" else "to the nearest step"

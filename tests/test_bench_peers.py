@@ -190,6 +190,7 @@ def test_a_realistic_drive_gets_its_own_quanta_and_delay():
     assert can.speed_resolution_mps == pytest.approx(1 / 3.6)  # OBD-II: whole km/h
     assert can.yaw_rate_resolution_rps == pytest.approx(math.radians(sim.yaw_rate_quantum_dps))
     assert can.delay_s == sim.can_sensor_delay_s
+    assert can.delay_of("speed") == pytest.approx(sim.obd_delay_s)  # the OBD-II reply's age, beyond the yaw rate's
     assert drive.config.datum.mode == "fixed" and drive.outages
     assert PeersSettings().drive_count() == 27 + 9 and dataclasses.replace(SHORT, profiles=()).drive_count() == 0
 

@@ -96,6 +96,18 @@ def test_a_simulated_drive_gives_its_parameters_within_the_targets(known, capsys
     assert "sign of the CAN speed: ok" in err and "sign of the CAN yaw rate: ok" in err
 
 
+def test_the_time_offset_is_taken_against_the_speeds_configured_age(known_signals):
+    """The drive's OBD-II speed is 0.07 s older than its yaw rate: with ``speed_delay_s`` configured so, the time
+    offset is taken against a speed that much older (the fixes' own against the yaw rate), and the snippet says
+    what it measured of that age beside the key as configured, without setting it."""
+    plain, told = calibrate(known_signals), calibrate(known_signals, 0.0, 0.07)
+    assert told.gps_time_offset_s.value == pytest.approx(plain.gps_time_offset_s.value - 0.07)
+    assert told.can_delay_s == plain.can_delay_s
+    snippet = toml_snippet(told, load_config(None, env={}))
+    assert "speed_delay_s = 0.07 as configured" in snippet
+    assert "speed_delay_s" not in tomllib.loads(snippet)["sensors"]["can"]
+
+
 def test_the_benchmark_reports_the_rounding_written_and_said_against_the_simulated_one(known, known_signals):
     drive, d = known
     cal = calibrate(known_signals)

@@ -79,6 +79,7 @@ def test_signal_mapping_string_and_table_forms(tmp_path):
         ("[output]\nudp = ['127.0.0.1:1']\njson = ['127.0.0.1:2']\n", "output.udp: replaced by output.json"),
         ("[estimator]\nmodel = 'su9'\n", "estimator.model"),
         ("[sensors.can]\nspeed_rounding = 'down'\n", "sensors.can.speed_rounding"),
+        ("[sensors.can]\nspeed_delay_s = 1.5\n", "sensors.can.speed_delay_s"),
         ("can = 3\n", "can"),
     ],
 )

@@ -224,9 +224,9 @@ def test_a_configured_time_offset_moves_every_fix_onto_the_can_clock() -> None:
     assert fe.time_offset_s == -0.3
 
 
-def _lagging_receiver(fe: FrontEnd) -> Iterator[list[Epoch | CanTick]]:
+def _lagging_receiver(fe: FrontEnd, speed_age_s: float = 0.0) -> Iterator[list[Epoch | CanTick]]:
     """Feed ``fe`` 300 s of a 1 Hz receiver whose fixes are true 0.3 s before their stamp (speed over ground behind
-    the CAN speed, 5 Hz) and yield the events of each fix."""
+    the CAN speed, 5 Hz, ``speed_age_s`` old at its stamp) and yield the events of each fix."""
 
     def speed(t: float) -> float:
         return 12.0 + 5.0 * math.sin(t / 6.0)
@@ -234,7 +234,7 @@ def _lagging_receiver(fe: FrontEnd) -> Iterator[list[Epoch | CanTick]]:
     for k in range(1, 3000):
         t = 0.1 * k
         if k % 2 == 0:
-            fe.push(CanSample(t, "speed", speed(t)))
+            fe.push(CanSample(t, "speed", speed(t - speed_age_s)))
         if k % 10 == 0:
             yield fe.push(LocalFix(t=t, valid=True, east_m=1.0, north_m=2.0, hdop=1.0, speed_mps=speed(t - 0.3)))
 
@@ -247,6 +247,24 @@ def test_the_learned_time_offset_is_applied_gradually_and_keeps_epochs_in_order(
     assert fe.time_offset_s == pytest.approx(-0.3, abs=0.02)
     assert all(np.diff(times) > 0.5)  # 1 Hz epochs, each moved by at most 0.2 s more than the one before
     assert times[-1] == pytest.approx(299.0 + fe.time_offset_s)
+
+
+def test_an_older_speed_is_kept_at_its_own_time_and_the_fixes_line_up_with_the_yaw_rate() -> None:
+    """An OBD-II speed 0.2 s older than the yaw rate: told so (``speed_delay_s``), the front-end keeps each speed
+    sample at its own measurement time and answers it at the common one (the ticks stay in order), and the time
+    offset learned from it is the fixes' own (-0.3 s); untold, the fixes come out 0.2 s late."""
+    told = _frontend(**{"can.delay_s": 0.02, "can.speed_delay_s": 0.2})
+    told.push(CanSample(10.0, "yaw_rate", 0.1))
+    assert told.push(_fix(10.05))  # the start
+    (tick,) = told.push(CanSample(10.10, "speed", 10.0))
+    assert tick.t == pytest.approx(10.08) and told.can["speed"].newest == pytest.approx(9.88)
+    (tick,) = told.push(CanSample(10.12, "yaw_rate", 0.1))
+    assert tick.t == pytest.approx(10.10) and told.can["yaw_rate"].newest == pytest.approx(10.10)
+    for speed_delay, offset in ((0.2, -0.3), (0.0, -0.1)):
+        fe = _frontend(**{"can.delay_s": 0.0, "can.speed_delay_s": speed_delay})
+        for _ in _lagging_receiver(fe, speed_age_s=0.2):
+            pass
+        assert fe.time_offset_s == pytest.approx(offset, abs=0.02)
 
 
 @pytest.mark.parametrize("learn", [True, False])

@@ -226,12 +226,15 @@ def drive_quanta(settings: SimSettings) -> dict[str, float]:
 
 def with_drive_can(settings: SimSettings, target: WithCan) -> WithCan:
     """``target`` (sensor or estimation settings: anything with a ``can`` table) with the drive's CAN quanta
-    (:func:`drive_quanta`) and its chassis sensors' delay."""
+    (:func:`drive_quanta`) and its sensors' ages as calibrated: the chassis sensors' delay, and where the speed is
+    an OBD-II reply's, how much older than that it is."""
     quanta = drive_quanta(settings)
+    obd = settings.speed_source == "obd"
     return with_changes(
         target,
         {
             "can.delay_s": settings.can_sensor_delay_s,
+            "can.speed_delay_s": settings.obd_delay_s - settings.can_sensor_delay_s if obd else 0.0,
             "can.speed_resolution_mps": quanta["speed"],
             "can.yaw_rate_resolution_rps": quanta["yaw_rate"],
         },

@@ -33,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     check_gps_source(config, args.nmea)
     signals = read_signals(config, args.logs, args.nmea)
-    cal = calibrate(signals, config.sensors.can.delay_s)
+    cal = calibrate(signals, config.sensors.can.delay_s, config.sensors.can.speed_delay_s)
     report = report_lines(cal, signals)
     if args.json:
         print("\n".join(report), file=sys.stderr)

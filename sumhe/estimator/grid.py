@@ -124,7 +124,7 @@ def build_grid(
     height ``frame.alt0_m`` (a level road; NMEA altitudes are above the geoid, not the ellipsoid, and mixing
     the two moves positions by ``dh * distance / R_earth``). Fixes of antenna 2 are used by ``su7`` only;
     Fix times ``t`` are their measurement times (:func:`sumhe.io.fixtime.stamp_fix`); CAN times are moved back
-    by ``settings.can.delay_s``.
+    by each quantity's age (``settings.can.delay_s``, and ``speed_delay_s`` more for the speed).
     """
     check_samples(samples)
     fixes = [s for s in samples if isinstance(s, GnssFix)]
@@ -137,7 +137,7 @@ def build_grid(
         first = valid1[0]
         frame = LocalFrame(float(first.lat_deg), float(first.lon_deg), first.alt_m or 0.0)  # type: ignore[arg-type]
     cans = [s for s in samples if isinstance(s, CanSample)]
-    t_can = {q: np.array([s.t - settings.can.delay_s for s in cans if s.quantity == q]) for q in CAN_USED}
+    t_can = {q: np.array([s.t - settings.can.delay_of(q) for s in cans if s.quantity == q]) for q in CAN_USED}
     v_can = {q: np.array([s.value for s in cans if s.quantity == q]) for q in CAN_USED}
     epochs = np.array([f.t for f in ant1])
     t_all = np.concatenate([epochs, *t_can.values()])

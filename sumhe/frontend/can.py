@@ -3,7 +3,7 @@ the batch grid.
 
 Both average the samples of an interval (a step's half-intervals around it); the stream falls back to the nearest
 sample within ``max_gap_s``, the grid to linear interpolation within it. Times are measurement times (sample
-timestamp minus ``sensors.can.delay_s``).
+timestamp minus the quantity's age, :meth:`~sumhe.settings.sensors.CanModel.delay_of`).
 """
 
 from __future__ import annotations

@@ -6,7 +6,8 @@ is worth and when it counts:
 * input checks: bad or non-finite values, CAN values beyond the vehicle limits, time going back (per quantity),
   fixes more than ``MAX_FIX_LAG_S`` behind the CAN data, valid fixes without a usable position ("no fix"): each
   counted in ``stats()`` and logged at its 1st, 10th, 100th ... occurrence, never raised;
-* CAN: the samples' measurement time (timestamp - ``sensors.can.delay_s``) and a buffer of the recent ones
+* CAN: the samples' measurement time (timestamp - ``sensors.can.delay_s``, and ``speed_delay_s`` more for the
+  speed) and a buffer of the recent ones
   (:class:`~sumhe.frontend.can.CanBuffer`) every estimator reads its CAN data from;
 * GNSS timing (:class:`~sumhe.frontend.epochs.EpochClock`): the receiver's period, the fixes' delay behind the CAN
   data, the epochs it missed (silence over 1.5 periods: an :class:`Epoch` without a fix, ``missed=True``);
@@ -179,6 +180,9 @@ class FrontEnd:
         """The receiver's headings against the CAN yaw rate: headings that turn otherwise weigh as far as they are
         off (:mod:`~sumhe.frontend.heading_check`)."""
         self._delay_s = can.delay_s
+        self._speed_delay_s = can.speed_delay_s
+        """The speed's age beyond ``delay_s``: a speed sample is kept at its own measurement time, its tick (the
+        estimate that answers it) at the common one, so that the ticks stay in time order."""
         self._speed_reads_low = speed_reads_low(can)
         rate = self.settings.estimator.can_output_hz
         self._between_s = 1.0 / rate if rate > 0 else None
@@ -251,10 +255,11 @@ class FrontEnd:
             self.tally.count("bad_samples", "CAN %s sample with a non-finite time or value", q)
             return []
         t = stamp - self._delay_s
+        measured = t - self._speed_delay_s if q == "speed" else t
         store = self.can.samples[q]
         newest = store.newest
-        if t < newest:
-            self.tally.count("dropped_backwards", "CAN %s sample %.3f s back in time dropped", q, newest - t)
+        if measured < newest:
+            self.tally.count("dropped_backwards", "CAN %s sample %.3f s back in time dropped", q, newest - measured)
             return []
         if not (math.isfinite(value) and abs(value) <= limit):
             self.tally.count("bad_samples", "CAN %s = %r beyond the vehicle limits dropped", q, value)
@@ -263,11 +268,11 @@ class FrontEnd:
         value = float(value)
         if q == "speed":
             value = centred_speed(value, self._speed_reads_low) * self.check.factor["speed"]
-            self.learner.add_can_speed(t, value)
+            self.learner.add_can_speed(measured, value)
         else:
             self.check.add_yaw(t, value)
             value = (value - self.check.offset["yaw_rate"]) * self.check.factor["yaw_rate"]
-        store.add(t, value)
+        store.add(measured, value)
         if not self.started:
             return []
         between = self._between_s

@@ -120,17 +120,21 @@ class GnssModel:
 class CanModel:
     """The CAN speed and yaw-rate sensors' error model.
 
-    ``speed_resolution_mps`` / ``yaw_rate_resolution_rps``: the signals' quanta; unset, the DBC signal's scale
-    (in SI, times the mapping's ``scale``) when the estimator is built from a config with a DBC mapping, else
-    :data:`FALLBACK_SPEED_RESOLUTION_MPS` / :data:`FALLBACK_YAW_RATE_RESOLUTION_RPS`. ``*_sigma_*``: white noise
-    per sample. ``max_gap_s``: a sample older than this is no longer used. ``delay_s``: a sample measures the
-    vehicle this long before its timestamp (a calibration). ``speed_scale_max``, ``yaw_rate_bias_max_rps`` and
-    ``yaw_rate_gain_max`` bound the CAN speed's scale error and the yaw rate's bias and gain error (CAN speed =
-    k v, CAN yaw rate = g omega + b). ``speed_rounding``: how the CAN speed is made whole quanta, ``"round"`` (to
-    the nearest) or ``"truncate"`` (towards 0: an OBD-II speed in whole km/h on many cars, up to a quantum low, half
-    a quantum on the mean; each such speed other than 0 is taken at the middle of its quantum,
-    :func:`sumhe.frontend.can.centred_speed`). The on-line sensor check says when the speed reads the other way
-    (:mod:`sumhe.frontend.sensor_check`); ``sumhe calibrate`` measures it.
+    ``speed_resolution_mps`` / ``yaw_rate_resolution_rps``: the signals' quanta; unset, the DBC signal's scale (in
+    SI, times the mapping's ``scale``) when the estimator is built from a config with a DBC mapping, else
+    :data:`FALLBACK_SPEED_RESOLUTION_MPS` / :data:`FALLBACK_YAW_RATE_RESOLUTION_RPS`. ``*_sigma_*``: white noise per
+    sample. ``max_gap_s``: a sample older than this is no longer used. ``delay_s``: a sample measures the vehicle
+    this long before its timestamp (a calibration); ``speed_delay_s``: how much older than that the speed is (an
+    OBD-II reply's speed, polled, beside a broadcast yaw rate; negative where it is the younger: what ``sumhe
+    calibrate`` measures as ``can_delay_s``). GNSS and CAN observe only how the ages differ: the learned GNSS time
+    offset is relative to the CAN speed, so a speed older than the yaw rate by ``d`` puts every fix ``d`` late
+    against the yaw rate (``v d`` along the road) unless ``speed_delay_s`` says so. ``speed_scale_max``,
+    ``yaw_rate_bias_max_rps`` and ``yaw_rate_gain_max`` bound the CAN speed's scale error and the yaw rate's bias
+    and gain error (CAN speed = k v, CAN yaw rate = g omega + b). ``speed_rounding``: how the CAN speed is made
+    whole quanta, ``"round"`` (to the nearest) or ``"truncate"`` (towards 0: an OBD-II speed in whole km/h on many
+    cars, up to a quantum low, half a quantum on the mean; each such speed other than 0 is taken at the middle of
+    its quantum, :func:`sumhe.frontend.can.centred_speed`). The on-line sensor check says when the speed reads the
+    other way (:mod:`sumhe.frontend.sensor_check`); ``sumhe calibrate`` measures it.
     """
 
     speed_resolution_mps: float | None = None
@@ -139,6 +143,7 @@ class CanModel:
     yaw_rate_sigma_rps: float = 0.002
     max_gap_s: float = 0.5
     delay_s: float = 0.0
+    speed_delay_s: float = 0.0
     speed_scale_max: float = 0.05
     yaw_rate_bias_max_rps: float = 0.02
     yaw_rate_gain_max: float = 0.15
@@ -159,9 +164,16 @@ class CanModel:
             "yaw_rate_gain_max",
         )
         non_negative(self, "delay_s")
+        if not -1.0 <= self.speed_delay_s <= 1.0:
+            raise ValueError(f"speed_delay_s: must be within [-1, 1] s, got {self.speed_delay_s!r}")
         for name in ("speed_scale_max", "yaw_rate_gain_max"):
             if getattr(self, name) >= 1:
                 raise ValueError(f"{name}: must be below 1 (a relative error)")
+
+    def delay_of(self, quantity: str) -> float:
+        """How long before its timestamp a sample of ``quantity`` measures the vehicle (s): ``delay_s``, plus
+        ``speed_delay_s`` for the speed."""
+        return self.delay_s + self.speed_delay_s if quantity == "speed" else self.delay_s
 
     @property
     def speed_quantum_mps(self) -> float:
