@@ -180,9 +180,9 @@ class FrontEnd:
         """The receiver's headings against the CAN yaw rate: headings that turn otherwise weigh as far as they are
         off (:mod:`~sumhe.frontend.heading_check`)."""
         self._delay_s = can.delay_s
-        self._speed_delay_s = can.speed_delay_s
-        """The speed's age beyond ``delay_s``: a speed sample is kept at its own measurement time, its tick (the
-        estimate that answers it) at the common one, so that the ticks stay in time order."""
+        self._age_s = {q: can.delay_of(q) for q in CAN_USED}
+        """Each quantity's age: a sample is kept at its own measurement time (the speed's may differ, an OBD-II
+        reply's), its tick (the estimate that answers it) at the common one, ``delay_s``, so the ticks stay in order."""
         self._speed_reads_low = speed_reads_low(can)
         rate = self.settings.estimator.can_output_hz
         self._between_s = 1.0 / rate if rate > 0 else None
@@ -255,7 +255,7 @@ class FrontEnd:
             self.tally.count("bad_samples", "CAN %s sample with a non-finite time or value", q)
             return []
         t = stamp - self._delay_s
-        measured = t - self._speed_delay_s if q == "speed" else t
+        measured = stamp - self._age_s[q]
         store = self.can.samples[q]
         newest = store.newest
         if measured < newest:
