@@ -71,13 +71,13 @@ class CalibrateBenchSettings:
 def comparable_truth(settings: SimSettings, calibration: Mapping[str, float], delay_s: float) -> dict[str, float]:
     """The drive's true parameters in the terms calibrate reports them with ``[sensors.can] delay_s = delay_s``
     (see the module docstring)."""
-    speed_age = settings.obd_delay_s if settings.speed_source == "obd" else settings.can_sensor_delay_s
+    speed_age = settings.can_sensor_delay_s + settings.speed_age_beyond_s
     return {
         "gps_time_offset_s": calibration["gps_time_offset_s"] + speed_age - delay_s,
         "speed_scale": calibration["speed_scale"],
         "yaw_rate_bias_dps": calibration["yaw_rate_bias_dps"],
         "yaw_rate_scale": calibration["yaw_rate_scale"],
-        "can_delay_s": speed_age - settings.can_sensor_delay_s,
+        "can_delay_s": settings.speed_age_beyond_s,
     }
 
 

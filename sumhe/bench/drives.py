@@ -229,12 +229,11 @@ def with_drive_can(settings: SimSettings, target: WithCan) -> WithCan:
     (:func:`drive_quanta`) and its sensors' ages as calibrated: the chassis sensors' delay, and where the speed is
     an OBD-II reply's, how much older than that it is."""
     quanta = drive_quanta(settings)
-    obd = settings.speed_source == "obd"
     return with_changes(
         target,
         {
             "can.delay_s": settings.can_sensor_delay_s,
-            "can.speed_delay_s": settings.obd_delay_s - settings.can_sensor_delay_s if obd else 0.0,
+            "can.speed_delay_s": settings.speed_age_beyond_s,
             "can.speed_resolution_mps": quanta["speed"],
             "can.yaw_rate_resolution_rps": quanta["yaw_rate"],
         },

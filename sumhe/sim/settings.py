@@ -227,6 +227,13 @@ class SimSettings:
         """``gps_error_m``, or the error model's default when it is None."""
         return DEFAULT_GPS_ERROR_M[self.gps_error] if self.gps_error_m is None else self.gps_error_m
 
+    @property
+    def speed_age_beyond_s(self) -> float:
+        """How much older the CAN speed is than the yaw rate (s): an OBD-II reply's ``obd_delay_s`` beyond the chassis
+        sensors' ``can_sensor_delay_s``, 0 for a broadcast speed (``sumhe calibrate``'s ``can_delay_s``, the
+        config's ``sensors.can.speed_delay_s``)."""
+        return self.obd_delay_s - self.can_sensor_delay_s if self.speed_source == "obd" else 0.0
+
 
 _FLOAT_FIELDS = tuple(f.name for f in dataclasses.fields(SimSettings) if f.type in ("float", "float | None"))
 """Fields normalised from int to float, so equal settings always write the same scenario.toml."""
