@@ -11,7 +11,15 @@ import numpy as np
 import pytest
 from scipy.stats import binomtest
 
-from sumhe.bench.compare import compare, lines, outage_errors, pick_names, split
+from sumhe.bench.compare import (
+    calibration_cells,
+    calibration_lines,
+    compare,
+    lines,
+    outage_errors,
+    pick_names,
+    split,
+)
 from sumhe.cli import main
 
 
@@ -107,6 +115,13 @@ def test_the_command_reads_files_or_their_folders_and_names_what_is_wrong(
     assert main(["bench", "compare", str(new), "--estimators", "ekf,mhe", "--top", "1"]) == 0
     out = capsys.readouterr().out
     assert "| all | 4 | 4 | 0 |" in out and len(re.findall(r"^\| d\d ", out, re.M)) == 1
+    assert "error estimates" not in out  # results without the figures: the outages alone
+    with_cells = _peers({"mhe": [1.0, 2.0, 3.0, 4.0]})
+    with_cells["profiles"] = {"realistic": {"mhe": {"calibration": {"with_gps": _calibration(0.99, 2.0)}}}}
+    (tmp_path / "cells.json").write_text(json.dumps(with_cells))
+    assert main(["bench", "compare", str(tmp_path / "old"), str(tmp_path / "cells.json")]) == 0
+    out = capsys.readouterr().out
+    assert "| realistic with GPS | – | 99.0 % (2.00x) | – -> share |" in out
     assert main(["bench", "compare", str(tmp_path), str(new)]) != 0
     assert "no peers.json or recorded.json" in capsys.readouterr().err
     (tmp_path / "bad.json").write_text("{")
@@ -117,3 +132,45 @@ def test_the_command_reads_files_or_their_folders_and_names_what_is_wrong(
     for option in ("--top", "--tolerance"):
         assert main(["bench", "compare", str(new), option, "-1"]) != 0
         assert f"{option}: must be 0 or more" in capsys.readouterr().err
+
+
+def _calibration(share: float, ratio: float, n: int = 100) -> dict:
+    """A bench's calibration entry: ``share`` of the errors within ``eph``, median ``eph`` ``ratio`` times the error."""
+    return {"n": n, "eph_coverage": share, "eph_over_error": ratio, "median_eph_m": 3.0 * ratio, "median_error_m": 3.0}
+
+
+def test_the_error_estimate_cells_of_both_kinds_of_result() -> None:
+    peers = _peers({"mhe": [1.0], "ekf": [2.0]})
+    peers["profiles"] = {
+        "realistic": {
+            "mhe": {"calibration": {"with_gps": _calibration(0.989, 2.87), "outage": _calibration(0.95, 2.5)}},
+            "ekf": {"calibration": {"with_gps": _calibration(0.9, 2.0), "outage": _calibration(0.0, 0.0, n=0)}},
+            "dr": {},
+        }
+    }
+    cells = calibration_cells(peers)
+    assert cells["mhe"] == {"realistic with GPS": (0.989, 2.87), "realistic in outages": (0.95, 2.5)}
+    assert cells["ekf"] == {"realistic with GPS": (0.9, 2.0)}  # a cell of no estimates is left out
+    assert "dr" not in cells
+    recorded = _recorded({"mhe": [1.0, 2.0]})
+    recorded[0]["lengths"][0]["rows"]["mhe"]["calibration"] = _calibration(0.951, 3.22)
+    assert calibration_cells(recorded) == {"mhe": {"car 10 s": (0.951, 3.22)}}
+    assert calibration_cells(_peers({"mhe": [1.0]})) == {}  # an older result without the figures
+    for bad in ({"placements": [], "profiles": {"realistic": {"mhe": 3}}}, {"profiles": {}}, "text", [{"drive": 1}]):
+        with pytest.raises(ValueError, match="not a sumhe bench result"):
+            calibration_cells(bad)
+
+
+def test_the_error_estimate_cells_side_by_side_say_which_targets_each_run_misses() -> None:
+    before = {"A with GPS": (0.989, 2.87), "A in outages": (0.95, 2.5), "B 10 s": (0.951, 3.22)}
+    after = {"A with GPS": (0.969, 4.2), "A in outages": (0.95, 2.5), "B 60 s": (0.898, 2.4)}
+    text = calibration_lines(before, after, ("mhe", "mhe2"))
+    assert text[0].startswith("error estimates, `mhe` -> `mhe2`")
+    rows = {line.split(" | ")[0].lstrip("| "): line for line in text if line.startswith("| ")}
+    assert rows["A with GPS"] == "| A with GPS | 98.9 % (2.87x) | 96.9 % (4.20x) | share -> ratio |"
+    assert rows["A in outages"].endswith("| none -> none |")
+    assert rows["B 10 s"] == "| B 10 s | 95.1 % (3.22x) | – | ratio -> – |"  # only in the run before
+    assert rows["B 60 s"] == "| B 60 s | – | 89.8 % (2.40x) | – -> share |"
+    assert rows["cells missing a target"].endswith("| 2 -> 2 |")
+    assert calibration_lines({}, {}, ("a", "b")) == []
+    assert "none -> share, ratio" in "\n".join(calibration_lines({"c": (0.95, 2.0)}, {"c": (0.99, 3.5)}, ("a", "b")))

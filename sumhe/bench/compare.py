@@ -9,6 +9,11 @@ bench in ``peers.json``'s ``placements``, the recorded one in ``recorded.json``'
 got better and how many worse beyond a tolerance, how likely that split is without a change (the two-sided sign
 test), the mean change with its interval over the outages (the benches' seeded bootstrap,
 :func:`~sumhe.bench.metrics.mean_interval`) and which outages moved most.
+The error estimates are compared beside the errors, cell by cell as the benches report them (per simulator profile
+with GPS and in outages, per recorded drive and outage length): the share of errors within ``eph`` and the median
+``eph`` over the median error before and after, and which cells crossed a target (issue 13's, in
+:mod:`sumhe.bench.metrics`): a change that makes the estimates better can move a share across one without the
+error estimates changing at all, and a judgement needs both tables side by side.
 Pure: plain data in (the JSON as read), plain data out.
 """
 
@@ -22,10 +27,13 @@ from typing import Any
 import numpy as np
 from scipy.stats import binomtest
 
-from sumhe.bench.metrics import mean_interval
+from sumhe.bench.metrics import coverage_met, mean_interval, ratio_met
 
 OutageKey = tuple[str, float, float]
 """An outage: the drive's name, its length and its start (s from the drive's start)."""
+Cell = tuple[float | None, float | None]
+"""One error-estimate cell: the share of errors within ``eph`` and the median ``eph`` over the median error (None:
+the bench had no figure)."""
 
 
 def outage_errors(result: Any) -> dict[str, dict[OutageKey, float]]:
@@ -38,6 +46,89 @@ def outage_errors(result: Any) -> dict[str, dict[OutageKey, float]]:
         raise ValueError(
             f"not a sumhe bench result (peers.json or recorded.json): a field missing or malformed ({e})"
         ) from e
+
+
+def calibration_cells(result: Any) -> dict[str, dict[str, Cell]]:
+    """Per estimator, its error-estimate cells by name (``realistic with GPS``, ``realistic in outages``; ``DRIVE
+    10 s``) in a benchmark result (:func:`outage_errors`'s kinds; an estimator or cell without figures is left
+    out). ValueError as :func:`outage_errors`."""
+    try:
+        return _calibration_cells(result)
+    except (KeyError, TypeError, AttributeError) as e:
+        raise ValueError(
+            f"not a sumhe bench result (peers.json or recorded.json): a field missing or malformed ({e})"
+        ) from e
+
+
+def _cell(c: Any) -> Cell | None:
+    if not isinstance(c, Mapping) or not c.get("n"):
+        return None
+    return c.get("eph_coverage"), c.get("eph_over_error")
+
+
+def _calibration_cells(result: Any) -> dict[str, dict[str, Cell]]:
+    out: dict[str, dict[str, Cell]] = {}
+
+    def add(name: str, label: str, c: Any) -> None:
+        cell = _cell(c)
+        if cell is not None:
+            out.setdefault(name, {})[label] = cell
+
+    if isinstance(result, Mapping) and isinstance(result.get("placements"), list):
+        for profile, rows in result.get("profiles", {}).items():
+            for name, row in rows.items():
+                calibration = row.get("calibration", {})
+                add(name, f"{profile} with GPS", calibration.get("with_gps"))
+                add(name, f"{profile} in outages", calibration.get("outage"))
+        return out
+    if isinstance(result, list):
+        for drive in result:
+            for length in drive["lengths"]:
+                for name, row in length["rows"].items():
+                    add(name, f"{drive['drive']} {float(length['length_s']):g} s", row.get("calibration"))
+        return out
+    raise ValueError("not a sumhe bench result (peers.json or recorded.json)")
+
+
+def _cell_text(cell: Cell | None) -> str:
+    if cell is None:
+        return "–"
+    share, ratio = cell
+    text = "–" if share is None else f"{100 * share:.1f} %"
+    return text + ("" if ratio is None else f" ({ratio:.2f}x)")
+
+
+def _misses(cell: Cell | None) -> str:
+    """Which targets ``cell`` misses ("share", "ratio", both, or "none"; "–" without figures)."""
+    if cell is None:
+        return "–"
+    missed = [what for what, met in (("share", coverage_met(cell[0])), ("ratio", ratio_met(cell[1]))) if not met]
+    return ", ".join(missed) or "none"
+
+
+def calibration_lines(before: Mapping[str, Cell], after: Mapping[str, Cell], names: tuple[str, str]) -> list[str]:
+    """The two runs' error-estimate cells side by side (Markdown): the share within ``eph`` (the median ``eph`` over
+    the median error), the targets each run misses in the cell, and how many it misses in all."""
+    labels = [label for label in before if label in after] + [label for label in after if label not in before]
+    labels += [label for label in before if label not in after]
+    if not labels:
+        return []
+    out = [
+        f"error estimates, `{names[0]}` -> `{names[1]}`: the share of errors within `eph` (the median `eph` over the "
+        "median error) and the targets missed: a share outside 90-98 %, a ratio above 3",
+        "",
+        "| cell | before | after | missed before -> after |",
+        "|---|---|---|---|",
+    ]
+    total = [0, 0]
+    for label in labels:
+        b, a = before.get(label), after.get(label)
+        missed = (_misses(b), _misses(a))
+        total[0] += missed[0] not in ("none", "–")
+        total[1] += missed[1] not in ("none", "–")
+        out.append(f"| {label} | {_cell_text(b)} | {_cell_text(a)} | {missed[0]} -> {missed[1]} |")
+    out.append(f"| cells missing a target | | | {total[0]} -> {total[1]} |")
+    return out
 
 
 def _outage_errors(result: Any) -> dict[str, dict[OutageKey, float]]:

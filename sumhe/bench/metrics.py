@@ -42,10 +42,26 @@ CALIBRATION_COLUMNS = ("error_m", "eph_m", "box_ratio", "box_half_m", "group")
 ``|error east| / bound_east`` and ``|error north| / bound_north``: inside when <= 1), the box's larger half-width
 (NaN where the estimate has no ``eph`` or no box), and the group it belongs to (an outage, a drive): estimates of one
 group share their errors' slow parts, so a group, not an estimate, is what an interval resamples."""
+EPH_TARGET = (0.90, 0.98)
+"""The share of errors within ``eph`` the error estimates aim at (issue 13): 95 % nominal, 90-98 % accepted."""
+EPH_OVER_ERROR_MAX = 3.0
+"""Median ``eph`` at most this many times the median error (issue 13)."""
+BOX_TARGET = 0.99
+"""The share of estimates whose bound box holds the truth, on bounded-noise drives (issue 13)."""
 COVERAGE_INTERVAL = (5.0, 95.0)
 """The percentiles of the bootstrap's coverages :func:`calibration` reports: a 90 % interval."""
 BOOTSTRAP_DRAWS = 2000
 """Resamples of the groups behind :func:`calibration`'s interval (its percentiles to a few tenths of a point)."""
+
+
+def coverage_met(share: float | None) -> bool:
+    """Whether a share of errors within ``eph`` meets :data:`EPH_TARGET`."""
+    return share is not None and EPH_TARGET[0] <= share <= EPH_TARGET[1]
+
+
+def ratio_met(ratio: float | None) -> bool:
+    """Whether a median ``eph`` over median error meets :data:`EPH_OVER_ERROR_MAX`."""
+    return ratio is not None and ratio <= EPH_OVER_ERROR_MAX
 
 
 def calibration_columns(

@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sumhe.bench import metrics
+from sumhe.bench.metrics import BOX_TARGET, EPH_OVER_ERROR_MAX, EPH_TARGET
 from sumhe.bench.peers import MEMORY_METHOD, BenchReport, DriveInfo, RunResult
 from sumhe.service.histogram import histogram_percentile, latency_histogram
 
@@ -266,14 +267,6 @@ def main_table(summary: Mapping[str, Any], profile: str) -> list[str]:
     return lines
 
 
-EPH_TARGET = (0.90, 0.98)
-"""The share of errors within ``eph`` the error estimates aim at (issue 13): 95 % nominal, 90-98 % accepted."""
-EPH_OVER_ERROR_MAX = 3.0
-"""Median ``eph`` at most this many times the median error (issue 13)."""
-BOX_TARGET = 0.99
-"""The share of estimates whose bound box holds the truth, on bounded-noise drives (issue 13)."""
-
-
 def calibration_table(summary: Mapping[str, Any], profile: str) -> list[str]:
     """Error estimates and bound boxes against the errors, with GPS and in outages (Markdown); each cell says
     whether it meets the targets (:data:`EPH_TARGET`, :data:`EPH_OVER_ERROR_MAX`, :data:`BOX_TARGET`)."""
@@ -301,14 +294,17 @@ def calibration_cells(c: Mapping[str, Any]) -> list[str]:
     if not c or not c.get("n"):
         return ["–", "–", *_box_cells(c)]
     cover, ratio = c.get("eph_coverage"), c.get("eph_over_error")
-    met = cover is not None and EPH_TARGET[0] <= cover <= EPH_TARGET[1]
-    ratio_met = ratio is not None and ratio <= EPH_OVER_ERROR_MAX
     return [
-        f"{_num(100 * cover if cover is not None else None, 1)} % {'(met)' if met else '(missed)'}{_interval(c)}",
+        f"{_num(100 * cover if cover is not None else None, 1)} % {_verdict(metrics.coverage_met(cover))}"
+        f"{_interval(c)}",
         f"{_num(c.get('median_eph_m'))} / {_num(c.get('median_error_m'))} = {_num(ratio)}"
-        f" {'(met)' if ratio_met else '(missed)'}",
+        f" {_verdict(metrics.ratio_met(ratio))}",
         *_box_cells(c),
     ]
+
+
+def _verdict(met: bool) -> str:
+    return "(met)" if met else "(missed)"
 
 
 def _interval(c: Mapping[str, Any]) -> str:

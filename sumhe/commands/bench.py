@@ -124,10 +124,10 @@ def run_compare(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from sumhe.bench.compare import compare, lines, outage_errors, pick_names
+    from sumhe.bench.compare import calibration_cells, calibration_lines, compare, lines, outage_errors, pick_names
     from sumhe.errors import ConfigError
 
-    def read(text: str) -> dict[str, Any]:
+    def read(text: str) -> tuple[dict[str, Any], dict[str, Any]]:
         path = Path(text)
         if path.is_dir():
             found = [path / n for n in ("peers.json", "recorded.json") if (path / n).is_file()]
@@ -135,24 +135,24 @@ def run_compare(args: argparse.Namespace) -> int:
                 raise ConfigError(f"bench compare: {text}: no peers.json or recorded.json in it")
             path = found[0]
         try:
-            return outage_errors(json.loads(path.read_text(encoding="utf-8")))
+            result = json.loads(path.read_text(encoding="utf-8"))
+            return outage_errors(result), calibration_cells(result)
         except (OSError, ValueError) as e:
             raise ConfigError(f"bench compare: {text}: {e}") from e
 
     for name, value in (("--tolerance", args.tolerance), ("--top", args.top)):
         if not value >= 0:
             raise ConfigError(f"bench compare: {name}: must be 0 or more, got {value!r}")
-    before = read(args.before)
-    after = read(args.after) if args.after else before
+    before, cells_before = read(args.before)
+    after, cells_after = read(args.after) if args.after else (before, cells_before)
     try:
         pairs = pick_names(before, after, _names(args.estimators or ""))
     except ValueError as e:
         raise ConfigError(f"bench compare: {e}") from e
     for k, (old, new) in enumerate(pairs):
-        print(
-            ("\n" if k else "")
-            + "\n".join(lines(compare(before[old], after[new], (old, new), args.tolerance, args.top)))
-        )
+        text = lines(compare(before[old], after[new], (old, new), args.tolerance, args.top))
+        cells = calibration_lines(cells_before.get(old, {}), cells_after.get(new, {}), (old, new))
+        print(("\n" if k else "") + "\n".join(text + (["", *cells] if cells else [])))
     return 0
 
 
