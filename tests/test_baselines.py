@@ -902,8 +902,9 @@ def test_headings_the_receiver_rates_poor_weigh_as_it_rates_them(name: str) -> N
     8 deg off, all to one side) says so in its heading accuracy: 10 s of headings 6 deg to the right of the way north,
     rated 6 deg, leave the azimuth within a tenth of a degree or so of the way (the fixes hold it), every fix used;
     the same headings unrated, at the configured 0.29 deg, turn it by 1-4 (MHE: 4 deg until its fixes' speed over
-    ground was weighed with the error of their unlearned time, 0.9 deg since) to 6.5 deg (EKF), and fixes are
-    rejected (the MHE's solves fail: no trajectory of the window meets both the fixes and such headings)."""
+    ground was weighed with the error of their unlearned time, 0.9 deg since; 1.9 deg since a 10 Hz receiver's fixes
+    weigh as one a second, ``estimator.mhe.fix_correlation_s``) to 6.5 deg (EKF), and the EKF rejects fixes (so did
+    the MHE before that weighing: no trajectory of the window met both the fixes and such headings)."""
 
     def run(rated: bool) -> tuple[float, Mapping[str, object]]:
         est = make_estimator(name, load_config())
@@ -919,4 +920,5 @@ def test_headings_the_receiver_rates_poor_weigh_as_it_rates_them(name: str) -> N
     worst, stats = run(rated=True)
     assert worst < 0.5 and "gps_rejected" not in stats and "failed_solves" not in stats
     worst, stats = run(rated=False)
-    assert worst > (0.5 if name == "mhe" else 3.0) and int(stats["gps_rejected"]) > 10  # type: ignore[call-overload]
+    assert worst > (0.5 if name == "mhe" else 3.0)
+    assert name == "mhe" or int(stats["gps_rejected"]) > 10  # type: ignore[call-overload]

@@ -80,6 +80,7 @@ def test_signal_mapping_string_and_table_forms(tmp_path):
         ("[estimator]\nmodel = 'su9'\n", "estimator.model"),
         ("[sensors.can]\nspeed_rounding = 'down'\n", "sensors.can.speed_rounding"),
         ("[sensors.can]\nspeed_delay_s = 1.5\n", "sensors.can.speed_delay_s"),
+        ("[estimator.mhe]\nfix_correlation_s = -1.0\n", "estimator.mhe.fix_correlation_s"),
         ("can = 3\n", "can"),
     ],
 )

@@ -36,7 +36,10 @@ class MheSettings:
     times ``bound_margin``, at most ``bound_max_factor`` times the allowances; ``docs/mhe.md``). ``nlp_max_iter``
     limits the ``ipopt``/``fatrop`` solvers. ``rest_bias_rps``: how far (one sigma, rad/s) the CAN yaw rate's bias
     at rest may differ from its bias in motion, the floor of a stop's weight as a measurement of the bias
-    (:mod:`sumhe.estimator.mhe.standstill`; a large value leaves stops unused)."""
+    (:mod:`sumhe.estimator.mhe.standstill`; a large value leaves stops unused). ``fix_correlation_s``: GNSS fixes
+    closer together than this (s) are not independent measurements (a receiver's own filter, its slowly varying
+    errors): at a shorter GNSS period each fix's allowances grow by ``sqrt(fix_correlation_s / period)``, so a second
+    of fixes weighs as one fix (0: every fix as independent; :func:`sumhe.estimator.mhe.outputs.fix_outputs`)."""
 
     solver: str = "sqp"
     steps: int = 50
@@ -53,6 +56,7 @@ class MheSettings:
     trapezoid_q: float = 0.1
     theta_drift: float = 0.05
     rest_bias_rps: float = 0.001
+    fix_correlation_s: float = 1.0
     gate_m: float = 2.0
     gate_drift: float = 0.05
     max_retries: int = 2
@@ -66,7 +70,7 @@ class MheSettings:
         at_least(self, 1, "max_merge", "bucket_steps", "sqp_iterations", "qp_max_iter", "nlp_max_iter", "bound_history")
         at_least(self, 1.0, "bound_margin", "bound_max_factor")
         at_least(self, 2, "steps")
-        at_least(self, 0, "steps_before", "steps_after", "shrink_steps", "max_retries")
+        at_least(self, 0, "steps_before", "steps_after", "shrink_steps", "max_retries", "fix_correlation_s")
         if self.max_steps < self.steps:
             raise ValueError(f"max_steps: must be >= steps ({self.steps}), got {self.max_steps!r}")
         if self.steps_before >= self.steps:
