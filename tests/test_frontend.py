@@ -14,6 +14,7 @@ from sumhe.baseline.ekf import Ekf
 from sumhe.config import DatumSettings
 from sumhe.estimator.grid import _fix_sigmas
 from sumhe.estimator.mhe import MovingHorizonEstimator
+from sumhe.estimator.mhe.outputs import correlation_factor
 from sumhe.frontend.alignment import UNLEARNED_TIME_OFFSET_SD_S
 from sumhe.frontend.can import CanBuffer
 from sumhe.frontend.epochs import EpochClock, nominal_period
@@ -208,7 +209,9 @@ def test_every_family_reads_the_same_fix_sigma() -> None:
     for est in (mhe, ekf):
         est.push(CanSample(9.99, "speed", 0.0))
         est.push(rtk)
-    k = settings.estimator.r_cap_sigmas
+    # the MHE's allowance: r_cap_sigmas of it, grown as a fix at the configured GNSS period (0.1 s until the stream
+    # shows its own) weighs as its share of one a second (estimator.mhe.fix_correlation_s)
+    k = settings.estimator.r_cap_sigmas * correlation_factor(mhe.period_s, settings.estimator.mhe.fix_correlation_s)
     assert mhe.window.allow[0, mhe.model.j_position[0]] == pytest.approx(k * 0.02)
     assert ekf.P[0, 0] == pytest.approx((ekf.noise.gps_scale * 0.02) ** 2)
 

@@ -376,6 +376,8 @@ def test_fixes_faster_than_the_correlation_time_weigh_as_its_share_of_one() -> N
     assert correlation_factor(0.1, 1.0) == pytest.approx(math.sqrt(10.0))
     assert correlation_factor(0.2, 1.0) == pytest.approx(math.sqrt(5.0))
     assert correlation_factor(1.0, 1.0) == correlation_factor(2.0, 1.0) == correlation_factor(0.1, 0.0) == 1.0
+    assert correlation_factor(0.9993, 1.0) == correlation_factor(1.2, 1.0) == 1.0  # a 1 Hz receiver's measured period
+    assert correlation_factor(0.0998, 1.0) == pytest.approx(math.sqrt(10.0))
     model = MovingHorizonEstimator(SETTINGS).model
     fix = dataclasses.replace(fix_at(0.0, 5.0), azimuth_rad=0.3, speed_mps=10.0)
 

@@ -38,7 +38,7 @@ class MheSettings:
     at rest may differ from its bias in motion, the floor of a stop's weight as a measurement of the bias
     (:mod:`sumhe.estimator.mhe.standstill`; a large value leaves stops unused). ``fix_correlation_s``: GNSS fixes
     closer together than this (s) are not independent measurements (a receiver's own filter, its slowly varying
-    errors): at a shorter GNSS period each fix's allowances grow by ``sqrt(fix_correlation_s / period)``, so a second
+    errors): at a shorter GNSS period each fix's allowances grow by the square root of the fixes within it, so a second
     of fixes weighs as one fix (0: every fix as independent; :func:`sumhe.estimator.mhe.outputs.fix_outputs`)."""
 
     solver: str = "sqp"

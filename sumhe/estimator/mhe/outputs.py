@@ -76,7 +76,8 @@ def fix_outputs(
 
 def correlation_factor(period_s: float, correlation_s: float) -> float:
     """How much a fix's allowances grow at a GNSS period of ``period_s`` when fixes within ``correlation_s`` of each
-    other are one measurement: ``sqrt(correlation_s / period_s)``, at least 1.
+    other are one measurement: the square root of how many fixes that is (``correlation_s / period_s`` to the
+    nearest whole fix, at least one: a 1 Hz receiver's period measured as 0.9993 s is one fix a second).
 
     A receiver at 5 or 10 Hz does not measure anew each time: its solutions come out of its own filter, and its
     position errors wander over tens of seconds (multipath, atmosphere). Taken as independent, ten fixes a second
@@ -84,9 +85,9 @@ def correlation_factor(period_s: float, correlation_s: float) -> float:
     10 Hz (seed 14) the positions' slow error curved their track in the seconds after driving off, and the window
     took the yaw-rate bias from the stop's 0.225 deg/s (true 0.226) to 0.03 deg/s; the 30 s outage 22 s in was
     34.8 m off on the mean (the EKF, whose bias kept the stop's, 2.6 m), 16.8 m with the fixes weighed so."""
-    if period_s <= 0.0 or correlation_s <= period_s:
+    if period_s <= 0.0:
         return 1.0
-    return math.sqrt(correlation_s / period_s)
+    return math.sqrt(max(1, round(correlation_s / period_s)))
 
 
 def can_outputs(
