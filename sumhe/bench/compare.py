@@ -20,9 +20,9 @@ Pure: plain data in (the JSON as read), plain data out.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from scipy.stats import binomtest
@@ -31,6 +31,7 @@ from sumhe.bench.metrics import coverage_met, mean_interval, ratio_met
 
 OutageKey = tuple[str, float, float]
 """An outage: the drive's name, its length and its start (s from the drive's start)."""
+Parsed = TypeVar("Parsed")
 Cell = tuple[float | None, float | None]
 """One error-estimate cell: the share of errors within ``eph`` and the median ``eph`` over the median error (None:
 the bench had no figure)."""
@@ -40,20 +41,20 @@ def outage_errors(result: Any) -> dict[str, dict[OutageKey, float]]:
     """Per estimator, each outage's mean error (m) in a benchmark result as ``sumhe bench --out`` writes it: the
     simulated bench's ``peers.json`` (a mapping with ``placements``) or the recorded bench's ``recorded.json`` (a
     list of drives). ValueError for anything else, a result without the fields it needs too."""
-    try:
-        return _outage_errors(result)
-    except (KeyError, TypeError, AttributeError) as e:
-        raise ValueError(
-            f"not a sumhe bench result (peers.json or recorded.json): a field missing or malformed ({e})"
-        ) from e
+    return _parsed(_outage_errors, result)
 
 
 def calibration_cells(result: Any) -> dict[str, dict[str, Cell]]:
     """Per estimator, its error-estimate cells by name (``realistic with GPS``, ``realistic in outages``; ``DRIVE
     10 s``) in a benchmark result (:func:`outage_errors`'s kinds; an estimator or cell without figures is left
     out). ValueError as :func:`outage_errors`."""
+    return _parsed(_calibration_cells, result)
+
+
+def _parsed(parse: Callable[[Any], Parsed], result: Any) -> Parsed:
+    """``parse(result)``; a result without the fields it reads a ValueError that says so."""
     try:
-        return _calibration_cells(result)
+        return parse(result)
     except (KeyError, TypeError, AttributeError) as e:
         raise ValueError(
             f"not a sumhe bench result (peers.json or recorded.json): a field missing or malformed ({e})"
