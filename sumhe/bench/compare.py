@@ -27,7 +27,7 @@ from typing import Any, TypeVar
 import numpy as np
 from scipy.stats import binomtest
 
-from sumhe.bench.metrics import coverage_met, mean_interval, ratio_met
+from sumhe.bench.metrics import EPH_OVER_ERROR_MAX, EPH_TARGET, coverage_met, mean_interval, ratio_met
 
 OutageKey = tuple[str, float, float]
 """An outage: the drive's name, its length and its start (s from the drive's start)."""
@@ -116,7 +116,8 @@ def calibration_lines(before: Mapping[str, Cell], after: Mapping[str, Cell], nam
         return []
     out = [
         f"error estimates, `{names[0]}` -> `{names[1]}`: the share of errors within `eph` (the median `eph` over the "
-        "median error) and the targets missed: a share outside 90-98 %, a ratio above 3",
+        f"median error) and the targets missed: a share outside {100 * EPH_TARGET[0]:g}-{100 * EPH_TARGET[1]:g} %, "
+        f"a ratio above {EPH_OVER_ERROR_MAX:g}",
         "",
         "| cell | before | after | missed before -> after |",
         "|---|---|---|---|",
