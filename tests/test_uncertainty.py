@@ -344,24 +344,6 @@ def test_the_part_of_the_covariance_at_a_fix_a_considered_parameter_makes_is_shr
     )
 
 
-def test_a_considered_errors_growth_is_added_as_known_not_scaled_and_not_learned_from() -> None:
-    # gaps whose change is the fixes' errors, a considered error (the IMM's dropped turn: 8 m^2 per axis, right)
-    # and an own growth 4 times what the estimator claims (1 m^2 per axis claimed): the growth scale learns the 4
-    # from what the considered part leaves (taken into the scaled growth, it learned 1.3), and the error estimate
-    # adds the considered part as it is (scaled, a growth scale of 512 learned from other gaps made an urban
-    # drive's eph 1010 m over a 55 s outage where the error was 19 m)
-    scale = InnovationScale()
-    _innovations(scale, 500, var_p=1.0, var_r=0.25, var_g=0.0, periods=1.0)
-    rng = np.random.default_rng(7)
-    for k in range(2000):
-        nu = rng.standard_normal(2) * math.sqrt(1.0 + 0.25 + 4.0 + 8.0)
-        scale.add(600.0 + k, nu, 0.5, 2.0, 2.0 + 16.0, 30.0, known_m2=16.0)
-    assert scale.growth_scale == pytest.approx(4.0, rel=0.25)
-    at_fix, later = Spread(1.0, 1.0, 0.0, 0.1, 0.01), Spread(10.0, 10.0, 0.0, 0.1, 0.01)
-    grown = scale.scale * 2.0 + scale.growth_scale * scale.growth_spread * 2.0 + 16.0
-    assert scale.calibrated(later, at_fix, known_m2=16.0).var_east_m2 == pytest.approx(0.5 * grown)
-
-
 def test_an_underconfident_growth_is_shrunk_to_what_the_gaps_say() -> None:
     # an estimator whose own growth through gaps is 4 times what the fixes after them find (variance): the MHE,
     # whose growth from the bounds read as sigmas was 15-100 times the real drive's; under the old rule (at

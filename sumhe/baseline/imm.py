@@ -6,21 +6,22 @@ random walk of ``theta''``): the orientation turns by the yaw rate in both, and 
 velocity to the vehicle, to first order in the straight model (so that "both straight and mild trajectories fulfill
 the kinematical definition of the model") and to second order in the curved one. The shared state has no such
 angle (its azimuth is the velocity's), so both cells are the shared su5 step, the azimuth turning with the yaw rate
-(``phi' = -omega``, the CAN yaw rate ``omega + b`` measuring it), and they differ in how fast the turning may
-change: the yaw rate's random walk ``yaw_rate_rw`` of the straight model's noise (the EKF's) and the curved
-model's, 4x louder (both scale with the step, so which model predicts a steady yaw rate better does not depend on
-the CAN rate).
+(``phi' = -omega``, ``omega`` the CAN yaw rate less its bias, over its gain), and they differ in how fast the
+turning may change: the yaw rate's random walk ``yaw_rate_rw`` of the straight model's noise (the EKF's) and the
+curved model's, 4x louder (both scale with the step, so which model predicts a steady yaw rate better does not
+depend on the CAN rate).
 
 The CAN yaw rate is what tells them apart: where the yaw rate changes fast (into and out of a turn) the straight
-cell's yaw-rate innovation leaves its predicted spread, its likelihood (003 eq. 20, ``exp(-d^2/2) / sqrt((2 pi)^M
-|S|)`` with ``d^2 = nu' S^-1 nu``, eq. 19) collapses and the curved model takes over; at a steady yaw rate,
-straight or a gentle bend, the straight cell predicts the CAN data more tightly and is kept. Before, the straight
-cell held its azimuth and drew its yaw rate about zero at every step (white, sigma 0.01 rad/s): a minute-long gentle
-bend (26 deg at 0.0075 rad/s) stayed within that sigma, the straight cell kept the probability (``p_turn``
-0.03-0.07) and an azimuth 10-26 deg off with a sigma of 0.3-0.5 deg, half the fixes after it failed the gate and
-the outages starting there ended hundreds of metres off: on the shared real drive without the receiver's heading
-9.0 / 23.6 / 49.6 m mean in its 10 / 30 / 60 s outages (the EKF 3.2 / 4.6 / 5.9 m), with ``eph`` 8-14 times the
-median error; a cell whose yaw rate is about zero explains a bend's steady CAN yaw rate as the CAN's bias, too.
+cell's prediction of it (the previous sample's rate, held through the step) leaves its predicted spread, its
+likelihood (003 eq. 20, ``exp(-d^2/2) / sqrt((2 pi)^M |S|)`` with ``d^2 = nu' S^-1 nu``, eq. 19) collapses and the
+curved model takes over; at a steady yaw rate, straight or a gentle bend, the straight cell predicts the CAN data
+more tightly and is kept. Before, the straight cell held its azimuth and drew its yaw rate about zero at every step
+(white, sigma 0.01 rad/s): a minute-long gentle bend (26 deg at 0.0075 rad/s) stayed within that sigma, the straight
+cell kept the probability (``p_turn`` 0.03-0.07) and an azimuth 10-26 deg off with a sigma of 0.3-0.5 deg, half the
+fixes after it failed the gate and the outages starting there ended hundreds of metres off: on the shared real drive
+without the receiver's heading 9.0 / 23.6 / 49.6 m mean in its 10 / 30 / 60 s outages (the EKF 3.2 / 4.6 / 5.9 m),
+with ``eph`` 8-14 times the median error; a cell whose yaw rate is about zero explains a bend's steady CAN yaw rate
+as the CAN's bias, too.
 
 Model probabilities follow Bayes' rule (eq. 21) after the interaction (mixing) of the cells; the switching is a
 two-state Markov chain, ``Pi[i, j] = P(model j after dt | model i before)``, with mean sojourn times whose 1 s
@@ -28,7 +29,7 @@ transition matrix is paper 002's, trained on real driving data (its Sigma = [[0.
 0.7672]] per 1 s GPS epoch: 11.5 s straight, 3.8 s manoeuvring). Measurement noise, gate and priors come from the
 straight model's :class:`~sumhe.settings.NoiseSettings`; the output is the probability-weighted mean. Each cell
 estimates the offset of a receiver's heading as the EKF does (:class:`Imm`). Its error estimate is the mixture's
-covariance with the turn the mixture dropped since the newest position fix (:func:`dropped_turn`).
+covariance.
 
 Like the EKF, it takes each CAN yaw-rate sample before the step through its time
 (:class:`~sumhe.baseline.ekf.YawRateBeforeStep`). Taken at the CAN speed tick after the step, the azimuth turned
@@ -46,19 +47,15 @@ a second of such courses it snapped both cells' azimuth to them (16 deg off, hel
 off after 5 s), and the speed scale took the first acceleration's speed over ground (13 % off at 8 s, 2.5 % at
 30 s: 7-8 m behind with GPS on a highway, 13 m at the end of a 10 s outage).
 
-The dropped turn: the mixture, its cells drawn together by the interaction at every step, turns by their turns
-weighted by their probabilities, ``mu_straight x (curved turn - straight turn)`` less than the curved cell where the
-curved model is right. When the straight cell held its azimuth (above), on the shared real drive the turn the
-mixture so dropped over a 60 s outage reached 0.31 and 0.34 rad, whose cross-track error (``turn x speed x duration
-/ 2``: 196 and 246 m) is what the fixes after the outage found (188 and 421 m); both cells now turn by their own yaw
-rate and differ only where the straight cell's lags the curved one's (a turn's start and end). The mixture's
-covariance holds the cells' spread at each step only, and the interaction turns a divergence of one sign, step after
-step, into independent steps of a random walk. The turn the curved model makes and the mixture does
-not is the mixture's error where the curved model is right; it is carried as a considered error (the estimates do
-not change) from one position fix to the next: the azimuth's and the position's it makes along the way moved. Its
-part of the position's variance is a known error's size, not the filter's belief: the error estimate adds it as it
-is, beside the growth the gaps' fixes scale (:meth:`Imm.considered_growth_m2`,
-:class:`~sumhe.estimator.uncertainty.InnovationScale`).
+The CAN yaw rate weighs the cells first (the likelihood of what each predicted), then each takes it as an input
+(:func:`~sumhe.baseline.ekf.yaw_rate_input`: its yaw rate is the CAN's, less the bias, over the gain), so both turn
+alike. While the CAN yaw rate was a measurement of each cell's yaw-rate state, the straight cell's lagged the curved
+one's at a turn's start and end, and the mixture, its cells drawn together by the interaction at every step, dropped
+``mu_straight x (curved turn - straight turn)`` of the turn at each step; the error estimate carried that dropped
+turn as a considered error from one position fix to the next (on the shared real drive, when the straight cell had
+held its azimuth, it reached 0.31-0.34 rad over a 60 s outage, 196 and 246 m across, where the fixes after found 188
+and 421 m). With the yaw rate an input there is none left to carry (1e-13 m^2 after 20 s of a gentle curve with a
+course a second).
 """
 
 from __future__ import annotations
@@ -83,9 +80,10 @@ from sumhe.baseline.ekf import (
     offset_predict,
     offset_update,
     set_heading,
+    yaw_rate_input,
 )
-from sumhe.baseline.heading_offset import UsesPositionFixes, heading_offset_variance
-from sumhe.baseline.kinematics import PHI, E, FloatArray, N
+from sumhe.baseline.heading_offset import heading_offset_variance
+from sumhe.baseline.kinematics import FloatArray
 from sumhe.baseline.stream import Inputs, Pending
 from sumhe.config import Config
 from sumhe.settings import EstimationSettings, NoiseSettings
@@ -117,19 +115,7 @@ def mix(
     return out_x, out_P, c
 
 
-def dropped_turn(dropped: FloatArray, moved: FloatArray, turn: float) -> FloatArray:
-    """The error (n, the layout of :mod:`.kinematics`: azimuth in rad, position in m) of a mixture that was off by
-    ``dropped`` before a step that moved it by ``moved`` (the state's change) and dropped ``turn`` (rad) of the
-    curved cell's turn in it: the azimuth's error before the step moves the position by ``d (north, -east)`` of the
-    way moved (as :func:`~.heading_offset.considered_heading_offset`), the turn adds to it."""
-    out = dropped.copy()
-    out[E] += dropped[PHI] * moved[N]
-    out[N] -= dropped[PHI] * moved[E]
-    out[PHI] += turn
-    return out
-
-
-class Imm(UsesPositionFixes, LeverCourse, TimedSpeed, YawRateBeforeStep):
+class Imm(LeverCourse, TimedSpeed, YawRateBeforeStep):
     """IMM of a straight and a curved EKF cell (``imm``).
 
     Each cell estimates the offset of a receiver's heading as the EKF does (:class:`~sumhe.baseline.ekf.Ekf`):
@@ -139,7 +125,7 @@ class Imm(UsesPositionFixes, LeverCourse, TimedSpeed, YawRateBeforeStep):
     the removed fixes of its 10 / 30 / 60 s outages (README, "Where it stands")."""
 
     name = "imm"
-    snapshot_attrs = ("xs", "offsets", "Pts", "mu", "_dropped", "_t_yaw")
+    snapshot_attrs = ("xs", "offsets", "Pts", "mu", "_t_yaw")
 
     def __init__(
         self,
@@ -169,7 +155,6 @@ class Imm(UsesPositionFixes, LeverCourse, TimedSpeed, YawRateBeforeStep):
         }
 
     def _reset_filter(self) -> None:
-        self._dropped = np.zeros(self.layout.n)
         self.xs = [np.zeros(self.layout.n) for _ in self.models]
         self.offsets = [0.0 for _ in self.models]
         self.Pts = [considered(np.eye(self.layout.n), 0.0) for _ in self.models]
@@ -202,24 +187,30 @@ class Imm(UsesPositionFixes, LeverCourse, TimedSpeed, YawRateBeforeStep):
             transition_matrix(dt, self.sojourn_s),
         )
         self.xs, self.offsets = [g[:-1] for g in grown], [float(g[-1]) for g in grown]
-        before, cells_before = self._mean(), list(self.xs)
         for j, model in enumerate(self.models):
             self.xs[j], self.offsets[j], self.Pts[j] = offset_predict(
                 self.xs[j], self.offsets[j], self.Pts[j], dt, model, self.layout, self._offset_var
             )
-        turns = [kin.state_difference(x, x0)[PHI] for x, x0 in zip(self.xs, cells_before, strict=True)]
-        moved = kin.state_difference(self._mean(), before)
-        self._dropped = dropped_turn(self._dropped, moved, float(self.mu[0] * (turns[1] - turns[0])))
 
     def _update_can(self, inputs: Inputs) -> None:
+        """Each cell's CAN rows: the yaw rate weighs the cells (the likelihood of what each predicted) and is then
+        taken as an input (:func:`~sumhe.baseline.ekf.yaw_rate_input`); the speed and standstill rows update."""
+        yaw_rate = Inputs(None, inputs.yaw_rate, False)
+        others = Inputs(inputs.speed, None, inputs.standstill)
         loglik = []
         for j in range(len(self.models)):
-            measured = can_measurement(self.xs[j], inputs, self.noise, self.layout)
-            if measured is None:
-                loglik.append(0.0)
-                continue
-            nu, H, R = measured
-            loglik.append(self._cell_update(j, nu, grown_jacobian(H, 0.0), R))
+            total = 0.0
+            measured = can_measurement(self.xs[j], yaw_rate, self.noise, self.layout)
+            if measured is not None:
+                nu, H, R = measured
+                H = grown_jacobian(H, 0.0)
+                total += gaussian_loglik(nu, H @ self.Pts[j] @ H.T + R)
+                self.xs[j], self.Pts[j] = yaw_rate_input(self.xs[j], self.Pts[j], inputs, self.noise, self.layout)
+            measured = can_measurement(self.xs[j], others, self.noise, self.layout)
+            if measured is not None:
+                nu, H, R = measured
+                total += self._cell_update(j, nu, grown_jacobian(H, 0.0), R)
+            loglik.append(total)
         self._weigh(loglik)
 
     def _cell_update(self, j: int, nu: FloatArray, H: FloatArray, R: FloatArray) -> float:
@@ -262,21 +253,10 @@ class Imm(UsesPositionFixes, LeverCourse, TimedSpeed, YawRateBeforeStep):
         """The receiver heading's offset (rad) the cells estimate, weighted."""
         return float(np.dot(self.mu, self.offsets))
 
-    def _position_used(self, z: FloatArray) -> None:
-        """A position fix used ends the dropped turn (:func:`dropped_turn`)."""
-        self._dropped = np.zeros(self.layout.n)
-
-    def considered_growth_m2(self) -> float:
-        """The dropped turn's part of the position's variance (trace, m^2): a considered error grown since the
-        newest position fix, taken as known by the error estimate (not multiplied by the growth scale the gaps
-        teach, which learns from what it leaves unexplained)."""
-        return float(self._dropped[E] ** 2 + self._dropped[N] ** 2)
-
     def _covariance(self) -> FloatArray:
         """The mixture's covariance: the cells' covariances (their states' blocks of ``Pts``) and the spread of their
-        means, weighted, and the turn dropped since the newest position fix (:func:`dropped_turn`,
-        the module docstring)."""
+        means, weighted."""
         mean = self._mean()
         spread = kin.weighted_covariance(np.column_stack(self.xs), self.mu, mean)
         cells = sum(m * Pt[:-1, :-1] for m, Pt in zip(self.mu, self.Pts, strict=True))
-        return np.asarray(cells + spread + np.outer(self._dropped, self._dropped))
+        return np.asarray(cells + spread)

@@ -154,7 +154,7 @@ class StreamEstimator(ABC):
                 fix = event.fix
                 ahead = self.settings.can.max_gap_s  # farther on, the CAN data are missing: no prediction
                 predicted = predicted_at(self._since_epoch, fix.t, ahead) if fix is not None else None
-                prior = None if predicted is None else (*predicted, self.considered_growth_m2())
+                prior = predicted
                 self.started_over, self.unsettled = event.start, False
                 if event.fresh:  # the CAN data changed meaning: what the scales learned of the errors is past
                     self.consistency.reset()
@@ -177,7 +177,7 @@ class StreamEstimator(ABC):
         self,
         estimate: StateEstimate,
         fix: FixMeasurement,
-        prior: tuple[float, float, float, float] | None,
+        prior: tuple[float, float, float] | None,
         restart: bool,
     ) -> None:
         """A fix used by the epoch's ``estimate``: the consistency scales fed (:meth:`_match`; not where the
@@ -202,12 +202,9 @@ class StreamEstimator(ABC):
         if pending is not None and estimate is not None and estimate.gps == "ok":
             self._use(estimate, *pending)
 
-    def _match(
-        self, fix: FixMeasurement, used: StateEstimate, east_m: float, north_m: float, trace_p: float, known_m2: float
-    ) -> None:
+    def _match(self, fix: FixMeasurement, used: StateEstimate, east_m: float, north_m: float, trace_p: float) -> None:
         """Feed the consistency scales one used fix (:class:`InnovationScale`): after a gap, the own prediction at
-        its time (``east_m``, ``north_m``, own trace ``trace_p``, of which a considered error grown since the fix
-        before makes ``known_m2``: :meth:`considered_growth_m2`); else the estimate that used it (``used``); and
+        its time (``east_m``, ``north_m``, own trace ``trace_p``); else the estimate that used it (``used``); and
         its residual from ``used`` (a gap's growth is measured by the innovation's change since the residual before
         it). An estimator that takes each fix as it is (not :attr:`averages_fixes`) is fed its prediction at every
         fix: its residuals are nil, and the white part of the fixes' error (half the mean squared change of the
@@ -226,7 +223,7 @@ class StreamEstimator(ABC):
         nu = np.array([fix.east_m - east_m, fix.north_m - north_m])
         residual = np.array([fix.east_m - used.east_m, fix.north_m - used.north_m])
         drift = self._drift_m2(fix.t, used) if not consecutive else 0.0
-        self.consistency.add(fix.t, nu, trace_r, trace0, trace_p - trace0, periods, drift, residual, known_m2)
+        self.consistency.add(fix.t, nu, trace_r, trace0, trace_p - trace0, periods, drift, residual)
 
     def _drift_m2(self, t: float, estimate: StateEstimate) -> float:
         """What the CAN calibration's drift makes of the position's error (trace, m^2) at ``t`` since the newest fix
@@ -240,20 +237,12 @@ class StreamEstimator(ABC):
             return None
         _, at_fix, considered = self._at_fix
         drift = self._drift_m2(estimate.t, estimate)
-        return self.consistency.calibrated(estimate.spread, at_fix, drift, considered, self.considered_growth_m2())
+        return self.consistency.calibrated(estimate.spread, at_fix, drift, considered)
 
     def considered_m2(self) -> float:
         """The part (trace, m^2) of the newest estimate's own position covariance that considered parameters make
         (carried in the covariance, never estimated: ``mskf-em``'s receiver heading offset), which the consistency
         scale at a fix may shrink (:meth:`InnovationScale.at_fix_m2`); none by default."""
-        return 0.0
-
-    def considered_growth_m2(self) -> float:
-        """The part (trace, m^2) of the newest estimate's own position covariance that a considered error grown
-        since the newest position fix makes and that the estimator takes as known, not as a belief of its own
-        statistics: the growth scale does not multiply it, and the gaps' fixes teach that scale only what it
-        leaves unexplained (:meth:`InnovationScale.calibrated`, :meth:`InnovationScale.add`; the IMM's dropped
-        turn); none by default."""
         return 0.0
 
     def _finished(self, estimate: StateEstimate) -> StateEstimate:

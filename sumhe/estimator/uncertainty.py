@@ -328,17 +328,6 @@ class InnovationScale:
     sensors can make, not against nothing (79.2 against 80.7 % of the EKF's errors in outages within ``eph`` on
     the realistic drives; the MHE's own growth is larger, and its figures did not change).
 
-    A considered error grown since the fix (carried in the covariance, never estimated, nil at the fix: the IMM's
-    dropped turn) is no belief of the estimator's own statistics but a known error's size: its part of the growth,
-    ``K`` (``known_m2``, passed by the base class), is added as it is, ``scale P0 + growth_scale growth_spread (P -
-    P0 - K) + K``, and a gap's change expects ``2 W + s tr G_own + K``, so ``s`` is learned from what ``K`` leaves
-    unexplained. Scaled with the rest, the IMM's dropped turn over a 55 s outage of a realistic urban drive (about
-    the size of its error there, 17 m against 19 m) was multiplied by a growth scale of 512 learned from a 10 s gap
-    whose own growth was 0.04 m^2: an ``eph`` of about 1010 m. With it, the IMM's errors in the realistic outages
-    96.7 against 96.6 % within ``eph`` (2.74 against 3.08 times the median error; with GPS unchanged, 93.5 %, 2.74
-    times); on the shared real drive 95.1, 97.4 and 96.2 against 95.1, 97.6 and 96.4 % (2.01, 2.43 and 2.46 against
-    2.04, 2.53 and 2.50 times).
-
     The change of the innovation over a gap holds, beside the growth and the white errors, the change of the fixes'
     slow error (``tr R - W`` each, what :class:`~sumhe.estimator.base.Receiver` adds to every estimate): the
     estimate carried the slow error of the fix before the gap into it, the fix after it has its own. With ``S0``
@@ -419,12 +408,10 @@ class InnovationScale:
         periods: float,
         drift_m2: float = 0.0,
         residual: np.ndarray | None = None,
-        known_m2: float = 0.0,
     ) -> None:
         """One used fix at ``t`` (s): its innovation ``nu`` (m, east and north) and the trace of its covariance
         ``trace_r``; the prediction's own position covariance as the trace at the previous fix used,
-        ``trace_p0``, and the trace of the growth since, ``trace_g`` (m^2), of which a considered error grown since
-        makes ``known_m2`` (added as it is, not scaled: :meth:`calibrated`); ``periods``: GNSS periods since that
+        ``trace_p0``, and the trace of the growth since, ``trace_g`` (m^2); ``periods``: GNSS periods since that
         fix; ``residual``: the fix less the estimate that used it (m; None: ``nu`` after a consecutive fix,
         unknown after a gap)."""
         consecutive = periods <= self.gap_periods
@@ -436,16 +423,16 @@ class InnovationScale:
         white = self.white_m2(trace_r)
         if consecutive:
             self._fix.add(t, float(nu @ nu) - white, trace_p0 + trace_g)
-        elif (growth := max(trace_g - known_m2, drift_m2)) > 0.0:
+        elif (growth := max(trace_g, drift_m2)) > 0.0:
             slow = max(trace_r - white, 0.0)
             slow0 = max(trace_r0 - white, 0.0) if start is not None else slow
             # the change of the fixes' slow errors, correlated 1 to 0: (sqrt S0 - sqrt S)^2 + (0 to 2) sqrt(S0 S)
             unsure = 2.0 * math.sqrt(slow * slow0)
             if start is not None:  # the change over the gap: the estimate's lag behind the fixes at its start cancels
                 square = float((nu - start) @ (nu - start))
-                fixed = 2.0 * white + known_m2 + (math.sqrt(slow0) - math.sqrt(slow)) ** 2
+                fixed = 2.0 * white + (math.sqrt(slow0) - math.sqrt(slow)) ** 2
             else:
-                square, fixed = float(nu @ nu), self.scale * trace_p0 + white + known_m2
+                square, fixed = float(nu @ nu), self.scale * trace_p0 + white
             expected = fixed + 0.5 * unsure + self.growth_scale * self.growth_spread * growth
             self._growth.add(t, min(square, OUTLIER_CAP * expected), fixed, growth, self.scale, unsure)
             self._growth_spread = _predictive(self._growth.count)
@@ -493,18 +480,16 @@ class InnovationScale:
         at_fix: Spread | None,
         drift_m2: float = 0.0,
         considered_m2: float = 0.0,
-        known_m2: float = 0.0,
     ) -> Spread:
         """An estimate's own spread with its position covariance scaled: ``scale P0 + growth_scale growth_spread
-        (P - P0 - K) + K`` (traces; the covariance keeps its shape; the first term :meth:`at_fix_m2`, of which
-        considered parameters make ``considered_m2``; ``K = known_m2``, what a considered error grown since the fix
-        makes of the growth, added as it is), ``at_fix`` the own spread at the newest fix used (None: none yet, all
+        (P - P0)`` (traces; the covariance keeps its shape; the first term :meth:`at_fix_m2`, of which considered
+        parameters make ``considered_m2``), ``at_fix`` the own spread at the newest fix used (None: none yet, all
         of it is ``P0``)."""
         trace = spread.var_east_m2 + spread.var_north_m2
         if trace <= 0.0:
             return spread
         trace0 = min(at_fix.var_east_m2 + at_fix.var_north_m2, trace) if at_fix is not None else trace
-        growth = self.growth_scale * self.growth_spread * max(trace - trace0 - known_m2, drift_m2) + known_m2
+        growth = self.growth_scale * self.growth_spread * max(trace - trace0, drift_m2)
         return spread.scaled((self.at_fix_m2(trace0, considered_m2) + growth) / trace)
 
 

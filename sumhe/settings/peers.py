@@ -65,8 +65,11 @@ EKF_TUNED = NoiseSettings(
     yaw_rate_rw=0.009375,
     bias_rw=2.5e-05,
     gps_scale=2.0,
+    gain0=0.075,
 )
-"""The EKF's tuned noise (also the RTS smoother's and the UKF's)."""
+"""The EKF's tuned noise (also the RTS smoother's and the UKF's, and the IMM cells' start). ``gain0``: the CAN yaw
+rate's gain a state, its prior sigma half the default ``sensors.can.yaw_rate_gain_max`` (as the bias's and the speed
+scale's are half theirs), not searched."""
 PF_TUNED = NoiseSettings(
     pos_rw=0.000390625,
     heading_rw=7.8125e-06,
