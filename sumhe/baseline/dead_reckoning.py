@@ -24,11 +24,11 @@ deg/s) over its prior sigma (0.57 deg/s). A fix sets the position (and an azimut
 measurement's covariance.
 
 Nor does it correct the CAN yaw rate's gain ``g`` (CAN yaw rate = g omega + b), a row too, with half
-``sensors.can.yaw_rate_gain_max`` as one sigma (the filters leave it out of their states: they would trade it for
-the bias, :meth:`~sumhe.baseline.kinematics.Layout.from_settings`; dead reckoning estimates neither): in a turn the
-yaw rate is also off by the yaw rate times the gain's error, and a 90 degree turn leaves the azimuth off by 0.12
-rad (one sigma). On the realistic profile's sharp-turn outages the growth scale had taken it for growth (6.3 and
-4.0 after two drives' sharp outages, 1.3 and 0.56 with it; most drives' 0.1-1.2 as they were).
+``sensors.can.yaw_rate_gain_max`` as one sigma (the Kalman filters estimate it, the particle filters leave it out of
+their states, :meth:`~sumhe.baseline.kinematics.Layout.from_settings`; dead reckoning estimates neither): in a turn
+the yaw rate is also off by the yaw rate times the gain's error, and a 90 degree turn leaves the azimuth off by 0.12
+rad (one sigma). On the realistic profile's sharp-turn outages the growth scale had taken it for growth (6.3 and 4.0
+after two drives' sharp outages, 1.3 and 0.56 with it; most drives' 0.1-1.2 as they were).
 """
 
 from __future__ import annotations

@@ -26,8 +26,8 @@ class NoiseSettings:
     fix's own (:mod:`sumhe.frontend`), ``course_rad`` the filter's model error added to the course's sigma. Gate:
     the chi-square probability of the innovation gate (1 turns the gate off) and how long rejected fixes must
     agree before the filter re-acquires them. Prior: sigmas of speed, yaw rate and, where ``gain0`` > 0 and
-    ``estimator.yaw_rate_gain``, of the CAN yaw rate's gain, which is then a state (off by default: see
-    :meth:`sumhe.baseline.kinematics.Layout.from_settings`).
+    ``estimator.yaw_rate_gain``, of the CAN yaw rate's gain, which is then a state (0 here, set in the Kalman
+    filters' tables: :data:`EKF_TUNED`; :meth:`sumhe.baseline.kinematics.Layout.from_settings`).
     """
 
     pos_rw: float = 0.05
