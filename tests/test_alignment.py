@@ -36,7 +36,7 @@ def true_azimuth(t):
 @pytest.mark.parametrize("rate_hz", [1.0, 10.0])
 @pytest.mark.parametrize("lag", [-0.25, 0.0, 0.37])
 def test_speed_lag_recovers_the_lag_and_scale(rate_hz, lag, can_period_s):
-    # a speed broadcast at 50 Hz, or polled at 2 Hz (OBD-II: read as its samples joined by straight lines)
+    # a speed broadcast at 50 Hz, or polled at 2 Hz (OBD-II: its samples farther apart than the fit's mean is wide)
     t_can = np.arange(0.0, 300.0, can_period_s)
     can = 1.01 * true_speed(t_can) + RNG.normal(0, 0.02, len(t_can))
     t_fix = np.arange(2.0, 298.0, 1.0 / rate_hz)
