@@ -9,7 +9,14 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from sumhe.frontend.alignment import UNLEARNED_TIME_OFFSET_SD_S, ClockLearner, TimeSeries, course_lag, speed_lag
+from sumhe.frontend.alignment import (
+    UNLEARNED_TIME_OFFSET_SD_S,
+    CanSpeed,
+    ClockLearner,
+    TimeSeries,
+    course_lag,
+    speed_lag,
+)
 from sumhe.sim import SimSettings, simulate
 
 RNG = np.random.default_rng(7)
@@ -134,6 +141,16 @@ def test_a_short_fits_standard_error_covers_its_error_with_correlated_residuals(
         assert fit is not None
         z.append((fit.lag_s - lag) / fit.std_s)
     assert 0.6 < math.sqrt(np.mean(np.square(z))) < 1.4  # as white: 3.9
+
+
+def test_the_can_speed_is_read_as_its_mean_about_each_sample():
+    t = np.concatenate([np.arange(0.0, 1.0, 0.01), [1.0, 1.5, 2.0]])  # 100 Hz, then polled at 2 Hz
+    assert np.allclose(CanSpeed(t, np.full(len(t), 10.0)).mean, 10.0, rtol=0.0, atol=1e-9)  # the two ends too
+    line = CanSpeed(t, 2.0 + 3.0 * t)
+    assert np.allclose(line.mean[5:-1], 2.0 + 3.0 * t[5:-1])  # a straight line is its own mean
+    noisy = CanSpeed(t[:100], 10.0 + np.random.default_rng(1).normal(0, 0.02, 100))
+    assert np.std(noisy.mean[5:-5]) < 0.5 * 0.02  # ten samples of noise in each mean
+    assert line.at(np.array([1.25])) == pytest.approx(2.0 + 3.0 * 1.25)
 
 
 def test_a_fit_over_a_first_acceleration_is_as_sure_as_it_says():

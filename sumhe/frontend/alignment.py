@@ -254,7 +254,8 @@ class CanSpeed:
         self.t = tc
         cumulative = _cumulative(tc, c)
         upper, lower = (_integral(tc + d, tc, c, cumulative) for d in (CAN_MEAN_S, -CAN_MEAN_S))
-        self.mean = (upper - lower) / (2.0 * CAN_MEAN_S)
+        width = np.minimum(tc + CAN_MEAN_S, tc[-1]) - np.maximum(tc - CAN_MEAN_S, tc[0])  # less at the two ends
+        self.mean = np.divide(upper - lower, width, out=c.astype(float), where=width > 0)
 
     def at(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
         """The speed at the times ``t`` (s)."""
