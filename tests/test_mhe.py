@@ -264,23 +264,25 @@ def gate_after_outage(driven_m: float) -> FixGate:
 
 
 def test_the_gate_tells_the_end_of_a_multipath_episode_from_its_start() -> None:
-    def run(reentry_east: float, streak_east: float, streak_t: float) -> bool:
-        """The outage's dead reckoning at 0; the first fix after it at ``reentry_east`` (the estimate follows it);
-        then a streak of fixes at ``streak_east``: whether the gate re-acquires on it."""
+    def run(reentry_east: float, streak_east: float, streak_t: float, past: float = 0.0) -> bool:
+        """The outage's dead reckoning at 0; the first fix after it at ``reentry_east`` (the estimate follows it,
+        ``past`` m farther east); then a streak of fixes at ``streak_east``: whether the gate re-acquires on it."""
         gate = gate_after_outage(500.0)
         assert gate.passes(fix_at(0.0, reentry_east), 0.0, 0.0)
-        gate.done(0.0, "ok", True)
+        gate.done(0.0, "ok", True, (-past, 0.0))
         answers = []
         for k in range(REACQUIRE_FIXES):
             gate.drove(0.1)
             t = streak_t + 0.1 * k
-            assert not gate.passes(fix_at(t, streak_east), reentry_east, 0.0)
-            answers.append(gate.reacquire(fix_at(t, streak_east), reentry_east, 0.0))
+            assert not gate.passes(fix_at(t, streak_east), reentry_east + past, 0.0)
+            answers.append(gate.reacquire(fix_at(t, streak_east), reentry_east + past, 0.0))
             gate.done(t, "rejected", False)
         assert not any(answers[:-1])
         return answers[-1]
 
     assert run(12.0, 0.5, 8.0)  # the fixes taken at the outage's end were the outliers
+    # the same with the dead reckoning 3.6 m off and the estimate 1.3 m past the outliers (the simulated highway's)
+    assert run(8.4, -3.6, 8.0, past=1.3)
     assert not run(0.5, 12.5, 8.0)  # good fixes at the outage's end, then multipath
     assert not run(12.0, 0.5, 8.0 + GATE_RESET_S)  # long after the outage: the gate's reset rule applies
 
@@ -312,7 +314,7 @@ def test_a_fix_the_solution_does_not_follow_keeps_the_rejection_streak_going() -
         ``30 - miss_m`` east of them (their own place: 14 m east of it)."""
         gate = gate_after_outage(1500.0)
         assert gate.passes(fix_at(0.0, 30.0), 0.0, 0.0)
-        gate.done(0.0, "ok", True, miss_m)
+        gate.done(0.0, "ok", True, (miss_m, 0.0))
         answers = []
         for k in range(1, REACQUIRE_FIXES + 1):
             gate.drove(3.0)
@@ -331,7 +333,7 @@ def test_a_fix_the_solution_does_not_follow_keeps_the_rejection_streak_going() -
         gate = gate_after_outage(0.0)
         assert gate.passes(fix_at(0.0, 0.0), 0.0, 0.0)
         for t in range(1, 32):
-            gate.done(float(t), "ok" if t % 5 == 0 else "rejected", False, miss_m)
+            gate.done(float(t), "ok" if t % 5 == 0 else "rejected", False, (miss_m, 0.0))
         return gate.locked_out(31.5)
 
     assert locked_out(14.0) and not locked_out(0.5)

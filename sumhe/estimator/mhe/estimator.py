@@ -382,10 +382,10 @@ class MovingHorizonEstimator(StreamEstimator):
         elif mode == "mhe-widened":
             # the data broke a bound: learn it now, from the residuals of the solution that fits them
             self._learn_bounds(x_new, slice(0, len(win)))
-        miss = 0.0
+        miss = (0.0, 0.0)
         if status == "ok":
             e = output_residuals(model, x_new[-1:], win.y[-1:])[0]
-            miss = math.hypot(*e[list(model.j_position)])
+            miss = (float(e[model.j_position[0]]), float(e[model.j_position[1]]))
         self.gate.done(t, status, status == "ok" and bool(win.avail[-1, model.j_azimuth]), miss)
         win.x[:] = x_new
         self.newest.epoch(win, self.solve.Q, self.envelope.factor, self._theta_range)
