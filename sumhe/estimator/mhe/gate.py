@@ -77,7 +77,7 @@ class FixGate:
         self._outage_end = False
         self._radius = math.inf
         self._reentry: tuple[float, np.ndarray] | None = None
-        self._taken = np.zeros(2)
+        self._taken = (0.0, 0.0)
 
     def drove(self, distance_m: float) -> None:
         """The vehicle drove ``distance_m`` (m) since the previous epoch."""
@@ -123,7 +123,7 @@ class FixGate:
         if self._reentry is None or fix.t - self._reentry[0] > GATE_RESET_S:
             return False
         first = self._reentry[1]
-        return float(np.hypot(*(first + mean - self._taken))) <= REENTRY_CLOSER * float(np.hypot(*first))
+        return float(np.hypot(*(first + mean - np.array(self._taken)))) <= REENTRY_CLOSER * float(np.hypot(*first))
 
     def done(self, t: float, status: GpsStatus, azimuth_used: bool, miss: tuple[float, float] = (0.0, 0.0)) -> None:
         """The epoch is solved: a fix used (``azimuth_used``: with its azimuth; ``miss``: its offset east and north (m)
@@ -131,7 +131,7 @@ class FixGate:
         radius was not followed (a window that cannot bend to the fixes after an outage): the rejection streak and its
         time go on, and the outage it ended still counts for :meth:`reacquire`."""
         if status == "ok":
-            self._taken = np.array(miss)
+            self._taken = miss
             followed = math.hypot(*miss) <= self._radius
             self._outage_end = not followed and (self._outage_end or self.since_fix_m > REACQUIRE_AFTER_M)
             self.since_fix_m = 0.0
