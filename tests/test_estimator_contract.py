@@ -443,3 +443,12 @@ def test_outage_recovery_and_jump(estimator: Estimator, sim_run: SimRun) -> None
         assert all(e.gps == "rejected" for e in jumped)
         around = [e for e, r in zip(out, rel, strict=True) if JUMP[0] <= r < JUMP[0] + 2.0]
         assert np.max(sim_errors(sim_run, around)) < 3.0
+        # from a refused fix until a fix is used again, the error figures reach as far as the refused fix (50 m
+        # east): the estimate, not the fix, may be the one that is off
+        t0, t1 = min(e.t for e in jumped), max(e.t for e in jumped)
+        back = min(e.t for e in outputs.epochs if e.t > t1 and e.gps == "ok")
+        refusing = [e for e in out if t0 <= e.t < back and e.gps == "rejected"]
+        if all(e.spread is not None for e in out):
+            assert refusing and all(1.96 * math.sqrt(e.spread.var_east_m2) > 45.0 for e in refusing)  # type: ignore[union-attr]
+            after_back = [e for e in out if e.t >= back][:5]
+            assert all(1.96 * math.sqrt(e.spread.var_east_m2) < 20.0 for e in after_back)  # type: ignore[union-attr]
