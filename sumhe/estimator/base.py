@@ -38,7 +38,7 @@ from typing import ClassVar, Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
-from sumhe.estimator.uncertainty import InnovationScale, Spread, along, drift_variance, gpsd_errors
+from sumhe.estimator.uncertainty import K1, InnovationScale, Spread, along, drift_variance, gpsd_errors
 from sumhe.frontend.fixes import LocalFix
 from sumhe.frontend.stream import CanTick, Epoch, FixMeasurement, FrontEnd
 from sumhe.frontend.tally import Tally
@@ -389,15 +389,10 @@ def sensor_drift(settings: EstimationSettings, sigmas: float = 1.0) -> tuple[flo
     return per_s * settings.can.yaw_rate_bias_max_rps, per_s * settings.can.speed_scale_max
 
 
-REFUSED_SIGMAS = 1.96
-"""A refused fix's offset from the estimate counts as this many standard deviations of a possible error along it
-(:func:`refused_offset`): the 95 % point of a one-dimensional Gaussian, so the 95 % figures reach the fix."""
-
-
 def refused_offset(fix: FixMeasurement, estimate: StateEstimate) -> tuple[float, float, float]:
     """The position covariance (east variance, north variance, their covariance; m^2) a refused fix adds to the
-    estimates until a fix is used again: an error of the fix's offset from the ``estimate`` of its epoch over
-    :data:`REFUSED_SIGMAS`, along that offset.
+    estimates until a fix is used again: an error along the fix's offset from the ``estimate`` of its epoch whose 95 %
+    half-width (:data:`~sumhe.estimator.uncertainty.K1` sigmas) is that offset, so the 95 % figures reach the fix.
 
     An estimator refuses a fix far from its estimate: the fix may be the outlier, or the estimate may be off (a
     restart onto a multipath episode, a drift the filter's covariance did not foresee, after which it refuses
@@ -407,7 +402,7 @@ def refused_offset(fix: FixMeasurement, estimate: StateEstimate) -> tuple[float,
     of 7.2 m). So the error figures allow for the fix being right: ``eph`` reaches about as far as the fix."""
     east = fix.east_m - estimate.east_m
     north = fix.north_m - estimate.north_m
-    return along(math.hypot(east, north) / REFUSED_SIGMAS, math.atan2(east, north))
+    return along(math.hypot(east, north) / K1, math.atan2(east, north))
 
 
 def _tagged(e: StateEstimate, spread: Spread | None, sats: int | None, hdop: float | None) -> StateEstimate:
