@@ -240,10 +240,17 @@ class MovingHorizonEstimator(StreamEstimator):
         if theta is not None:
             self._stops = stops
 
-    def _begin(self, fix: FixMeasurement) -> StateEstimate:
+    def _start_over(self, fix: FixMeasurement, x_pred: np.ndarray) -> StateEstimate:
+        """Give the prediction ``x_pred`` up and start again at ``fix`` (:meth:`_restart`, :meth:`_begin`); the
+        gate keeps the jump from the one to the other, which the fixes after it may undo (:meth:`FixGate.start`)."""
+        i_e, i_n = self.model.position
+        self._restart()
+        return self._begin(fix, (fix.t, np.array([fix.east_m - x_pred[i_e], fix.north_m - x_pred[i_n]])))
+
+    def _begin(self, fix: FixMeasurement, jump: tuple[float, np.ndarray] | None = None) -> StateEstimate:
         """Start at a usable fix: position from it, azimuth from its course/heading (else 0), speed and yaw rate
         from CAN, the sensor and installation states from before a restart or their nominal values, under a weak
-        prior (plus, after a restart, what was known of those states)."""
+        prior (plus, after a restart, what was known of those states); ``jump``: a restart's, for the gate."""
         model, s, t = self.model, self.settings, fix.t
         md, can = model.n_dynamic, self.frontend.can
         x = np.zeros(model.n_states)
@@ -265,7 +272,7 @@ class MovingHorizonEstimator(StreamEstimator):
         half[md:] = self._theta_range
         self._arrival = prior_arrival(x, half, md, self._theta_info)
         y, avail, allow = step_outputs(model, can, t, s.gnss.period_s, self.period_s, fix, s, x)
-        self.gate.start(heading_known=bool(avail[model.j_azimuth]))
+        self.gate.start(bool(avail[model.j_azimuth]), jump)
         self.window.append(t, y, avail, allow, x)
         limits = np.full(md, np.inf)
         limits[model.i_phi] = math.pi
@@ -292,14 +299,12 @@ class MovingHorizonEstimator(StreamEstimator):
                 self.tally.count(
                     "gate_resets", "fixes not followed for %.0f s: restarting at the newest fix", GATE_RESET_S
                 )
-                self._restart()
-                return self._begin(fix)
+                return self._start_over(fix, x_pred)
             if status == "rejected" and self.gate.reacquire(fix, x_pred[i_e], x_pred[i_n]):
                 self.tally.count(
                     "reacquired", "GNSS re-acquired: %d rejected fixes agreeing against the prediction", REACQUIRE_FIXES
                 )
-                self._restart()
-                return self._begin(fix)
+                return self._start_over(fix, x_pred)
         used = self._timed(fix) if fix is not None and status == "ok" else None
         y, avail, allow = step_outputs(model, can, t, h_prev, self.period_s, used, s, x_pred)
         # the previous step's CAN outputs again, now that the samples of its second half-interval are in

@@ -66,8 +66,10 @@ class FixGate:
         self.settings = settings
         self.start(heading_known=False)
 
-    def start(self, heading_known: bool) -> None:
-        """A (re)start at a fix used; ``heading_known``: it measured the azimuth."""
+    def start(self, heading_known: bool, jump: tuple[float, np.ndarray] | None = None) -> None:
+        """A (re)start at a fix used; ``heading_known``: it measured the azimuth; ``jump``: a restart's time and its
+        fix's offset from the prediction given up (east, north; m), the re-entry onto the fixes that a streak may
+        undo (:data:`REENTRY_CLOSER`: a restart onto a multipath episode)."""
         self.since_fix_m = 0.0
         self.heading_known = heading_known
         self.used_fixes = 1
@@ -76,7 +78,7 @@ class FixGate:
         self._after_outage = False
         self._outage_end = False
         self._radius = math.inf
-        self._reentry: tuple[float, np.ndarray] | None = None
+        self._reentry = jump
         self._taken = (0.0, 0.0)
 
     def drove(self, distance_m: float) -> None:
