@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from sumhe.bench.drives import drive_config, with_drive_can
+from sumhe.bench.drives import PeersSettings, drive_config, simulated_drive, with_drive_can
 from sumhe.bench.mhe import drive_stream, run_stream
 from sumhe.config import Config, GpsSettings
 from sumhe.errors import ConfigError
@@ -31,6 +31,7 @@ from sumhe.frontend.can import CanBuffer
 from sumhe.frontend.fixes import LocalFix
 from sumhe.frontend.standstill import Stop, bias_at_rest, still_yaw_rates
 from sumhe.frontend.stream import FixMeasurement
+from sumhe.io.can import reference_config
 from sumhe.io.fixtime import stamp_fix
 from sumhe.io.replay import merge_by_time
 from sumhe.messages import CanSample, GnssFix
@@ -285,6 +286,49 @@ def test_the_gate_tells_the_end_of_a_multipath_episode_from_its_start() -> None:
     assert run(8.4, -3.6, 8.0, past=1.3)
     assert not run(0.5, 12.5, 8.0)  # good fixes at the outage's end, then multipath
     assert not run(12.0, 0.5, 8.0 + GATE_RESET_S)  # long after the outage: the gate's reset rule applies
+
+
+def test_a_restart_onto_a_multipath_episode_is_undone_by_the_good_fixes_after_it() -> None:
+    def run(jump: tuple[float, np.ndarray] | None, streak_east: float, streak_t: float) -> bool:
+        """A restart at a fix 12 m east of the prediction given up (at 0): the estimate follows the fixes there;
+        then a streak of fixes at ``streak_east``: whether the gate re-acquires on it."""
+        gate = FixGate(SETTINGS)
+        gate.start(heading_known=True, jump=jump)
+        gate.used_fixes = 100
+        answers = []
+        for k in range(REACQUIRE_FIXES):
+            gate.drove(1.0)
+            t = streak_t + 0.1 * k
+            assert not gate.passes(fix_at(t, streak_east), 12.0, 0.0)
+            answers.append(gate.reacquire(fix_at(t, streak_east), 12.0, 0.0))
+            gate.done(t, "rejected", False)
+        assert not any(answers[:-1])
+        return answers[-1]
+
+    jump = (0.0, np.array([12.0, 0.0]))
+    assert run(jump, 0.5, 8.0)  # the fixes went back to where the prediction given up was: the episode ended
+    assert not run(None, 0.5, 8.0)  # no restart (a multipath episode mid-drive): the gate's reset rule applies
+    assert not run(jump, 24.0, 8.0)  # a jump onwards, not back
+    assert not run(jump, 0.5, 8.0 + GATE_RESET_S)  # long after the restart
+
+
+def test_a_reacquisition_onto_multipath_after_an_outage_is_left_when_the_episode_ends() -> None:
+    # the bench's realistic offroad drive of seed 1 (10 Hz): after its 30 s outage the first fix is taken, the next
+    # lie 12-13 m off (multipath) for 8 s and agree, so the gate re-acquires on them; the good fixes from 162 s
+    # on undo that restart's jump and are taken within a second, where they had been refused until the gate's
+    # reset 30 s later (the estimate 11-12 m off throughout)
+    ps = PeersSettings(profiles=("realistic",))
+    drive = simulated_drive("offroad", "", 1, ps, reference_config(), "realistic")
+    est = MovingHorizonEstimator(drive.config.estimation)
+    pipeline = Pipeline(drive.config, est)
+    out = [e for s in drive.samples for e in pipeline.push(s) if e.mode != "can"]
+    t0 = drive.scored_from - ps.warm_up_s
+    after = [e for e in out if t0 + 164.0 <= e.t < t0 + 175.0]
+    assert est.stats()["reacquired"] >= 2 and "gate_resets" not in est.stats()
+    assert sum(e.gps == "ok" for e in after) >= 0.9 * len(after)
+    t = np.array([e.t for e in after])
+    truth = drive.truth.at(t)
+    assert np.max(np.hypot([e.east_m for e in after] - truth.east, [e.north_m for e in after] - truth.north)) < 4.0
 
 
 def test_after_an_outage_the_gate_takes_offsets_growing_steadily_as_agreeing() -> None:

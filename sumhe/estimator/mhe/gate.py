@@ -10,7 +10,8 @@ break (rejected, or taken by a solution that stays farther from them than the ga
 ``REACQUIRE_FIXES`` rejected fixes in a row that agree with each other, either after an outage (their offsets from
 the prediction on a straight line in time, :func:`~sumhe.estimator.base.on_a_line`), or within ``GATE_RESET_S`` of
 the first fix taken after one when the jump from the fixes taken to them about undoes the jump from the outage's dead
-reckoning to that fix (:data:`REENTRY_CLOSER`; there the offsets must agree as they are).
+reckoning to that fix, or within ``GATE_RESET_S`` of a restart when they about undo the restart's jump from the
+prediction it gave up to its fix (:data:`REENTRY_CLOSER`; there the offsets must agree as they are).
 
 The second case is a multipath episode that began with the outage's end: the wide gate had to take its first
 fixes, the estimate followed them, and the good fixes that came next were rejected for up to ``GATE_RESET_S``
@@ -22,7 +23,11 @@ back, the offsets growing by 7 m a second, every fix rejected until the next out
 1.3 km off); the Kalman peers' gate had the same rule for the same reason. The fixes not followed: after a 55 s
 outage at 10 Hz (seed 13), a window of 300 merged steps that could not bend to fixes 30 m off took one in ten and
 stayed 14-23 m from each, the gate rejected the rest, and each fix taken had started the rejections' clock and the
-streak again: 34 s of fixes 23-38 m off, until the next outage.
+streak again: 34 s of fixes 23-38 m off, until the next outage. A restart is such a re-entry too: on the bench's
+realistic offroad drive of seed 1, after its 30 s outage the first fix was taken, the next lay 12-13 m off for 8 s
+and agreed, so the gate re-acquired on them, and the good fixes after them were refused for 33 s, the estimate 11-12 m
+off, until the rule of ``GATE_RESET_S`` (now they undo the restart's jump: a restart at the fifth, 0.4 s after the
+first).
 """
 
 from __future__ import annotations
