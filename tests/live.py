@@ -126,6 +126,27 @@ def wait_for(path: Path, text: str, timeout: float) -> bool:
     return False
 
 
+def went_back(t: np.ndarray, records: list[dict], status: dict | None, svc_text: str) -> str:
+    """Where the output's time went back (drive time), what the estimates around there said, the daemon's time
+    counters and the log lines that tell why (a clock jump, a stall, a fall behind)."""
+    back = np.flatnonzero(np.diff(t) < 0.0)
+    around = [
+        {k: records[j].get(k) for k in ("t", "gps", "mode", "window")} | {"drive_s": round(float(t[j]), 3)}
+        for i in back[:3]
+        for j in range(max(i - 1, 0), min(i + 2, len(t)))
+    ]
+    why = [
+        line
+        for line in svc_text.splitlines()
+        if any(k in line for k in ("clock jump", "stall", "behind", "caught up", "dropped for their time"))
+    ]
+    return (
+        f"output time went back {back.size} times (first at estimate {back[0]} of {len(t)}): {around}; "
+        f"time counters {(status or {}).get('time')}; out_of_order {(status or {}).get('out_of_order')}; "
+        f"log: {why[:20]}"
+    )
+
+
 def check_drive(
     records, code, stop_s, offset, sim, svc_text, max_stop_s: float = 2.0, emulated: bool = False, status=None
 ):
@@ -145,7 +166,7 @@ def check_drive(
     assert "sumhe stopped" in svc_text
     t0 = sim.settings.start_unix_s + offset
     t = np.array([r["t"] for r in records]) - t0  # drive time of each estimate
-    assert np.all(np.diff(t) >= 0.0), "output time went back"
+    assert np.all(np.diff(t) >= 0.0), went_back(t, records, status, svc_text)
     gps = np.array([r["gps"] for r in records])
     assert (gps == "ok").any(), f"{len(records)} estimates, none on GPS"
     first_ok = t[gps == "ok"].min()
