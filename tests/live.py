@@ -131,7 +131,7 @@ def went_back(t: np.ndarray, records: list[dict], status: dict | None, svc_text:
     counters and the log lines that tell why (a clock jump, a stall, a fall behind)."""
     back = np.flatnonzero(np.diff(t) < 0.0)
     around = [
-        {k: records[j].get(k) for k in ("t", "gps", "mode", "window")} | {"drive_s": round(float(t[j]), 3)}
+        {k: records[j].get(k) for k in ("seq", "t", "gps", "mode", "window")} | {"drive_s": round(float(t[j]), 3)}
         for i in back[:3]
         for j in range(max(i - 1, 0), min(i + 2, len(t)))
     ]
@@ -150,21 +150,24 @@ def went_back(t: np.ndarray, records: list[dict], status: dict | None, svc_text:
 def check_drive(
     records, code, stop_s, offset, sim, svc_text, max_stop_s: float = 2.0, emulated: bool = False, status=None
 ):
-    """What arrived against the truth, for a daemon that kept real time.
+    """What arrived against the truth, for a daemon that kept real time, taken in the order it was sent (the
+    datagrams' ``seq``: UDP may deliver them out of it).
 
     ``emulated`` (the CI virtual machine: Python 10 to 50 times slower on shared cores) asserts correctness, not
     real-time speed. There the daemon may fall behind real time and shed load as it is built to: degraded output
     (``degraded`` episodes; the MHE appends epochs unsolved) and, more than 10 s behind, drops samples as stale
     (``time.stale``; measured there: from 10 s behind at 30 s of the drive to about 10 s behind throughout, as the
-    machine's load varies). Checked then: a
-    second without an estimate only where the final ``status`` counts stale samples; the shedding logged, never
-    silent. The estimates' GPS flags and errors against the truth are checked only where the daemon shed nothing:
-    with most epochs unsolved they measure the machine, not sumhe; the SocketCAN data's flags and accuracy are
-    checked by replaying its recording (``test_socketcan.py``)."""
+    machine's load varies). Checked then: a second without an estimate only where the final ``status`` counts
+    stale samples; the shedding logged, never silent. The estimates' GPS flags and errors against the truth are
+    checked only where the daemon shed nothing: with most epochs unsolved they measure the machine, not sumhe; the
+    SocketCAN data's flags and accuracy are checked by replaying its recording (``test_socketcan.py``)."""
     assert code == 0, svc_text[-3000:]
     assert stop_s < max_stop_s, f"SIGTERM took {stop_s:.2f} s"
     assert "sumhe stopped" in svc_text
     t0 = sim.settings.start_unix_s + offset
+    seq = [r["seq"] for r in records]
+    assert len(set(seq)) == len(seq), "a datagram number sent twice"
+    records = sorted(records, key=lambda r: r["seq"])
     t = np.array([r["t"] for r in records]) - t0  # drive time of each estimate
     assert np.all(np.diff(t) >= 0.0), went_back(t, records, status, svc_text)
     gps = np.array([r["gps"] for r in records])

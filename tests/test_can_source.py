@@ -157,6 +157,8 @@ def test_bus_shut_down_and_brought_back_resumes_samples(channel):
                 assert "Cannot operate on a closed bus" in source.stats.last_error
                 bus.send(speed_frame(0, 72.0, 1))
                 assert (await anext(source)).value == pytest.approx(20.0)
+        # closed by the stop, not down: the final status line marks no DOWN with the mended error
+        assert source.stats.connected and "closed bus" in source.stats.last_error
 
     run(main())
 

@@ -47,7 +47,10 @@ class SourceStats:
     reconnects: int = 0
     errors: int = 0
     connected: bool = False
+    """The device was open when last seen: False from a failure until it reopens; a stop leaves it as it was (so
+    the final status tells a source that was up at the end from one that was down)."""
     last_error: str = ""
+    """The newest failure, kept after the source mended it."""
 
 
 class Backoff:
@@ -220,11 +223,11 @@ class ThreadedSource(ABC, Generic[T]):
                     if items:
                         self.stats.received += len(items)
                         self._loop.call_soon_threadsafe(self._deliver, items)
-            except Exception as e:  # the device vanished or failed: close first, then back off and reopen
+            except Exception as e:  # the device vanished or failed: down; close first, then back off and reopen
                 failure = e
-            finally:
                 self.stats.connected = False
-                self._safe_close()
+            finally:
+                self._safe_close()  # on a stop too, which leaves ``connected`` as it was (the final status)
             if failure is not None:
                 self._note_failure("read", failure)
 

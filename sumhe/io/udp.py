@@ -122,9 +122,11 @@ def json_line(est: Estimate) -> str:
     return text + "}"
 
 
-def encode_json(est: Estimate) -> bytes:
-    """One datagram: compact JSON, UTF-8, no trailing newline."""
-    return json_line(est).encode()
+def encode_json(est: Estimate, seq: int | None = None) -> bytes:
+    """One datagram: compact JSON, UTF-8, no trailing newline; ``seq`` (the datagram's number, where given) its last
+    key."""
+    text = json_line(est)
+    return (f'{text[:-1]},"seq":{seq}}}' if seq is not None else text).encode()
 
 
 GGA_GPS = 1
@@ -284,12 +286,12 @@ class UdpSender:
         self.close()
 
 
-ENCODERS: dict[str, Callable[[Estimate], bytes]] = {"json": encode_json, "nmea": encode_nmea}
-
-
 class UdpSink:
     """The configured output: each estimate, encoded in each format, to that format's destinations
-    (``output.json``, ``output.nmea``)."""
+    (``output.json``, ``output.nmea``). The JSON datagrams are numbered (``seq``: 0, 1, ... in the order sent, the
+    same number to every destination): UDP keeps neither order nor delivery, even over loopback (on a loaded
+    machine two datagrams sent one after the other from different CPUs can arrive the other way round), so a
+    consumer tells a datagram lost (a gap) or overtaken (a number below one already received)."""
 
     def __init__(self, settings: OutputSettings, blame: Callable[[str], str] | None = None) -> None:
         self.formats = settings.formats
@@ -301,11 +303,13 @@ class UdpSink:
             except ConfigError:
                 self.close()
                 raise
-        self._encoders = [(ENCODERS[fmt], sender) for fmt, sender in self.senders.items()]
+        self.seq = 0
+        """The number the next JSON datagram carries."""
 
     def send(self, est: Estimate) -> None:
-        for encode, sender in self._encoders:
-            sender.send(encode(est))
+        for fmt, sender in self.senders.items():
+            sender.send(encode_json(est, self.seq) if fmt == "json" else encode_nmea(est))
+        self.seq += 1
 
     def describe(self) -> str:
         """``json to 127.0.0.1:5005, nmea to 127.0.0.1:10110`` (for the start-up line)."""
