@@ -163,6 +163,35 @@ def test_listen_prints_positions_from_json_and_nmea():
     assert "3 datagrams with a position" in err
 
 
+def test_listen_takes_the_highest_seq_as_the_newest_and_counts_lost_and_overtaken_datagrams():
+    """Datagrams 0 and 3 of one daemon, then 0, 2, 5, 4 of the daemon started again: 1, 2, 1, 3 lost and 4
+    overtaken, which fills its gap and is not shown as the newest position (the last line is datagram 5's)."""
+    port = _free_udp_port()
+    proc = _sumhe("listen", f"127.0.0.1:{port}", "--every", "60", "--count", "6")
+    try:
+        assert "listening on" in proc.stderr.readline()
+        tpv = {"class": "TPV", "t": 1780300800.0, "lon": 14.4378, "gps": "ok", "mode": "mhe"}
+        numbers = [(0, 50.0), (3, 50.3), (0, 51.0), (2, 51.2), (5, 51.5), (4, 51.4)]
+        _send(port, [json.dumps({**tpv, "lat": lat, "seq": seq}).encode() for seq, lat in numbers])
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    first, last = out.splitlines()  # the first datagram's line at once, then the newest at the count
+    assert first.startswith("08:00:00.0Z  lat 50.0000000") and last.startswith("08:00:00.0Z  lat 51.5000000")
+    assert last.endswith(", 5 datagrams]")
+    assert "6 datagrams with a position (4 lost, 1 out of order by their seq)" in err
+
+
+def test_numbering_counts_gaps_filled_later_and_ignores_a_repeat_of_the_newest():
+    from sumhe.commands.listen import Numbering
+
+    n = Numbering()
+    assert [n.see(k) for k in (0, 3, 1, 3, 4, 0)] == [True, True, False, False, True, True]
+    assert (n.top, n.lost, n.overtaken) == (0, 1, 1)
+
+
 def test_can_up_prints_the_commands_from_the_config(tmp_path, capsys):
     assert main(["can-up", "--config", str(REPO / "configs" / "default.toml"), "--dry-run"]) == 0
     out = capsys.readouterr().out.splitlines()

@@ -4,6 +4,10 @@ A client to check a daemon (or a container) works, and the shortest example of r
 socket, parse each datagram (one JSON object, or GGA + RMC sentences). By default it prints the newest position
 once a second with the number of datagrams since the last line; ``--every 0`` prints every datagram. It binds
 127.0.0.1:5005 (the default ``output.json``) unless told other addresses; it never sends anything.
+
+UDP keeps neither order nor delivery: sumhe numbers its JSON datagrams (``seq``), and per address a datagram
+numbered below one already received (overtaken on the way) is not taken as the newest position; the datagrams
+lost and overtaken are counted in the last line (a ``seq`` of 0 after others: the daemon started again).
 """
 
 from __future__ import annotations
@@ -40,6 +44,32 @@ class Position:
     track: float | None
     gps: str
     mode: str
+    seq: int | None = None
+    """The datagram's number (JSON from ``sumhe run``), None where it has none."""
+
+
+@dataclass
+class Numbering:
+    """The ``seq`` numbers of one address's datagrams: those lost on the way (gaps not filled since) and those
+    that arrived after a later one (overtaken; one duplicated on the way, which UDP allows but rarely does, would
+    be counted so too)."""
+
+    top: int | None = None
+    lost: int = 0
+    overtaken: int = 0
+
+    def see(self, seq: int) -> bool:
+        """Count datagram ``seq``; True when it is the newest so far (a 0 after others: the sender started again;
+        the same number twice is not new)."""
+        if self.top is not None and 0 < seq <= self.top:
+            if seq < self.top:
+                self.overtaken += 1
+                self.lost -= 1  # it fills a gap counted as lost
+            return False
+        if self.top is not None:
+            self.lost += max(seq - self.top - 1, 0)
+        self.top = seq
+        return True
 
 
 def parse_datagram(data: bytes) -> Position | None:
@@ -61,6 +91,7 @@ def parse_datagram(data: bytes) -> Position | None:
             obj.get("track"),
             str(obj.get("gps", "")),
             str(obj.get("mode", "")),
+            seq if isinstance(seq := obj.get("seq"), int) and not isinstance(seq, bool) and seq >= 0 else None,
         )
     return _nmea_position(text.decode("ascii", "replace"))
 
@@ -152,6 +183,7 @@ def run(args: argparse.Namespace) -> int:
     received = since = 0
     next_line = 0.0
     newest: tuple[Position, str] | None = None
+    numbering: dict[str, Numbering] = {}
     try:
         while not stop[0] and time.monotonic() < end and (args.count is None or received < args.count):
             for key, _ in sel.select(timeout=min(0.2, max(end - time.monotonic(), 0.0))):
@@ -161,7 +193,9 @@ def run(args: argparse.Namespace) -> int:
                     continue
                 received += 1
                 since += 1
-                newest = (position, key.data)
+                fresh = position.seq is None or numbering.setdefault(key.data, Numbering()).see(position.seq)
+                if fresh or args.every <= 0:  # --every 0 prints every datagram, an overtaken one too
+                    newest = (position, key.data)
                 if args.every <= 0 or (args.count is not None and received >= args.count):
                     break
             now = time.monotonic()
@@ -173,5 +207,10 @@ def run(args: argparse.Namespace) -> int:
         for key in list(sel.get_map().values()):
             key.fileobj.close()  # type: ignore[union-attr]
         sel.close()
-    print(f"{received} datagrams with a position", file=sys.stderr)
+    numbered = ""
+    if numbering:
+        lost = sum(n.lost for n in numbering.values())
+        overtaken = sum(n.overtaken for n in numbering.values())
+        numbered = f" ({lost} lost, {overtaken} out of order by their seq)"
+    print(f"{received} datagrams with a position{numbered}", file=sys.stderr)
     return 0
