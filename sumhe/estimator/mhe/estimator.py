@@ -71,6 +71,10 @@ PRIOR_POSITION_M = 1000.0
 """Half-width of the weak prior on the first position (m) at a start."""
 STATUS_COUNTERS: dict[str, str] = {"ok": "gps_ok", "rejected": "gps_rejected", "outage": "outage_epochs"}
 
+HOLD_FRACTION = 1e-3
+"""While the newest step has no fix, the CAN scale states are held where the last window solved with one left
+them, within this fraction of their half-ranges (:meth:`MovingHorizonEstimator._solve`)."""
+
 
 def fix_moved(model: SuModel, fix: FixMeasurement, x: NDArray[np.float64], t: float) -> FixMeasurement:
     """``fix`` moved to ``t`` (s) along the state ``x`` (its speed and azimuth: a few tens of ms at most)."""
@@ -118,6 +122,8 @@ class MovingHorizonEstimator(StreamEstimator):
         CAN-rate estimate's bounds (0.84 -> 0.62 us with floats; the same bits)."""
         md = model.n_dynamic
         self._theta_range = (self.solve.hi[md:] - self.solve.lo[md:]) / 2.0
+        self._scale_states = [i for i in (model.i_scale, model.i_gain) if i is not None]
+        self._hold_bounds = [HOLD_FRACTION * float(self._theta_range[i - md]) for i in self._scale_states]
         drift = theta_drift_variance(self.policy.theta_drift, self._theta_range, 1.0)  # per second
         self.newest = NewestError(model, self._step_jac, s.estimator.r_cap_sigmas, drift)
         c, k_sig = s.can, s.estimator.r_cap_sigmas
@@ -168,6 +174,8 @@ class MovingHorizonEstimator(StreamEstimator):
         self._unsolved = False
         self._theta0: NDArray[np.float64] | None = None
         self._theta_info: NDArray[np.float64] | None = None
+        self._scales: list[float] | None = None
+        """The CAN scale states (speed scale, yaw-rate gain) of the last window solved with a fix at its newest step."""
         self._stops = StopWatch()
         self._status: GpsStatus = "outage"
 
@@ -474,8 +482,21 @@ class MovingHorizonEstimator(StreamEstimator):
             self.envelope.observe(np.where(win.avail[steps], ratio, np.nan))
 
     def _solve(self, shift: int | None) -> tuple[NDArray[np.float64], str]:
+        """Solve the window. While its newest step has no fix, the CAN scale states (speed scale, yaw-rate gain)
+        are held where the last window solved with one left them: steps without a fix carry no information on
+        them, but their state-noise terms shrink as the scales grow (a larger gain makes the yaw rate behind the
+        same CAN samples smaller, its changes cheaper), so through a long outage's turns the solution drifted with
+        the turns (a realistic simulated offroad drive, seed 11: the gain 0.996 -> 1.15 in 25 s of a 55 s outage,
+        the truth's 0.967, the azimuth 48 deg off; the Kalman peers' gain does not move without a measurement)."""
         assert self._arrival is not None  # set at the start
-        return self.solve.solve(self.window, self._arrival, self.period_s, shift, self.envelope.factor)
+        win, arrival = self.window, self._arrival
+        if self._scales is not None and not win.gps[-1]:
+            for i, value, bound in zip(self._scale_states, self._scales, self._hold_bounds, strict=True):
+                arrival = measured(arrival, i, value, bound)
+        x_new, mode = self.solve.solve(win, arrival, self.period_s, shift, self.envelope.factor)
+        if win.gps[-1] and mode != "predict":
+            self._scales = x_new[-1, self._scale_states].tolist()
+        return x_new, mode
 
     def _step_motion(self, j: int) -> None:
         """The offset and CAN noise bound of the transition into step ``j`` from the CAN data between it and the
