@@ -336,8 +336,8 @@ def test_the_can_scale_states_hold_through_an_outage() -> None:
     # the bench's realistic offroad drive of seed 11 (gain 0.967): its 55 s outage begins 20 s in, through sharp
     # turns; with the speed scale and the yaw-rate gain free in the outage's solves the gain went 0.996 -> 1.15 in
     # 25 s (the steps without a fix make a larger gain cheaper, the turns smaller), the azimuth 48 deg off and the
-    # estimate 71 m; held, the estimate stays within 16 m, and once GNSS is back the window learns the gain
-    est, out, errors_m = bench_drive_epochs("offroad", 11, (21.0, 95.0))
+    # estimate 71 m; held, the estimate stays within 18 m, and once GNSS is back the window learns the gain
+    _, out, errors_m = bench_drive_epochs("offroad", 11, (21.0, 95.0))
     inside = np.array([e.gps == "outage" for e in out])
     assert inside.sum() > 40 and np.max(errors_m[inside]) < 25.0
     assert np.max(errors_m[~inside][-10:]) < 3.0
