@@ -523,11 +523,12 @@ def test_the_kalman_family_learns_the_yaw_rate_gain_and_keeps_it_at_rest(name: s
         est = make_estimator(name, Config.of(EstimationSettings()))
         stops: list[list[float]] = [[]]  # the gain through each stop
         gain = math.nan
-        for sample in samples:
+        still = drive.truth.at(np.array([s.t for s in samples])).speed < 0.01
+        for sample, at_rest in zip(samples, still, strict=True):
             est.push(sample)
             if est._started:
                 gain = float(est._mean()[est.layout.g])
-                if drive.truth.at(sample.t).speed < 0.01:
+                if at_rest:
                     stops[-1].append(gain)
                 elif stops[-1]:
                     stops.append([])

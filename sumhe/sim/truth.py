@@ -11,6 +11,7 @@ with two antennas also ``lat2``/``lon2``/``east2``/``north2`` of antenna 2.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import io
 import math
 from dataclasses import dataclass
@@ -75,6 +76,12 @@ class Truth:
         """The arrays present, by column name, in file order."""
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if getattr(self, f.name) is not None}
 
+    @functools.cached_property
+    def _unwrapped_azimuth(self) -> FloatArray:
+        """The azimuth unwrapped, once per truth: a drive's whole array, which :meth:`at` called sample by sample
+        had unwrapped again at every call (a 140 s drive's 14 000 calls: 50 s)."""
+        return np.unwrap(self.azimuth)
+
     def at(self, t: ArrayLike) -> Truth:
         """Linear interpolation at times ``t`` (Unix s; clamped to the first/last sample); the azimuth is
         interpolated unwrapped and wrapped back to [0, 2 pi). Returns arrays of the shape of ``t``."""
@@ -82,7 +89,7 @@ class Truth:
         out: dict[str, FloatArray] = {}
         for name, value in self.columns().items():
             if name == "azimuth":
-                out[name] = np.mod(np.interp(tq, self.t, np.unwrap(value)), 2.0 * math.pi)
+                out[name] = np.mod(np.interp(tq, self.t, self._unwrapped_azimuth), 2.0 * math.pi)
             else:
                 out[name] = np.interp(tq, self.t, value)
         return Truth(**out)
