@@ -244,11 +244,14 @@ def _python_can_mf4(argv: list[str]) -> str:
     return run.stdout.strip()
 
 
-def test_a_replay_of_candump_logs_loads_python_can_without_its_mf4_reader_and_others_with_it():
+def test_the_live_commands_and_a_replay_of_candump_logs_load_python_can_without_its_mf4_reader_others_with_it():
     pytest.importorskip("asammdf")
     assert _python_can_mf4(["-v", "replay", "drive.log", "--nmea", "drive.nmea"]) == "False True"
     assert _python_can_mf4(["replay", "a.log", "b.MF4"]) == "True True"
-    assert _python_can_mf4(["run", "--config", "x.toml"]) == "True True"
+    assert _python_can_mf4(["run", "--config", "x.toml"]) == "False True"
+    assert _python_can_mf4(["can-up", "--config", "x.toml"]) == "False True"
+    assert _python_can_mf4(["bench", "--drive", "folder"]) == "True True"
+    assert _python_can_mf4(["fleet", "d1", "--out", "o"]) == "True True"
 
 
 def _ends(code: str, **kw) -> subprocess.CompletedProcess:
