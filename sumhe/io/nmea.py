@@ -494,6 +494,11 @@ class NmeaDecoder:
             out.extend(self._feed_row(row, t))
         return out
 
+    @property
+    def assembling(self) -> bool:
+        """Whether an epoch is being assembled: lines of it fed, its fix not yet emitted."""
+        return self._open is not None
+
     def close_epoch(self) -> list[GnssFix]:
         """The epoch being assembled is complete (e.g. the port has been idle): emit it."""
         return self._close(ender=False)

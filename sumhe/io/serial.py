@@ -197,12 +197,18 @@ class SerialNmeaSource(_SerialSource[GnssFix]):
         return {**vars(self.stats), "restamped": self.receive_times.restamped}
 
     def _read(self) -> list[GnssFix]:
+        """The fixes the next read completes, each stamped (:class:`ReceiveTimes`) as queued where a later epoch
+        came in the same read: a later fix, or the lines of the epoch the decoder is still assembling (whose fix
+        comes with a later read, stamped with this read's time too: unmarked, a backlog read in two parts ended with
+        two fixes of one time, the second dropped as not newer)."""
         lines, idle = self.port.read()
         fixes = [fix for line in lines for fix in self.decoder.feed(line.raw, t=line.t)]
+        followed = not idle and self.decoder.assembling
         if idle:
             fixes.extend(self.decoder.close_epoch())
         self._report()
-        return [self.receive_times.stamp(fix, queued=i < len(fixes) - 1) for i, fix in enumerate(fixes)]
+        last = len(fixes) - 1
+        return [self.receive_times.stamp(fix, queued=i < last or followed) for i, fix in enumerate(fixes)]
 
     def _report(self) -> None:
         """Log the decoder counters now and then when bad input arrived since the last report."""
