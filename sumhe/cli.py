@@ -60,12 +60,12 @@ WITHOUT_MF4 = frozenset({"replay", "run", "can-up", "listen", "record", "play", 
 
 def skip_mf4_reader(argv: Sequence[str]) -> None:
     """For a command of :data:`WITHOUT_MF4` whose command line names no MF4 file: load python-can without its MF4
-    reader's asammdf and the pandas that comes with it (``sumhe can-up`` 1.9 -> 0.9 s and 96 -> 34 MB, the daemon's
-    peak memory 204 -> 159 MB, a tenth of a replay of the bundled drive). python-can imports its MF4 reader at
-    ``import can`` and leaves it unusable (``asammdf`` None) where asammdf cannot be imported: here it cannot while
-    python-can loads, and nothing of this process reads or writes MF4. Any other command (``bench --drive``,
-    ``fleet`` and ``calibrate`` may find MF4 logs in a folder), or one naming a ``.mf4`` file, loads python-can as
-    it is."""
+    reader's asammdf and the pandas that comes with it (``sumhe can-up`` 0.85-0.91 -> 0.28-0.35 s and 96 -> 34 MB,
+    the daemon's peak memory 204 -> 159 MB, a tenth of a replay of the bundled drive). python-can imports its MF4
+    reader at ``import can`` and leaves it unusable (``asammdf`` None) where asammdf cannot be imported: here it
+    cannot while python-can loads, and nothing of this process reads or writes MF4. Any other command (``bench
+    --drive``, ``fleet`` and ``calibrate`` may find MF4 logs in a folder), or one naming a ``.mf4`` file, loads
+    python-can as it is."""
     command = next((a for a in argv if a in COMMANDS), None)
     if command not in WITHOUT_MF4 or any(a.lower().endswith(".mf4") for a in argv) or "can" in sys.modules:
         return
