@@ -48,10 +48,12 @@ pytestmark = [pytest.mark.slow, pytest.mark.socketcan, needs_vcan0()]
 SUMHE = [sys.executable, "-m", "sumhe"]
 LINK_DOWN = (25.0, 1.5)
 """Drive time (s) at which vcan0 is set down, and for how long."""
-FOREIGN_AT_S = 15.0
-"""Drive time (s) at which the foreign frames are sent: before the link goes down, so that they reach the daemon's
+FOREIGN_AT_S = (8.0, 15.0, 21.0)
+"""Drive times (s) at which the foreign frames are sent: before the link goes down, so that they reach the daemon's
 open socket however long its reconnect takes under emulation (sent at 30 s, 3.5 s after the link came back, a CI run
-on loaded cores counted none of them), and their counts must outlive the reconnect."""
+on loaded cores counted none of them), and their counts must outlive the reconnect. Three bursts: a reader starved
+by emulation on loaded cores lets its socket's queue overflow, and the kernel dropped a single burst at 15 s whole
+(a CI run with the host's tests in two processes beside the VM: none counted)."""
 FD_FRAMES = 5
 ERROR_FRAMES = 3
 CAN_ERR_CRTL = 0x04
@@ -169,7 +171,7 @@ def test_sumhe_play_on_vcan0_through_link_down_and_foreign_frames(drive, tmp_pat
         timers = [
             _at(drive_t0 + LINK_DOWN[0], lambda: _ip_link("down"), failures),
             _at(drive_t0 + LINK_DOWN[0] + LINK_DOWN[1], lambda: _ip_link("up"), failures),
-            _at(drive_t0 + FOREIGN_AT_S, _foreign_frames, failures),
+            *(_at(drive_t0 + at, _foreign_frames, failures) for at in FOREIGN_AT_S),
         ]
         assert player.wait(DURATION_S + 60) == 0, player_log.read_text()
         code, stop_s = _stop(service, listener, svc_log)
@@ -188,7 +190,8 @@ def test_sumhe_play_on_vcan0_through_link_down_and_foreign_frames(drive, tmp_pat
     assert can_counters["reconnects"] >= 1, "the link loss was seen and recovered from"
     # each counted (a reader starved by emulation may find its socket's queue overflowed: the kernel drops frames)
     fd, errors = can_counters["fd_frames"], can_counters["error_frames"]
-    assert 0 < fd <= FD_FRAMES and 0 < errors <= ERROR_FRAMES, (fd, errors)
+    bursts = len(FOREIGN_AT_S)
+    assert 0 < fd <= bursts * FD_FRAMES and 0 < errors <= bursts * ERROR_FRAMES, (fd, errors)
     stopped = next(line for line in svc_text.splitlines() if "sumhe stopped" in line)
     assert f"error_frames={errors} fd_frames={fd}" in stopped
     assert "Network is down" in svc_text and "ip link set up vcan0" in svc_text, "the loss is logged with the fix"
