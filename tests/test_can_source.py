@@ -148,15 +148,20 @@ def test_bus_shut_down_and_brought_back_resumes_samples(channel):
         async with CanBusSource.from_config(config_for(channel)) as source:
             await until(lambda: source.stats.connected)
             first_bus = source.bus
+            assert source.stats.last_received_s == 0.0
             with sender(channel) as bus:
                 bus.send(speed_frame(0, 36.0, 0))
                 assert (await anext(source)).value == pytest.approx(10.0)
+                read_before = source.stats.last_received_s
+                assert 0.0 < read_before <= time.time()
                 first_bus.shutdown()  # the link goes down under the reader: recv raises CanOperationError
                 await until(lambda: reopened(source, first_bus))
                 assert source.stats.reconnects == 1
                 assert "Cannot operate on a closed bus" in source.stats.last_error
+                reopened_at = time.time()
                 bus.send(speed_frame(0, 72.0, 1))
                 assert (await anext(source)).value == pytest.approx(20.0)
+                assert source.stats.last_received_s >= reopened_at > read_before, "the read after the reopen"
         # closed by the stop, not down: the final status line marks no DOWN with the mended error
         assert source.stats.connected and "closed bus" in source.stats.last_error
 

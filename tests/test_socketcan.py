@@ -69,8 +69,6 @@ MAX_STOP_S = 30.0
 """SIGTERM to exit (s): under emulation (the CI virtual machine) the last solves and thread joins take seconds."""
 START_S = 600.0
 """Longest wait for the daemon to open its inputs (s): a Python start-up takes tens of seconds under emulation."""
-CAN_RATE_HZ = 150
-"""Frames per second of the mapped messages (100 Hz yaw rate + 50 Hz speed)."""
 
 
 @pytest.fixture(scope="module")
@@ -195,9 +193,12 @@ def test_sumhe_play_on_vcan0_through_link_down_and_foreign_frames(drive, tmp_pat
     stopped = next(line for line in svc_text.splitlines() if "sumhe stopped" in line)
     assert f"error_frames={errors} fd_frames={fd}" in stopped
     assert "Network is down" in svc_text and "ip link set up vcan0" in svc_text, "the loss is logged with the fix"
-    # the reader decodes in its own thread, whether or not the estimator keeps real time (under emulation it may
-    # not): more frames were read than were sent before the link went down (with 1 s for a late timer)
-    assert can_counters["decoded"] > CAN_RATE_HZ * (LINK_DOWN[0] + 1.0), "frames read after the link came back"
+    # the reader reads in its own thread, whether or not the estimator keeps real time (under emulation it may not);
+    # its newest read is after the link came back (the frames' count says nothing: a reader starved by emulation
+    # lets the kernel drop frames from its full socket queue, a CI run decoded fewer than were sent before the link
+    # went down)
+    link_up = drive_t0 + LINK_DOWN[0] + LINK_DOWN[1]
+    assert can_counters["last_received_s"] > link_up, ("frames read after the link came back", can_counters)
     speeds = [r["speed"] for r in listener.json if r["speed"] is not None]
     assert max(speeds) < 30.0, "no speed read from the FD frames"
 

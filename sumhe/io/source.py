@@ -51,6 +51,9 @@ class SourceStats:
     the final status tells a source that was up at the end from one that was down)."""
     last_error: str = ""
     """The newest failure, kept after the source mended it."""
+    last_received_s: float = 0.0
+    """Wall-clock time (Unix s) at which the reader last read something; 0.0 before the first read (how fresh
+    the input is, whatever the items' own times)."""
 
 
 class Backoff:
@@ -222,6 +225,7 @@ class ThreadedSource(ABC, Generic[T]):
                     items = self._read()
                     if items:
                         self.stats.received += len(items)
+                        self.stats.last_received_s = time.time()
                         self._loop.call_soon_threadsafe(self._deliver, items)
             except Exception as e:  # the device vanished or failed: down; close first, then back off and reopen
                 failure = e
