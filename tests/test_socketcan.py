@@ -19,7 +19,6 @@ import re
 import shutil
 import signal
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -28,6 +27,7 @@ import can
 import numpy as np
 import pytest
 
+from sumhe.cli import main
 from sumhe.io.player import Player, Pty, read_nmea_log
 from sumhe.sim.truth import Truth
 
@@ -45,7 +45,6 @@ from vcan import needs_vcan0
 
 pytestmark = [pytest.mark.slow, pytest.mark.socketcan, needs_vcan0()]
 
-SUMHE = [sys.executable, "-m", "sumhe"]
 LINK_DOWN = (25.0, 1.5)
 """Drive time (s) at which vcan0 is set down, and for how long."""
 FOREIGN_AT_S = (8.0, 15.0, 21.0)
@@ -231,7 +230,7 @@ def _listening(candump: subprocess.Popen, bus: can.BusABC, recording: Path, time
 
 
 @pytest.mark.skipif(shutil.which("canplayer") is None, reason="needs can-utils (canplayer, candump)")
-def test_canplayer_feeds_the_daemon_and_its_candump_recording_replays(drive, tmp_path):
+def test_canplayer_feeds_the_daemon_and_its_candump_recording_replays(drive, tmp_path, capsys):
     """canplayer replays the CAN log; the NMEA goes into the daemon's pty from this process, started when the first
     frame is on the bus (by its kernel time), so both keep the drive's timing."""
     drive_dir, sim = drive
@@ -288,14 +287,15 @@ def test_canplayer_feeds_the_daemon_and_its_candump_recording_replays(drive, tmp
     mapped = sum(line.split()[2].split("#")[0] in MAPPED_IDS for line in log_lines)
     assert 0 < listener.status["sources"]["can"]["frames"] <= mapped < len(log_lines)
 
-    # the recording replayed: the NMEA log moved onto the recording's clock, as the daemon saw it
+    # the recording replayed: the NMEA log moved onto the recording's clock, as the daemon saw it (in this process:
+    # a new one's imports take a minute under emulation)
     out = tmp_path / "replay.jsonl"
-    replay = subprocess.run(
-        [*SUMHE, "replay", str(recording), "--nmea", str(drive_dir / "drive.nmea"), "--offset", f"{nmea_offset}",
-         "--config", str(svc_cfg), "--out", str(out)],
-        capture_output=True, text=True, timeout=900, env=dict(os.environ, OPENBLAS_NUM_THREADS="1"),
+    capsys.readouterr()
+    code = main(
+        ["replay", str(recording), "--nmea", str(drive_dir / "drive.nmea"), "--offset", f"{nmea_offset}",
+         "--config", str(svc_cfg), "--out", str(out)]
     )  # fmt: skip
-    assert replay.returncode == 0, replay.stderr
+    assert code == 0, capsys.readouterr().err
     records = [json.loads(line) for line in out.read_text().splitlines()]
     assert len(records) > 0.9 * len(listener.json)
     err, t = _shifted_truth_errors(records, sim, nmea_offset)
@@ -307,15 +307,18 @@ def test_canplayer_feeds_the_daemon_and_its_candump_recording_replays(drive, tmp
 
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="creating a network interface needs root")
-def test_can_up_creates_and_brings_up_the_configured_vcan(tmp_path):
+def test_can_up_creates_and_brings_up_the_configured_vcan(tmp_path, capsys):
+    """In this process (a new one's start-up takes tens of seconds under emulation); the command runs ``ip``."""
     config = tmp_path / "c.toml"
     config.write_text('[can]\ninterface = "socketcan"\nchannel = "vcan5"\n')
     try:
-        done = subprocess.run([*SUMHE, "can-up", "--config", str(config)], capture_output=True, text=True)
-        assert done.returncode == 0, done.stderr
-        assert "ip link add dev vcan5 type vcan" in done.stdout
+        code = main(["can-up", "--config", str(config)])
+        done = capsys.readouterr()
+        assert code == 0, done.err
+        assert "ip link add dev vcan5 type vcan" in done.out
         assert int(Path("/sys/class/net/vcan5/flags").read_text(), 16) & 0x1
-        again = subprocess.run([*SUMHE, "can-up", "--config", str(config)], capture_output=True, text=True)
-        assert again.returncode == 0 and again.stdout == "" and "nothing to do" in again.stderr
+        code = main(["can-up", "--config", str(config)])
+        again = capsys.readouterr()
+        assert code == 0 and again.out == "" and "nothing to do" in again.err, again
     finally:
         subprocess.run(["ip", "link", "del", "vcan5"], check=False)
