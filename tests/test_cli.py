@@ -181,15 +181,22 @@ def test_listen_takes_the_highest_seq_as_the_newest_and_counts_lost_and_overtake
     first, last = out.splitlines()  # the first datagram's line at once, then the newest at the count
     assert first.startswith("08:00:00.0Z  lat 50.0000000") and last.startswith("08:00:00.0Z  lat 51.5000000")
     assert last.endswith(", 5 datagrams]")
-    assert "6 datagrams with a position (4 lost, 1 out of order by their seq)" in err
+    assert "6 datagrams with a position (4 lost, 1 out of order by their seq, 0 repeated)" in err
 
 
-def test_numbering_counts_gaps_filled_later_and_ignores_a_repeat_of_the_newest():
-    from sumhe.commands.listen import Numbering
+def test_numbering_counts_gaps_filled_later_and_repeats_apart():
+    from sumhe.commands.listen import REMEMBERED, Numbering
 
     n = Numbering()
-    assert [n.see(k) for k in (0, 3, 1, 3, 4, 0)] == [True, True, False, False, True, True]
-    assert (n.top, n.lost, n.overtaken) == (0, 1, 1)
+    assert [n.see(k) for k in (0, 3, 1, 3, 1, 0, 2)] == [True, True, False, False, False, True, True]
+    # 1 filled one of the two gaps; 3 and 1 again are repeats, which neither fill a gap nor count as overtaken;
+    # after the restart at 0, 1 is lost again and 2 (a number seen before the restart) is new
+    assert (n.top, n.lost, n.overtaken, n.repeated) == (2, 2, 1, 2)
+    assert not n.see(1) and (n.lost, n.overtaken, n.missing) == (1, 2, set())
+    # a gap longer than the numbers remembered: the oldest missing ones, if they come, count as repeats
+    n.see(2 + 3 * REMEMBERED)
+    assert n.lost == 1 + 3 * REMEMBERED - 1 and len(n.missing) == REMEMBERED
+    assert not n.see(3) and n.repeated == 3 and not n.see(2 + 3 * REMEMBERED - 1) and n.overtaken == 3
 
 
 def test_can_up_prints_the_commands_from_the_config(tmp_path, capsys):

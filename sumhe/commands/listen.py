@@ -6,8 +6,9 @@ once a second with the number of datagrams since the last line; ``--every 0`` pr
 127.0.0.1:5005 (the default ``output.json``) unless told other addresses; it never sends anything.
 
 UDP keeps neither order nor delivery: sumhe numbers its JSON datagrams (``seq``), and per address a datagram
-numbered below one already received (overtaken on the way) is not taken as the newest position; the datagrams
-lost and overtaken are counted in the last line (a ``seq`` of 0 after others: the daemon started again).
+numbered below one already received (overtaken on the way, or repeated) is not taken as the newest position; the
+datagrams lost, overtaken and repeated are counted in the last line (a ``seq`` of 0 after others: the daemon
+started again).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import signal
 import socket
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import pynmea2
@@ -48,26 +49,41 @@ class Position:
     """The datagram's number (JSON from ``sumhe run``), None where it has none."""
 
 
+REMEMBERED = 10_000
+"""Missing numbers remembered per address: a datagram overtaken by more than this many is counted as repeated."""
+
+
 @dataclass
 class Numbering:
-    """The ``seq`` numbers of one address's datagrams: those lost on the way (gaps not filled since) and those
-    that arrived after a later one (overtaken; one duplicated on the way, which UDP allows but rarely does, would
-    be counted so too)."""
+    """The ``seq`` numbers of one address's datagrams: those lost on the way (gaps not filled since), those that
+    arrived after a later one (overtaken: they fill a gap) and those that arrived again (repeated on the way, which
+    UDP allows but rarely does)."""
 
     top: int | None = None
     lost: int = 0
     overtaken: int = 0
+    repeated: int = 0
+    missing: set[int] = field(default_factory=set)
+    """The numbers of the gaps not filled yet (the newest :data:`REMEMBERED` of them)."""
 
     def see(self, seq: int) -> bool:
         """Count datagram ``seq``; True when it is the newest so far (a 0 after others: the sender started again;
         the same number twice is not new)."""
         if self.top is not None and 0 < seq <= self.top:
-            if seq < self.top:
+            if seq in self.missing:
+                self.missing.remove(seq)
                 self.overtaken += 1
                 self.lost -= 1  # it fills a gap counted as lost
+            else:
+                self.repeated += 1
             return False
-        if self.top is not None:
-            self.lost += max(seq - self.top - 1, 0)
+        if self.top is None or seq <= self.top:  # the first, or a 0 after others: numbering starts again
+            self.missing.clear()
+        else:
+            self.lost += seq - self.top - 1
+            self.missing.update(range(max(self.top + 1, seq - REMEMBERED), seq))
+            if len(self.missing) > 2 * REMEMBERED:
+                self.missing = {k for k in self.missing if k >= seq - REMEMBERED}
         self.top = seq
         return True
 
@@ -211,6 +227,7 @@ def run(args: argparse.Namespace) -> int:
     if numbering:
         lost = sum(n.lost for n in numbering.values())
         overtaken = sum(n.overtaken for n in numbering.values())
-        numbered = f" ({lost} lost, {overtaken} out of order by their seq)"
+        repeated = sum(n.repeated for n in numbering.values())
+        numbered = f" ({lost} lost, {overtaken} out of order by their seq, {repeated} repeated)"
     print(f"{received} datagrams with a position{numbered}", file=sys.stderr)
     return 0
