@@ -1,5 +1,6 @@
 """The batch SU estimator: accuracy, the constraints it claims, missing outputs, CAN errors, bad input."""
 
+import logging
 import math
 
 import numpy as np
@@ -150,6 +151,24 @@ def test_formulation_variants_solve(change: dict) -> None:
     assert (res.frame.lat0_deg, res.frame.lon0_deg) == pytest.approx((S.FRAME.lat0_deg, S.FRAME.lon0_deg))
     east, north = S.truth(motion, res.t)
     assert np.hypot(res.east - east, res.north - north).max() < 0.15
+
+
+def test_caps_are_widened_to_hold_the_start_point_before_the_first_solve(caplog) -> None:
+    """CAN speed 5 % above the GNSS speed, the speed scale held within 0.5 %: the start point (the CAN speed)
+    misses the GNSS speed by 0.75 m/s against a cap of 0.2: two widenings by 2 before IPOPT runs, which then
+    starts feasible and does not find the problem infeasible."""
+    settings = with_changes(SETTINGS, {"can.speed_scale_max": 0.005})
+    samples = S.window(S.Motion(v=15.0, omega=0.1), 3.0, gps_noise_m=0.02, scale=1.05, seed=11)
+    with caplog.at_level(logging.INFO, logger="sumhe.estimator.batch"):
+        res = estimate_batch(samples, settings, frame=S.FRAME)
+    assert res.success, res.status
+    assert res.widenings == 2
+    assert [r.getMessage() for r in caplog.records] == [
+        "SU NLP: the start point needs the caps of q and r widened by 4"
+    ]
+    assert res.r[res.output_names.index("gps_speed")] > 0.2  # the GNSS speed's bound beyond its cap
+    plain = estimate_batch(S.window(S.Motion(v=15.0, omega=0.1), 3.0, gps_noise_m=0.02, seed=11), SETTINGS)
+    assert plain.success and plain.widenings == 0
 
 
 def test_failed_ipopt_is_a_result_not_an_exception() -> None:

@@ -27,15 +27,17 @@ Pipeline for one window of samples (a time-ordered list of :class:`~sumhe.messag
 
 One :class:`~sumhe.estimator.problem.SuNlp` per model and window size serves every stage (objective
 weights and bounds are parameters; fixed q, r are variables with equal bounds). When IPOPT finds a stage
-infeasible, the caps of q and r are widened by ``widen_factor`` and the stages rerun (algorithm 3.3 of 001,
-at most ``max_widenings`` times). If IPOPT fails otherwise, the result carries the last good point (stage 1,
-else the start point) with ``success=False`` and the IPOPT status. See ``docs/formulation.md`` for every
-choice against the paper and its measured effect on the protocol (:mod:`sumhe.bench.protocol`).
+infeasible, the caps of q and r are widened by ``widen_factor`` and the stages rerun (algorithm 3.3 of 001, at most
+``max_widenings`` times); before the first solve they are widened as often as it takes to hold the start point
+(:func:`widenings_to_hold`), so that IPOPT starts feasible. If IPOPT fails otherwise, the result carries the last
+good point (stage 1, else the start point) with ``success=False`` and the IPOPT status. See ``docs/formulation.md``
+for every choice against the paper and its measured effect on the protocol (:mod:`sumhe.bench.protocol`).
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -211,13 +213,21 @@ def _centred(grid: Grid, model: SuModel, origin: NDArray[np.float64]) -> NDArray
     return np.where(grid.avail, grid.y - shift, 0.0)
 
 
+def _start_needs(
+    model: SuModel, grid: Grid, bounds: NoiseBounds, x: NDArray, y: NDArray
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """q, r that make the start point ``x`` feasible."""
+    w = np.abs(state_residuals(model, x, grid.h)) / bounds.q_scale
+    e = np.where(grid.avail, np.abs(output_residuals(model, x, y)) / bounds.r_scale, 0.0)
+    return w.max(axis=0), e.max(axis=0)
+
+
 def _start_noise(
     model: SuModel, grid: Grid, bounds: NoiseBounds, x: NDArray, y: NDArray
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """q, r that make the start point feasible, clipped into their boxes."""
-    w = np.abs(state_residuals(model, x, grid.h)) / bounds.q_scale
-    e = np.where(grid.avail, np.abs(output_residuals(model, x, y)) / bounds.r_scale, 0.0)
-    return np.clip(w.max(axis=0), bounds.q_lo, bounds.q_hi), np.clip(e.max(axis=0), bounds.r_lo, bounds.r_hi)
+    q, r = _start_needs(model, grid, bounds, x, y)
+    return np.clip(q, bounds.q_lo, bounds.q_hi), np.clip(r, bounds.r_lo, bounds.r_hi)
 
 
 class _Window:
@@ -264,6 +274,16 @@ class _Window:
         return sol
 
 
+def widenings_to_hold(win: _Window, x0: NDArray[np.float64], factor: float) -> int:
+    """How many widenings by ``factor`` make the caps of q and r hold the start point ``x0`` (clipped into the
+    state box), from where IPOPT starts feasible. Started outside the caps, IPOPT ran the dual infeasibility of
+    some windows of realistic drives up to 1e14 within a dozen iterations, then spent minutes in MUMPS on each
+    before it declared the problem infeasible (or, widened once, solved it)."""
+    q, r = _start_needs(win.model, win.grid, win.bounds, np.clip(x0, win.lbx, win.ubx), win.y)
+    ratio = max(float(np.max(q / win.bounds.q_hi)), float(np.max(r / win.bounds.r_hi)))
+    return math.ceil(math.log(ratio) / math.log(factor)) if 1.0 < ratio < math.inf else 0
+
+
 def estimate_batch(
     samples: Sequence[Sample],
     settings: EstimationSettings | None = None,
@@ -295,12 +315,17 @@ def estimate_batch(
         log.warning("%s; the NLP starts from the interpolated fixes", e)
         lp = interpolated_start(grid, model, settings)
     x0 = start_states(lp, model, win.origin, settings)
-    for widenings in range(settings.estimator.batch.max_widenings + 1):
+    most, factor = settings.estimator.batch.max_widenings, settings.estimator.widen_factor
+    first = min(most, widenings_to_hold(win, x0, factor))
+    if first:
+        log.info("SU NLP: the start point needs the caps of q and r widened by %g", factor**first)
+        win.bounds = widen_caps(win.bounds, factor**first)
+    for widenings in range(first, most + 1):
         stages = _stages(win, x0)
-        if stages.success or stages.status not in INFEASIBLE or widenings == settings.estimator.batch.max_widenings:
+        if stages.success or stages.status not in INFEASIBLE or widenings == most:
             break
-        log.info("SU NLP %s: widening the caps of q and r by %g", stages.status, settings.estimator.widen_factor)
-        win.bounds = widen_caps(win.bounds, settings.estimator.widen_factor)
+        log.info("SU NLP %s: widening the caps of q and r by %g", stages.status, factor)
+        win.bounds = widen_caps(win.bounds, factor)
     x, q, r, q2, r2 = stages.x, stages.q, stages.r, stages.q_centre, stages.r_centre
     status, success = stages.status, stages.success
     box = _extent(win, x, q2, r2) if extent and success else None
