@@ -23,6 +23,14 @@ def test_window_bounds_overlap_and_never_end_inside_an_outage():
         assert not 30.0 <= s < 45.0, "a window starts inside the outage"
 
 
+def test_window_bounds_pass_an_outage_with_data_on_both_sides_of_its_end():
+    t_gps = np.r_[np.arange(0.0, 49.05, 0.1), np.arange(79.1, 120.0, 0.1)]  # an outage 49-79.1 s
+    wins = window_bounds(t_gps, 120.0, length_s=30.0, overlap_s=6.0)
+    ends = [e for _, e in wins]
+    assert all(b > a for a, b in itertools.pairwise(ends)), f"a window ends where the one before it did: {wins}"
+    assert any(s < 79.1 and e >= 79.1 + 6.0 - 1e-9 for s, e in wins), f"no window holds the outage's end: {wins}"
+
+
 def test_window_bounds_of_nothing():
     assert window_bounds(np.zeros(0), 10.0, 20.0, 4.0) == []
 

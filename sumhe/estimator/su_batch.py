@@ -3,9 +3,10 @@
 It buffers the stream and, at the end (:meth:`SuBatch.finish`), smooths it in overlapping windows of
 ``estimator.batch.window_s`` seconds (each solved by :func:`~sumhe.estimator.batch.estimate_batch`). A window ends
 only where GNSS is present (paper 000, sec. 3.2: data must be present at both ends of a window), so a boundary never
-falls inside an outage; each window keeps the estimates of its middle, away from the ends by ``overlap_s``/2,
-where the smoother has data on both sides. It returns one estimate per step of the grid (GNSS epochs and the
-outage steps between them). During the drive :meth:`push` returns nothing: it is not a live estimator.
+falls inside an outage; each window keeps its estimates after the last one kept, up to the middle of its overlap
+with the next window: away from its ends, where the smoother has data on both sides. It returns one estimate per
+step of the grid (GNSS epochs and the outage steps between them). During the drive :meth:`push` returns nothing:
+it is not a live estimator.
 """
 
 from __future__ import annotations
@@ -32,13 +33,15 @@ log = logging.getLogger(__name__)
 
 def window_bounds(t_gps: np.ndarray, t_end: float, length_s: float, overlap_s: float) -> list[tuple[float, float]]:
     """Window [start, end] times over a drive: each ``length_s`` long (stretched to the next GNSS time so no window
-    ends in an outage), consecutive windows overlapping by ``overlap_s``."""
+    ends in an outage), consecutive windows overlapping by ``overlap_s``. A window that starts before an outage
+    (no GNSS time within ``overlap_s`` of the last window's end) reaches ``overlap_s`` past that end, so the
+    outage's end too lies inside a window with data on both sides of it."""
     if t_gps.size == 0:
         return []
     out = []
-    start = float(t_gps[0])
+    start, end = float(t_gps[0]), -math.inf
     while True:
-        later = t_gps[t_gps >= start + length_s]
+        later = t_gps[t_gps >= max(start + length_s, end + overlap_s)]
         end = float(later[0]) if later.size else t_end
         out.append((start, end))
         if end >= t_end or not later.size:
@@ -90,9 +93,8 @@ class SuBatch:
         t_end = self._samples[-1].t
         out: list[StateEstimate] = []
         last_t = -math.inf
-        for i, (start, end) in enumerate(
-            window_bounds(t_gps, t_end, s.estimator.batch.window_s, s.estimator.batch.overlap_s)
-        ):
+        windows = window_bounds(t_gps, t_end, s.estimator.batch.window_s, s.estimator.batch.overlap_s)
+        for i, (start, end) in enumerate(windows):
             chunk = [x for x in self._samples if start <= x.t <= end]
             try:
                 result = estimate_batch(chunk, s, frame=self._frame)
@@ -102,10 +104,8 @@ class SuBatch:
             self._windows += 1
             self._failed += not result.success
             self._solve_s += result.solve_time_s
-            keep_from = last_t if i == 0 else max(last_t, start + s.estimator.batch.overlap_s / 2)
-            for est in _estimates(result):
-                if est.t > keep_from:
-                    out.append(est)
+            keep_to = (end + windows[i + 1][0]) / 2 if i + 1 < len(windows) else math.inf
+            out += [est for est in _estimates(result) if last_t < est.t <= keep_to]
             last_t = out[-1].t if out else last_t
         return out
 
