@@ -90,8 +90,7 @@ class PeersSettings:
     @classmethod
     def quick(cls) -> PeersSettings:
         """About three minutes (one core): a 120 s urban drive of each profile (walk GPS errors on the kind one),
-        outages of 5, 10 and 30 s, each run limited to a minute (a run that takes longer is a failed run: today
-        su-batch on the realistic drive)."""
+        outages of 5, 10 and 30 s, each run limited to a minute (a run that takes longer is a failed run)."""
         return cls(
             scenarios=("urban",),
             gps_errors=("walk",),
