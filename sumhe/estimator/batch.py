@@ -29,9 +29,10 @@ One :class:`~sumhe.estimator.problem.SuNlp` per model and window size serves eve
 weights and bounds are parameters; fixed q, r are variables with equal bounds). When IPOPT finds a stage
 infeasible, the caps of q and r are widened by ``widen_factor`` and the stages rerun (algorithm 3.3 of 001, at most
 ``max_widenings`` times); before the first solve they are widened as often as it takes to hold the start point
-(:func:`widenings_to_hold`), so that IPOPT starts feasible. If IPOPT fails otherwise, the result carries the last
-good point (stage 1, else the start point) with ``success=False`` and the IPOPT status. See ``docs/formulation.md``
-for every choice against the paper and its measured effect on the protocol (:mod:`sumhe.bench.protocol`).
+(:meth:`_Window.widenings_to_hold`), so that IPOPT starts feasible. If IPOPT fails otherwise, the result carries
+the last good point (stage 1, else the start point) with ``success=False`` and the IPOPT status. See
+``docs/formulation.md`` for every choice against the paper and its measured effect on the protocol
+(:mod:`sumhe.bench.protocol`).
 """
 
 from __future__ import annotations
@@ -273,15 +274,14 @@ class _Window:
             log.warning("SU NLP stage %s: IPOPT %s after %d iterations", weights, sol.status, sol.iterations)
         return sol
 
-
-def widenings_to_hold(win: _Window, x0: NDArray[np.float64], factor: float) -> int:
-    """How many widenings by ``factor`` make the caps of q and r hold the start point ``x0`` (clipped into the
-    state box), from where IPOPT starts feasible. Started outside the caps, IPOPT ran the dual infeasibility of
-    some windows of realistic drives up to 1e14 within a dozen iterations, then spent minutes in MUMPS on each
-    before it declared the problem infeasible (or, widened once, solved it)."""
-    q, r = _start_needs(win.model, win.grid, win.bounds, np.clip(x0, win.lbx, win.ubx), win.y)
-    ratio = max(float(np.max(q / win.bounds.q_hi)), float(np.max(r / win.bounds.r_hi)))
-    return math.ceil(math.log(ratio) / math.log(factor)) if 1.0 < ratio < math.inf else 0
+    def widenings_to_hold(self, x0: NDArray[np.float64], factor: float) -> int:
+        """How many widenings by ``factor`` make the caps of q and r hold the start point ``x0`` (clipped into the
+        state box), from where IPOPT starts feasible. Started outside the caps, IPOPT ran the dual infeasibility of
+        some windows of realistic drives up to 1e14 within a dozen iterations, then spent minutes in MUMPS on each
+        before it declared the problem infeasible (or, widened once, solved it)."""
+        q, r = _start_needs(self.model, self.grid, self.bounds, np.clip(x0, self.lbx, self.ubx), self.y)
+        ratio = max(float(np.max(q / self.bounds.q_hi)), float(np.max(r / self.bounds.r_hi)))
+        return math.ceil(math.log(ratio) / math.log(factor)) if 1.0 < ratio < math.inf else 0
 
 
 def estimate_batch(
@@ -316,7 +316,7 @@ def estimate_batch(
         lp = interpolated_start(grid, model, settings)
     x0 = start_states(lp, model, win.origin, settings)
     most, factor = settings.estimator.batch.max_widenings, settings.estimator.widen_factor
-    first = min(most, widenings_to_hold(win, x0, factor))
+    first = min(most, win.widenings_to_hold(x0, factor))
     if first:
         log.info("SU NLP: the start point needs the caps of q and r widened by %g", factor**first)
         win.bounds = widen_caps(win.bounds, factor**first)
