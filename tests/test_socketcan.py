@@ -1,7 +1,7 @@
 """The daemon on a real SocketCAN bus, vcan0 (``.ci/vcan`` runs these in a virtual machine: this kernel has no
 AF_CAN, so here they skip with the reason).
 
-1. ``sumhe run`` on vcan0 fed by ``sumhe play`` (the simulated drive: a GPS outage and a 50 m jump); mid-drive
+1. ``sumhe run`` on vcan0 fed by ``sumhe play``'s player (the simulated drive: a GPS outage and a 50 m jump); mid-drive
    the link is set down and up again (``ip link``), and CAN FD frames on the speed message's id and error frames
    are put on the bus. The positions arrive over UDP on 127.0.0.1 and are checked against the truth; the final
    status says the link loss was recovered from and the foreign frames were counted and ignored.
@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import shutil
 import signal
 import subprocess
@@ -28,6 +27,7 @@ import numpy as np
 import pytest
 
 from sumhe.cli import main
+from sumhe.io.can import read_log
 from sumhe.io.player import Player, Pty, read_nmea_log
 from sumhe.sim.truth import Truth
 
@@ -88,17 +88,6 @@ def _service_config(tmp: Path, port: int, latency: float) -> Path:
     return path
 
 
-def _player_config(tmp: Path) -> Path:
-    path = tmp / "player.toml"
-    path.write_text('[can]\ninterface = "socketcan"\nchannel = "vcan0"\n')
-    return path
-
-
-def _offset(player_log: Path) -> float:
-    assert wait_for(player_log, "clock offset", START_S), player_log.read_text()
-    return float(re.search(r"clock offset (-?\d+\.\d+) s", player_log.read_text()).group(1))
-
-
 def _at(when_unix: float, action, failures: list[BaseException]) -> threading.Timer:
     """``action`` run at ``when_unix`` in a timer thread; what it raises goes to ``failures`` (a thread's exception
     would otherwise only be printed)."""
@@ -148,33 +137,41 @@ def _stop(service: subprocess.Popen, listener: Listener, log: Path) -> tuple[int
     return code, time.monotonic() - t_term
 
 
-def test_sumhe_play_on_vcan0_through_link_down_and_foreign_frames(drive, tmp_path):
+def test_the_player_on_vcan0_through_link_down_and_foreign_frames(drive, tmp_path):
+    """The drive played onto vcan0 and into the pty from this process (``sumhe play``'s player; the command itself
+    is run over udp_multicast in test_e2e.py: a new process's start-up takes a minute under emulation)."""
     drive_dir, sim = drive
     listener = Listener(None)
     latency = sim.settings.gps_latency_s + sim.settings.gps_latency_jitter_s / 2
-    svc_log, player_log = tmp_path / "service.log", tmp_path / "player.log"
+    svc_log = tmp_path / "service.log"
     service = sumhe_process(
         "run", "--config", str(_service_config(tmp_path, listener.port, latency)), stderr_path=svc_log
     )
+    pty = Pty(tmp_path / "gps")
+    bus = can.Bus(interface="socketcan", channel="vcan0")
+    player = Player(read_log(drive_dir / "drive.log"), read_nmea_log(drive_dir / "drive.nmea"), bus, pty)
+    started = threading.Event()
+    player.on_start = started.set
     timers, failures = [], []
     try:
-        assert wait_for(svc_log, "can: opened socketcan vcan0", START_S), svc_log.read_text()  # gps: the player's pty
-        player = sumhe_process(
-            "play", str(drive_dir), "--config", str(_player_config(tmp_path)), "--pty", str(tmp_path / "gps"),
-            stderr_path=player_log,
-        )  # fmt: skip
-        offset = _offset(player_log)
+        assert wait_for(svc_log, "sumhe ready", START_S), svc_log.read_text()
+        player.start()
+        assert started.wait(60), "the player did not start"
+        offset = player.start_t - player.t0  # service time = drive time + offset
         drive_t0 = sim.settings.start_unix_s + offset  # service time of the drive's start
         timers = [
             _at(drive_t0 + LINK_DOWN[0], lambda: _ip_link("down"), failures),
             _at(drive_t0 + LINK_DOWN[0] + LINK_DOWN[1], lambda: _ip_link("up"), failures),
             *(_at(drive_t0 + at, _foreign_frames, failures) for at in FOREIGN_AT_S),
         ]
-        assert player.wait(DURATION_S + 60) == 0, player_log.read_text()
+        assert player.join(DURATION_S + 60), "the player did not finish the drive"
         code, stop_s = _stop(service, listener, svc_log)
     finally:
         for timer in timers:
             timer.cancel()
+        player.stop()
+        bus.shutdown()
+        pty.close()
         if service.poll() is None:
             service.kill()
             service.wait(10)
