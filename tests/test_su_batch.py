@@ -1,11 +1,14 @@
+import dataclasses
 import itertools
+import math
 
 import numpy as np
 import pytest
 
 from sumhe.config import load_config
+from sumhe.estimator.batch import estimate_batch
 from sumhe.estimator.registry import make_estimator
-from sumhe.estimator.su_batch import window_bounds
+from sumhe.estimator.su_batch import seam, state_noise_volume, window_bounds
 from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample
 from sumhe.service.pipeline import Pipeline
@@ -29,6 +32,35 @@ def test_window_bounds_pass_an_outage_with_data_on_both_sides_of_its_end():
     ends = [e for _, e in wins]
     assert all(b > a for a, b in itertools.pairwise(ends)), f"a window ends where the one before it did: {wins}"
     assert any(s < 79.1 and e >= 79.1 + 6.0 - 1e-9 for s, e in wins), f"no window holds the outage's end: {wins}"
+
+
+@pytest.mark.parametrize("length", [10.0, 30.0, 60.0])
+@pytest.mark.parametrize("next_tighter", [True, False])
+def test_an_outage_that_fills_an_overlap_comes_whole_from_one_window(length, next_tighter):
+    """1 Hz fixes, as on the real drives: the window before the outage ends at its first fix after, the next one
+    starts at its last fix before; su-batch changes windows at one of those, the one that gives the outage whole to
+    the window with the tighter noise bounds, not half-way through the outage."""
+    t_gps = np.arange(0.0, 200.0, 1.0)
+    t_gps = t_gps[(t_gps <= 40.0) | (t_gps >= 40.0 + length)]
+    wins = window_bounds(t_gps, 200.0, length_s=30.0, overlap_s=6.0)
+    seams = [seam(t_gps, e0, s1, 6.0, next_tighter) for (_, e0), (s1, _) in itertools.pairwise(wins)]
+    assert not any(40.0 < x < 40.0 + length for x in seams), (seams, wins)
+    for ((_, e0), (s1, _)), x in zip(itertools.pairwise(wins), seams, strict=True):
+        if s1 <= 40.0 and e0 >= 40.0 + length:  # the overlap that holds the outage
+            assert x == (s1 if next_tighter else e0)
+        else:
+            assert x == (s1 + e0) / 2, "elsewhere the middle of the overlap"
+    assert sum(s1 <= 40.0 and e0 >= 40.0 + length for (_, e0), (s1, _) in itertools.pairwise(wins)) == 1
+
+
+def test_a_failed_window_is_never_the_tighter():
+    sim = simulate(SimSettings(scenario="urban", seed=3, duration_s=20.0))
+    config = load_config(None, env={})
+    fixes = [stamp_fix(f, config.gps) for f in sim.fixes()]
+    can = [c for c in sim.can_samples() if isinstance(c, CanSample)]
+    result = estimate_batch(sorted([*fixes, *can], key=lambda s: s.t), config.estimation)
+    assert result.success and math.isfinite(state_noise_volume(result))
+    assert state_noise_volume(dataclasses.replace(result, success=False)) == math.inf
 
 
 def test_window_bounds_of_nothing():
