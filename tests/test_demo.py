@@ -19,9 +19,22 @@ LOAD_WARNINGS = (
     "sumhe.service.app: input",
     "sumhe.service.pipeline: samples dropped for their time",
     "sumhe.estimator.mhe.estimator: mhe: GNSS fix",
+    "sumhe.estimator.mhe.estimator: mhe: valid GNSS fix without a speed over ground",
 )
 """What a stall of the shared cores of more than ~0.1 s (at 4x: a few epochs) causes in the daemon, as it would in a
-car's: counted and logged. Nothing else may warn."""
+car's: counted and logged. Nothing else may warn. The player writes an epoch's GGA and RMC 1.5 ms apart (at 4x); a
+stall between them longer than the serial source's idle gap (50 ms) ends the epoch at its GGA: a fix without a
+speed, its RMC then dropped as late (:data:`LATE_ONLY`)."""
+
+LATE_ONLY = re.compile(
+    r"sumhe\.io\.serial: .*bad NMEA input so far: .*checksum_errors=0 garbled=0 late=\d+ .*backwards=0 .*implausible=0"
+)
+"""The serial source's report of bad NMEA input when its only bad input is RMCs of epochs a stall split."""
+
+
+def load_caused(message: str) -> bool:
+    """Whether a warning of the demo is one a stall of the machine causes (:data:`LOAD_WARNINGS`)."""
+    return message.startswith(LOAD_WARNINGS) or LATE_ONLY.match(message) is not None
 
 
 def test_demo_at_the_default_speed_runs_clean_and_beats_dead_reckoning(capsys, tmp_path):
@@ -32,7 +45,7 @@ def test_demo_at_the_default_speed_runs_clean_and_beats_dead_reckoning(capsys, t
     assert main(["demo", "--out", str(png)]) == 0
     out, err = capsys.readouterr()
     messages = re.findall(r"^\S+ \S+ (?:WARNING|ERROR|CRITICAL) (.*)$", err, re.M)
-    assert [m for m in messages if not m.startswith(LOAD_WARNINGS)] == [], err
+    assert [m for m in messages if not load_caused(m)] == [], err
     rate = float(re.search(r"output rate ([\d.]+) Hz", out).group(1))
     assert rate >= 9.0
     assert re.search(r"estimates sent degraded (\d+)", out)
