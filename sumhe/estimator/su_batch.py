@@ -5,9 +5,9 @@ It buffers the stream and, at the end (:meth:`SuBatch.finish`), smooths it in ov
 only where GNSS is present (paper 000, sec. 3.2: data must be present at both ends of a window), so a boundary never
 falls inside an outage; each window keeps its estimates after the last one kept, up to the middle of its overlap
 with the next window: away from its ends, where the smoother has data on both sides (an outage that fills the
-overlap comes whole from the window with the tighter noise bounds: :func:`seam`). It returns one estimate per step
-of the grid (GNSS epochs and the outage steps between them). During the drive :meth:`push` returns nothing: it is
-not a live estimator.
+overlap is both windows' blend, or the one whose noise bounds are the tighter: :func:`blend_outage`). It returns one
+estimate per step of the grid (GNSS epochs and the outage steps between them). During the drive :meth:`push` returns
+nothing: it is not a live estimator.
 """
 
 from __future__ import annotations
@@ -26,11 +26,15 @@ from sumhe.estimator.base import StateEstimate
 from sumhe.estimator.batch import SuResult, estimate_batch
 from sumhe.frontend.can import centred_speed, speed_reads_low
 from sumhe.frontend.fixes import LocalFix
+from sumhe.frontend.measurements import fix_sigmas
 from sumhe.geo import LocalFrame
 from sumhe.messages import CanSample, GnssFix, Sample
 from sumhe.settings import EstimationSettings
 
 log = logging.getLogger(__name__)
+
+_STATES = ("px", "py", "phi", "v", "omega")
+"""The states an estimate reports, by name (:meth:`SuResult.state`)."""
 
 
 def window_bounds(t_gps: np.ndarray, t_end: float, length_s: float, overlap_s: float) -> list[tuple[float, float]]:
@@ -58,19 +62,71 @@ def state_noise_volume(result: SuResult) -> float:
     return float(np.sum(np.log(result.q))) if result.success else math.inf
 
 
-def seam(t_gps: np.ndarray, end: float, next_start: float, overlap_s: float, next_tighter: bool) -> float:
-    """Up to which time the estimates of a window ending at ``end`` are kept, those of the next window (starting at
-    ``next_start``) after it: the middle of their overlap, away from both windows' ends. Where the overlap holds an
-    outage longer than ``overlap_s`` (the next window started at the last fix before it, :func:`window_bounds`),
-    the outage comes whole from one window: the next (``next_start``) where its state noises are the tighter
-    (``next_tighter``, :func:`state_noise_volume`), else this one (``end``). At the middle, the real drive's 60 s
-    outages changed window half-way, up to 64 m apart: each window holds one fix on one side of the outage, and
-    one window's azimuth bound can be several times the other's (at the outage of 1350 s, 0.0151 against 0.0022 rad
-    a step): its half of the outage wandered within it."""
-    gaps = np.diff(t_gps[(t_gps >= next_start) & (t_gps <= end)])
-    if gaps.size and gaps.max() > overlap_s:
-        return next_start if next_tighter else end
-    return (end + next_start) / 2
+def filled_overlap(t_gps: np.ndarray, end: float, next_start: float, overlap_s: float) -> tuple[float, float] | None:
+    """The outage (its last fix before, its first fix after) that fills the overlap of a window ending at ``end`` and
+    the next one starting at ``next_start``: a gap between fixes longer than ``overlap_s`` there (the next window
+    then started at the last fix before it, :func:`window_bounds`); None where the overlap holds no such gap."""
+    inside = t_gps[(t_gps >= next_start) & (t_gps <= end)]
+    gaps = np.diff(inside)
+    if not gaps.size or gaps.max() <= overlap_s:
+        return None
+    i = int(np.argmax(gaps))
+    return float(inside[i]), float(inside[i + 1])
+
+
+def later_weight(x: float, dv: float, agree: bool) -> float:
+    """The weight of the later window's estimate at the fraction ``x`` (0-1) of an outage both windows hold whole
+    (:func:`filled_overlap`). Each holds one fix on one side of the outage and all of its data on the other: where
+    their tracks ``agree`` (:func:`blend_outage`), ``x`` (the earlier window's near the outage's start, the later's
+    near its end, no step between them); where they do not, at least one has wandered: the whole outage from the
+    window whose state noise bounds hold the smaller box (``dv``, the later's :func:`state_noise_volume` less the
+    earlier's, below 0: the later; a failed window's is infinite), by ``x`` where that does not tell (both failed)."""
+    if agree or dv == 0.0 or math.isnan(dv):
+        return x
+    return 1.0 if dv < 0.0 else 0.0
+
+
+def blend_outage(early: SuResult, late: SuResult, gap: tuple[float, float], allowance_m: float) -> list[StateEstimate]:
+    """The earlier window's estimates inside the outage ``gap`` (its last fix before, its first fix after), each
+    blended with the later window's states at its time by :func:`later_weight` (the azimuth the shorter way round).
+    The tracks agree where they are never further apart than ``allowance_m``, the error a fix at the outage's ends is
+    allowed (:func:`fix_allowance`): what a fix could not tell apart.
+
+    Why: the real drive's outages that fill an overlap (with its 1 Hz fixes, all of 10 s or more) changed window at
+    the overlap's middle, up to 64 m apart, where one window's azimuth bound was several times the other's (at 1350 s,
+    0.0151 against 0.0022 rad a step) and its half of the outage wandered within it; the tighter window's whole
+    outage mended those but lost a decimetre on the simulator's clean drives, where both windows are good and a blend
+    by ``x`` is better than either."""
+    a, b = gap
+    inside = [est for est in _estimates(early) if a < est.t < b]
+    t = np.array([est.t for est in inside])
+    there = {n: np.interp(t, late.t, late.state(n)) for n in _STATES}
+    apart = np.hypot(there["px"] - [est.east_m for est in inside], there["py"] - [est.north_m for est in inside])
+    agree = not apart.size or float(apart.max()) <= allowance_m
+    dv = state_noise_volume(late) - state_noise_volume(early)
+    out = []
+    for k, est in enumerate(inside):
+        w = later_weight((est.t - a) / (b - a), dv, agree)
+        east, north, phi, v, omega = (float(there[n][k]) for n in _STATES)
+        out.append(
+            dataclasses.replace(
+                est,
+                east_m=est.east_m + w * (east - est.east_m),
+                north_m=est.north_m + w * (north - est.north_m),
+                azimuth_rad=est.azimuth_rad + w * math.remainder(phi - est.azimuth_rad, math.tau),
+                speed_mps=est.speed_mps + w * (v - est.speed_mps),
+                yaw_rate_rps=est.yaw_rate_rps + w * (omega - est.yaw_rate_rps),
+                mode=est.mode if w < 0.5 else _mode(late),
+            )
+        )
+    return out
+
+
+def fix_allowance(fix: GnssFix, settings: EstimationSettings) -> float:
+    """The largest position error (m) the SU estimators allow a fix: ``r_cap_sigmas`` times its larger 1-sigma
+    error (GST, quality, HDOP or the configured sigma: :func:`~sumhe.frontend.measurements.fix_sigmas`)."""
+    sigmas = fix_sigmas(fix.quality, fix.hdop, fix.sigma_lon_m, fix.sigma_lat_m, settings.gnss)
+    return settings.estimator.r_cap_sigmas * max(sigmas)
 
 
 class SuBatch:
@@ -112,7 +168,8 @@ class SuBatch:
         if self._frame is None or len(self._samples) < 2:
             return []
         s = self.settings
-        t_gps = np.array([x.t for x in self._samples if isinstance(x, GnssFix) and x.valid])
+        fixes = [x for x in self._samples if isinstance(x, GnssFix) and x.valid]
+        t_gps = np.array([f.t for f in fixes])
         t_end = self._samples[-1].t
         out: list[StateEstimate] = []
         last_t = -math.inf
@@ -131,11 +188,14 @@ class SuBatch:
             solved.append((start, end, result))
         for (_, end, result), after in itertools.zip_longest(solved, solved[1:]):
             if after is None:
-                keep_to = math.inf
-            else:
-                tighter = state_noise_volume(after[2]) <= state_noise_volume(result)
-                keep_to = seam(t_gps, end, after[0], s.estimator.batch.overlap_s, tighter)
+                out += [est for est in _estimates(result) if est.t > last_t]
+                break
+            gap = filled_overlap(t_gps, end, after[0], s.estimator.batch.overlap_s)
+            keep_to = (end + after[0]) / 2 if gap is None else gap[0]
             out += [est for est in _estimates(result) if last_t < est.t <= keep_to]
+            if gap is not None:
+                allowance = max(fix_allowance(fixes[i], s) for i in np.searchsorted(t_gps, gap))
+                out += blend_outage(result, after[2], gap, allowance)
             last_t = out[-1].t if out else last_t
         return out
 
@@ -143,11 +203,13 @@ class SuBatch:
         return {"windows": self._windows, "failed": self._failed, "solve_s": round(self._solve_s, 3)}
 
 
+def _mode(result: SuResult) -> str:
+    return "su-batch" if result.success else f"su-batch failed: {result.status}"
+
+
 def _estimates(result: SuResult) -> list[StateEstimate]:
-    names = result.state_names
-    east, north = result.east, result.north
-    phi, v, omega = (result.states[:, names.index(n)] for n in ("phi", "v", "omega"))
-    mode = "su-batch" if result.success else f"su-batch failed: {result.status}"
+    east, north, phi, v, omega = (result.state(n) for n in _STATES)
+    mode = _mode(result)
     return [
         StateEstimate(
             t=float(result.t[k]),
