@@ -15,6 +15,7 @@ from sumhe.estimator.su_batch import (
     later_weight,
     state_noise_volume,
     window_bounds,
+    window_estimates,
 )
 from sumhe.io.fixtime import stamp_fix
 from sumhe.messages import CanSample
@@ -104,7 +105,8 @@ def test_su_batch_blends_an_outage_filling_an_overlap_from_both_windows():
     inside = [(k, t) for k, t in enumerate(early.t) if a < t < b]
     assert len(inside) >= 10
     east_late = np.interp([t for _, t in inside], late.t, late.east)
-    apart = np.abs(east_late - [early.east[k] for k, _ in inside])
+    north_late = np.interp([t for _, t in inside], late.t, late.north)
+    apart = np.hypot(east_late - [early.east[k] for k, _ in inside], north_late - [early.north[k] for k, _ in inside])
     allowance = max(fix_allowance(f, config.estimation) for f in fixes if f.t in (a, b))
     assert 0.05 < apart.max() < allowance, "the two windows' tracks differ, within a fix's allowance"
     for (k, t), there in zip(inside, east_late, strict=True):
@@ -113,7 +115,7 @@ def test_su_batch_blends_an_outage_filling_an_overlap_from_both_windows():
     assert out[round(a, 6)].east_m == early.east[list(early.t).index(a)], "the fix before: the earlier window's"
     assert out[round(b, 6)].east_m == late.east[list(late.t).index(b)], "the fix after: the later window's"
     tighter = late if state_noise_volume(late) < state_noise_volume(early) else early
-    whole = blend_outage(early, late, (a, b), allowance_m=0.01)
+    whole = blend_outage(window_estimates(early), early, late, (a, b), allowance_m=0.01)
     assert [e.east_m for e in whole] == pytest.approx(np.interp([t for _, t in inside], tighter.t, tighter.east))
 
 

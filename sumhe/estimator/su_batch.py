@@ -86,11 +86,14 @@ def later_weight(x: float, dv: float, agree: bool) -> float:
     return 1.0 if dv < 0.0 else 0.0
 
 
-def blend_outage(early: SuResult, late: SuResult, gap: tuple[float, float], allowance_m: float) -> list[StateEstimate]:
-    """The earlier window's estimates inside the outage ``gap`` (its last fix before, its first fix after), each
-    blended with the later window's states at its time by :func:`later_weight` (the azimuth the shorter way round).
-    The tracks agree where they are never further apart than ``allowance_m``, the error a fix at the outage's ends is
-    allowed (:func:`fix_allowance`): what a fix could not tell apart.
+def blend_outage(
+    mine: list[StateEstimate], early: SuResult, late: SuResult, gap: tuple[float, float], allowance_m: float
+) -> list[StateEstimate]:
+    """The earlier window's estimates (``mine``, :func:`window_estimates` of ``early``) inside the outage ``gap`` (its
+    last fix before, its first fix after), each blended with the later window's states at its time by
+    :func:`later_weight` (the azimuth the shorter way round). The tracks agree where they are never further apart
+    than ``allowance_m``, the error a fix at the outage's ends is allowed (:func:`fix_allowance`): what a fix could not
+    tell apart.
 
     Why: the real drive's outages that fill an overlap (with its 1 Hz fixes, all of 10 s or more) changed window at
     the overlap's middle, up to 64 m apart, where one window's azimuth bound was several times the other's (at 1350 s,
@@ -98,7 +101,7 @@ def blend_outage(early: SuResult, late: SuResult, gap: tuple[float, float], allo
     outage mended those but lost a decimetre on the simulator's clean drives, where both windows are good and a blend
     by ``x`` is better than either."""
     a, b = gap
-    inside = [est for est in _estimates(early) if a < est.t < b]
+    inside = [est for est in mine if a < est.t < b]
     t = np.array([est.t for est in inside])
     there = {n: np.interp(t, late.t, late.state(n)) for n in _STATES}
     apart = np.hypot(there["px"] - [est.east_m for est in inside], there["py"] - [est.north_m for est in inside])
@@ -188,14 +191,15 @@ class SuBatch:
             solved.append((start, end, result))
         for (_, end, result), after in itertools.zip_longest(solved, solved[1:]):
             if after is None:
-                out += [est for est in _estimates(result) if est.t > last_t]
+                out += [est for est in window_estimates(result) if est.t > last_t]
                 break
             gap = filled_overlap(t_gps, end, after[0], s.estimator.batch.overlap_s)
             keep_to = (end + after[0]) / 2 if gap is None else gap[0]
-            out += [est for est in _estimates(result) if last_t < est.t <= keep_to]
+            mine = window_estimates(result)
+            out += [est for est in mine if last_t < est.t <= keep_to]
             if gap is not None:
                 allowance = max(fix_allowance(fixes[i], s) for i in np.searchsorted(t_gps, gap))
-                out += blend_outage(result, after[2], gap, allowance)
+                out += blend_outage(mine, result, after[2], gap, allowance)
             last_t = out[-1].t if out else last_t
         return out
 
@@ -207,7 +211,8 @@ def _mode(result: SuResult) -> str:
     return "su-batch" if result.success else f"su-batch failed: {result.status}"
 
 
-def _estimates(result: SuResult) -> list[StateEstimate]:
+def window_estimates(result: SuResult) -> list[StateEstimate]:
+    """One estimate per step of a window's solution, in the window's frame."""
     east, north, phi, v, omega = (result.state(n) for n in _STATES)
     mode = _mode(result)
     return [
